@@ -1,0 +1,51 @@
+// gsw rasterizer constants: the ONLY place any threshold of the rasterizer is written.
+// Shared unchanged by the CPU and CUDA backends and exposed to Python (gsw.constants).
+// Values follow the INRIA 3DGS rasterizer (see ../shared/GUIDE.md, section 3).
+#pragma once
+
+namespace gsw {
+
+// Tiles are TILE_SIZE x TILE_SIZE pixels.
+constexpr int TILE_SIZE = 16;
+// A Gaussian whose view-space depth is <= NEAR_PLANE is culled.
+constexpr double NEAR_PLANE = 0.2;
+// Added to the diagonal of the 2-D covariance (low-pass / anti-aliasing dilation).
+constexpr double COV2D_DILATION = 0.3;
+// The projected centre is clamped to +-FRUSTUM_CLAMP * tan(fov/2) before the EWA Jacobian.
+constexpr double FRUSTUM_CLAMP = 1.3;
+// Screen-space radius = ceil(RADIUS_SIGMAS * sqrt(largest eigenvalue)).
+constexpr double RADIUS_SIGMAS = 3.0;
+// Floor of (mid^2 - det) inside the eigenvalue square root.
+constexpr double EIGEN_FLOOR = 0.1;
+// Blending: alpha = min(ALPHA_MAX, opacity * G); contributions with alpha < ALPHA_MIN are skipped.
+constexpr double ALPHA_MAX = 0.99;
+constexpr double ALPHA_MIN = 1.0 / 255.0;
+// A pixel stops when the next contribution would bring its transmittance below T_MIN
+// (that contribution is not blended).
+constexpr double T_MIN = 1e-4;
+// Implementation margin (not a rendering threshold): a splat is skipped without evaluating
+// exp() only when its exponent is below log(ALPHA_MIN / opacity) by more than this, so the
+// shortcut never changes a result.
+constexpr double SKIP_LOG_MARGIN = 1e-3;
+// Largest supported spherical-harmonics degree.
+constexpr int MAX_SH_DEGREE = 3;
+
+// Real spherical-harmonics basis constants (degree 0..3), INRIA ordering.
+constexpr double SH_C0 = 0.28209479177387814;
+constexpr double SH_C1 = 0.4886025119029199;
+constexpr double SH_C2_0 = 1.0925484305920792;
+constexpr double SH_C2_1 = -1.0925484305920792;
+constexpr double SH_C2_2 = 0.31539156525252005;
+constexpr double SH_C2_3 = -1.0925484305920792;
+constexpr double SH_C2_4 = 0.5462742152960396;
+constexpr double SH_C3_0 = -0.5900435899266435;
+constexpr double SH_C3_1 = 2.890611442640554;
+constexpr double SH_C3_2 = -0.4570457994644658;
+constexpr double SH_C3_3 = 0.3731763325901154;
+constexpr double SH_C3_4 = -0.4570457994644658;
+constexpr double SH_C3_5 = 1.445305721320277;
+constexpr double SH_C3_6 = -0.5900435899266435;
+// Colour offset added after SH evaluation (INRIA: rgb = SH(dir) + 0.5, clamped at 0).
+constexpr double SH_COLOR_OFFSET = 0.5;
+
+}  // namespace gsw

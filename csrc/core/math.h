@@ -1,0 +1,580 @@
+// gsw rasterizer math core: torch-free, header-only, shared by the CPU and CUDA backends.
+//
+// Every forward function is followed by its vector-Jacobian product (VJP), named `*_vjp`;
+// cotangents are named `v_<x>`. All functions are templated on the scalar type so the
+// CPU backend can instantiate them in float32 and float64 (for gradcheck).
+//
+// Conventions (INRIA 3DGS compatible, see ../shared/GUIDE.md section 3):
+//  * quaternions are (w, x, y, z), unnormalised; scales are log-scales; opacity is a logit;
+//  * cameras are world-to-camera, OpenCV axes (x right, y down, z forward);
+//  * the projected mean is K p (pixel (i, j) has its centre at (i + 0.5, j + 0.5) in that frame,
+//    which equals the INRIA rasterizer for cx = W / 2, cy = H / 2);
+//  * 2x2 symmetric matrices are stored (a, b, c) = [[a, b], [b, c]]; a cotangent of such a
+//    triple is the derivative w.r.t. the three free parameters (b counted once).
+#pragma once
+
+#include <cmath>
+
+#include "constants.h"
+
+#if defined(__CUDACC__)
+#define GSW_HD __host__ __device__ __forceinline__
+#else
+#define GSW_HD inline
+#endif
+
+namespace gsw {
+
+// ------------------------------------------------------------------ small linear algebra
+
+template <typename T>
+struct Vec2 {
+  T x, y;
+};
+template <typename T>
+struct Vec3 {
+  T x, y, z;
+};
+// 3x3 matrix, row-major m[r][c].
+template <typename T>
+struct Mat3 {
+  T m[3][3];
+};
+// 2x2 symmetric matrix [[a, b], [b, c]].
+template <typename T>
+struct Sym2 {
+  T a, b, c;
+};
+
+template <typename T>
+GSW_HD Mat3<T> mat3_zero() {
+  Mat3<T> r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) r.m[i][j] = T(0);
+  return r;
+}
+
+template <typename T>
+GSW_HD Mat3<T> matmul(const Mat3<T>& a, const Mat3<T>& b) {
+  Mat3<T> r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j)
+      r.m[i][j] = a.m[i][0] * b.m[0][j] + a.m[i][1] * b.m[1][j] + a.m[i][2] * b.m[2][j];
+  return r;
+}
+
+template <typename T>
+GSW_HD Mat3<T> transpose(const Mat3<T>& a) {
+  Mat3<T> r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) r.m[i][j] = a.m[j][i];
+  return r;
+}
+
+// a * b^T
+template <typename T>
+GSW_HD Mat3<T> matmul_bt(const Mat3<T>& a, const Mat3<T>& b) {
+  return matmul(a, transpose(b));
+}
+
+// a^T * b
+template <typename T>
+GSW_HD Mat3<T> matmul_at(const Mat3<T>& a, const Mat3<T>& b) {
+  return matmul(transpose(a), b);
+}
+
+template <typename T>
+GSW_HD Vec3<T> matvec(const Mat3<T>& a, const Vec3<T>& v) {
+  return {a.m[0][0] * v.x + a.m[0][1] * v.y + a.m[0][2] * v.z,
+          a.m[1][0] * v.x + a.m[1][1] * v.y + a.m[1][2] * v.z,
+          a.m[2][0] * v.x + a.m[2][1] * v.y + a.m[2][2] * v.z};
+}
+
+// a^T v
+template <typename T>
+GSW_HD Vec3<T> matvec_t(const Mat3<T>& a, const Vec3<T>& v) {
+  return {a.m[0][0] * v.x + a.m[1][0] * v.y + a.m[2][0] * v.z,
+          a.m[0][1] * v.x + a.m[1][1] * v.y + a.m[2][1] * v.z,
+          a.m[0][2] * v.x + a.m[1][2] * v.y + a.m[2][2] * v.z};
+}
+
+// ------------------------------------------------------------------ activations
+
+template <typename T>
+GSW_HD T sigmoid(T x) {
+  return T(1) / (T(1) + exp(-x));
+}
+// d sigmoid(x) / dx expressed with y = sigmoid(x).
+template <typename T>
+GSW_HD T sigmoid_vjp(T y, T v_y) {
+  return v_y * y * (T(1) - y);
+}
+
+// ------------------------------------------------------------------ camera
+
+// A pinhole camera: world-to-camera rotation R and translation t (OpenCV axes), intrinsics
+// and image size.
+template <typename T>
+struct Camera {
+  Mat3<T> R;
+  Vec3<T> t;
+  T fx, fy, cx, cy;
+  int width, height;
+};
+
+// Camera centre in world coordinates, -R^T t.
+template <typename T>
+GSW_HD Vec3<T> camera_center(const Camera<T>& cam) {
+  Vec3<T> c = matvec_t(cam.R, cam.t);
+  return {-c.x, -c.y, -c.z};
+}
+
+// p_cam = R p + t.
+template <typename T>
+GSW_HD Vec3<T> world_to_cam(const Camera<T>& cam, const Vec3<T>& p) {
+  Vec3<T> r = matvec(cam.R, p);
+  return {r.x + cam.t.x, r.y + cam.t.y, r.z + cam.t.z};
+}
+template <typename T>
+GSW_HD Vec3<T> world_to_cam_vjp(const Camera<T>& cam, const Vec3<T>& v_pc) {
+  return matvec_t(cam.R, v_pc);
+}
+
+// Sigma_cam = R Sigma R^T.
+template <typename T>
+GSW_HD Mat3<T> cov_world_to_cam(const Camera<T>& cam, const Mat3<T>& cov) {
+  return matmul_bt(matmul(cam.R, cov), cam.R);
+}
+// VJP with a symmetric cotangent: v_Sigma = R^T v_Sigma_cam R.
+template <typename T>
+GSW_HD Mat3<T> cov_world_to_cam_vjp(const Camera<T>& cam, const Mat3<T>& v_cov_cam) {
+  return matmul(matmul_at(cam.R, v_cov_cam), cam.R);
+}
+
+// ------------------------------------------------------------------ 3-D covariance
+
+// Rotation matrix of the normalised quaternion q / |q|, q = (w, x, y, z).
+template <typename T>
+GSW_HD Mat3<T> quat_to_rotmat(const T q_in[4]) {
+  const T inv = T(1) / sqrt(q_in[0] * q_in[0] + q_in[1] * q_in[1] + q_in[2] * q_in[2] +
+                            q_in[3] * q_in[3]);
+  const T w = q_in[0] * inv, x = q_in[1] * inv, y = q_in[2] * inv, z = q_in[3] * inv;
+  Mat3<T> r;
+  r.m[0][0] = T(1) - T(2) * (y * y + z * z);
+  r.m[0][1] = T(2) * (x * y - w * z);
+  r.m[0][2] = T(2) * (x * z + w * y);
+  r.m[1][0] = T(2) * (x * y + w * z);
+  r.m[1][1] = T(1) - T(2) * (x * x + z * z);
+  r.m[1][2] = T(2) * (y * z - w * x);
+  r.m[2][0] = T(2) * (x * z - w * y);
+  r.m[2][1] = T(2) * (y * z + w * x);
+  r.m[2][2] = T(1) - T(2) * (x * x + y * y);
+  return r;
+}
+// VJP of quat_to_rotmat: accumulates d/dq (unnormalised) into v_q.
+template <typename T>
+GSW_HD void quat_to_rotmat_vjp(const T q_in[4], const Mat3<T>& v_R, T v_q[4]) {
+  const T norm = sqrt(q_in[0] * q_in[0] + q_in[1] * q_in[1] + q_in[2] * q_in[2] +
+                      q_in[3] * q_in[3]);
+  const T inv = T(1) / norm;
+  const T w = q_in[0] * inv, x = q_in[1] * inv, y = q_in[2] * inv, z = q_in[3] * inv;
+  const auto& g = v_R.m;
+  // gradient w.r.t. the normalised quaternion
+  T vn[4];
+  vn[0] = T(2) * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] +
+                  x * g[2][1]);
+  vn[1] = T(2) * (y * g[0][1] + z * g[0][2] + y * g[1][0] - T(2) * x * g[1][1] - w * g[1][2] +
+                  z * g[2][0] + w * g[2][1] - T(2) * x * g[2][2]);
+  vn[2] = T(2) * (-T(2) * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] + z * g[1][2] -
+                  w * g[2][0] + z * g[2][1] - T(2) * y * g[2][2]);
+  vn[3] = T(2) * (-T(2) * z * g[0][0] - w * g[0][1] + x * g[0][2] + w * g[1][0] -
+                  T(2) * z * g[1][1] + y * g[1][2] + x * g[2][0] + y * g[2][1]);
+  // through the normalisation n = q / |q|: v_q = (vn - n (n . vn)) / |q|
+  const T n_dot = w * vn[0] + x * vn[1] + y * vn[2] + z * vn[3];
+  v_q[0] += (vn[0] - w * n_dot) * inv;
+  v_q[1] += (vn[1] - x * n_dot) * inv;
+  v_q[2] += (vn[2] - y * n_dot) * inv;
+  v_q[3] += (vn[3] - z * n_dot) * inv;
+}
+
+// Sigma = R S S^T R^T with S = diag(exp(log_scale)).
+template <typename T>
+GSW_HD Mat3<T> covariance_3d(const T quat[4], const T log_scale[3]) {
+  const Mat3<T> R = quat_to_rotmat(quat);
+  const T s[3] = {exp(log_scale[0]), exp(log_scale[1]), exp(log_scale[2])};
+  Mat3<T> M;  // M = R S
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) M.m[i][j] = R.m[i][j] * s[j];
+  return matmul_bt(M, M);
+}
+// VJP of covariance_3d for a symmetric cotangent v_cov; accumulates into v_quat, v_log_scale.
+template <typename T>
+GSW_HD void covariance_3d_vjp(const T quat[4], const T log_scale[3], const Mat3<T>& v_cov,
+                              T v_quat[4], T v_log_scale[3]) {
+  const Mat3<T> R = quat_to_rotmat(quat);
+  const T s[3] = {exp(log_scale[0]), exp(log_scale[1]), exp(log_scale[2])};
+  Mat3<T> M;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) M.m[i][j] = R.m[i][j] * s[j];
+  // Sigma = M M^T  =>  v_M = (v_cov + v_cov^T) M = 2 v_cov M for symmetric v_cov.
+  Mat3<T> v_M = matmul(v_cov, M);
+  Mat3<T> v_R;
+  for (int j = 0; j < 3; ++j) {
+    T v_s = T(0);
+    for (int i = 0; i < 3; ++i) {
+      v_M.m[i][j] *= T(2);
+      v_R.m[i][j] = v_M.m[i][j] * s[j];
+      v_s += v_M.m[i][j] * R.m[i][j];
+    }
+    v_log_scale[j] += v_s * s[j];
+  }
+  quat_to_rotmat_vjp(quat, v_R, v_quat);
+}
+
+// ------------------------------------------------------------------ EWA projection
+
+// Projection of a camera-space mean and covariance to the image (before dilation).
+template <typename T>
+struct Projection {
+  Vec2<T> mean2d;
+  Sym2<T> cov2d;
+};
+
+// Frustum limits of x/z (or y/z): the image extent plus a FRUSTUM_CLAMP margin. Equals
+// +-FRUSTUM_CLAMP * tan(fov/2) for a centred principal point.
+template <typename T>
+GSW_HD void frustum_limits(T focal, T principal, int size, T& lim_neg, T& lim_pos) {
+  const T tan_half = T(0.5) * T(size) / focal;
+  const T margin = (T(FRUSTUM_CLAMP) - T(1)) * tan_half;
+  lim_neg = principal / focal + margin;
+  lim_pos = (T(size) - principal) / focal + margin;
+}
+
+// Clamped x/z and whether it was clamped.
+template <typename T>
+GSW_HD T clamp_ratio(T r, T lim_neg, T lim_pos, bool& clamped) {
+  clamped = (r < -lim_neg) || (r > lim_pos);
+  return r < -lim_neg ? -lim_neg : (r > lim_pos ? lim_pos : r);
+}
+
+template <typename T>
+GSW_HD Projection<T> project_ewa(const Camera<T>& cam, const Vec3<T>& p, const Mat3<T>& cov) {
+  T lxn, lxp, lyn, lyp;
+  frustum_limits(cam.fx, cam.cx, cam.width, lxn, lxp);
+  frustum_limits(cam.fy, cam.cy, cam.height, lyn, lyp);
+  const T iz = T(1) / p.z;
+  bool cx_, cy_;
+  const T u = clamp_ratio(p.x * iz, lxn, lxp, cx_);
+  const T v = clamp_ratio(p.y * iz, lyn, lyp, cy_);
+  // J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]]
+  const T j00 = cam.fx * iz, j02 = -cam.fx * u * iz;
+  const T j11 = cam.fy * iz, j12 = -cam.fy * v * iz;
+  // cov2d = J cov J^T
+  const auto& c = cov.m;
+  const T r0[3] = {j00 * c[0][0] + j02 * c[2][0], j00 * c[0][1] + j02 * c[2][1],
+                   j00 * c[0][2] + j02 * c[2][2]};
+  const T r1[3] = {j11 * c[1][0] + j12 * c[2][0], j11 * c[1][1] + j12 * c[2][1],
+                   j11 * c[1][2] + j12 * c[2][2]};
+  Projection<T> out;
+  out.cov2d.a = r0[0] * j00 + r0[2] * j02;
+  out.cov2d.b = r0[1] * j11 + r0[2] * j12;
+  out.cov2d.c = r1[1] * j11 + r1[2] * j12;
+  out.mean2d.x = cam.fx * p.x * iz + cam.cx;
+  out.mean2d.y = cam.fy * p.y * iz + cam.cy;
+  return out;
+}
+// VJP of project_ewa: accumulates into v_p (camera-space mean) and v_cov (symmetric).
+template <typename T>
+GSW_HD void project_ewa_vjp(const Camera<T>& cam, const Vec3<T>& p, const Mat3<T>& cov,
+                            const Vec2<T>& v_mean2d, const Sym2<T>& v_cov2d, Vec3<T>& v_p,
+                            Mat3<T>& v_cov) {
+  T lxn, lxp, lyn, lyp;
+  frustum_limits(cam.fx, cam.cx, cam.width, lxn, lxp);
+  frustum_limits(cam.fy, cam.cy, cam.height, lyn, lyp);
+  const T iz = T(1) / p.z;
+  bool clx, cly;
+  const T u = clamp_ratio(p.x * iz, lxn, lxp, clx);
+  const T v = clamp_ratio(p.y * iz, lyn, lyp, cly);
+  T J[2][3] = {{cam.fx * iz, T(0), -cam.fx * u * iz}, {T(0), cam.fy * iz, -cam.fy * v * iz}};
+  // Full symmetric 2x2 cotangent G (off-diagonal carries half of v_b each).
+  const T G[2][2] = {{v_cov2d.a, T(0.5) * v_cov2d.b}, {T(0.5) * v_cov2d.b, v_cov2d.c}};
+  // v_cov += J^T G J
+  T GJ[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int k = 0; k < 3; ++k) GJ[i][k] = G[i][0] * J[0][k] + G[i][1] * J[1][k];
+  for (int k = 0; k < 3; ++k)
+    for (int l = 0; l < 3; ++l) v_cov.m[k][l] += J[0][k] * GJ[0][l] + J[1][k] * GJ[1][l];
+  // v_J = 2 G J cov
+  T v_J[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int l = 0; l < 3; ++l)
+      v_J[i][l] = T(2) * (GJ[i][0] * cov.m[0][l] + GJ[i][1] * cov.m[1][l] +
+                          GJ[i][2] * cov.m[2][l]);
+  // J00 = fx/z, J11 = fy/z, J02 = -fx u/z, J12 = -fy v/z with u = x/z unless clamped.
+  const T iz2 = iz * iz;
+  T v_z = -cam.fx * iz2 * v_J[0][0] - cam.fy * iz2 * v_J[1][1];
+  v_z += cam.fx * u * iz2 * v_J[0][2] + cam.fy * v * iz2 * v_J[1][2];
+  T v_u = -cam.fx * iz * v_J[0][2];
+  T v_v = -cam.fy * iz * v_J[1][2];
+  // mean2d = (fx x/z + cx, fy y/z + cy) uses the unclamped ratios.
+  T v_x = cam.fx * iz * v_mean2d.x;
+  T v_y = cam.fy * iz * v_mean2d.y;
+  v_z -= (cam.fx * p.x * v_mean2d.x + cam.fy * p.y * v_mean2d.y) * iz2;
+  if (!clx) {
+    v_x += v_u * iz;
+    v_z -= v_u * p.x * iz2;
+  }
+  if (!cly) {
+    v_y += v_v * iz;
+    v_z -= v_v * p.y * iz2;
+  }
+  v_p.x += v_x;
+  v_p.y += v_y;
+  v_p.z += v_z;
+}
+
+// ------------------------------------------------------------------ 2-D conic and footprint
+
+// Dilated 2-D covariance and its inverse (the conic). Returns false when not invertible.
+template <typename T>
+GSW_HD bool conic_from_cov2d(const Sym2<T>& cov2d, Sym2<T>& conic, T& det) {
+  const T a = cov2d.a + T(COV2D_DILATION), b = cov2d.b, c = cov2d.c + T(COV2D_DILATION);
+  det = a * c - b * b;
+  if (!(det > T(0))) return false;
+  const T inv = T(1) / det;
+  conic = {c * inv, -b * inv, a * inv};
+  return true;
+}
+// VJP of conic_from_cov2d (v_conic in free-parameter convention); returns v_cov2d likewise.
+template <typename T>
+GSW_HD Sym2<T> conic_from_cov2d_vjp(const Sym2<T>& conic, const Sym2<T>& v_conic) {
+  // Y = X^{-1}: dL/dX = -Y G Y with G the full symmetric cotangent of Y.
+  const T g00 = v_conic.a, g01 = T(0.5) * v_conic.b, g11 = v_conic.c;
+  const T y00 = conic.a, y01 = conic.b, y11 = conic.c;
+  // H = G Y
+  const T h00 = g00 * y00 + g01 * y01, h01 = g00 * y01 + g01 * y11;
+  const T h10 = g01 * y00 + g11 * y01, h11 = g01 * y01 + g11 * y11;
+  const T r00 = -(y00 * h00 + y01 * h10);
+  const T r01 = -(y00 * h01 + y01 * h11);
+  const T r11 = -(y01 * h01 + y11 * h11);
+  return {r00, T(2) * r01, r11};
+}
+
+// Pixel radius: ceil(RADIUS_SIGMAS * sqrt(largest eigenvalue)) of the dilated covariance.
+template <typename T>
+GSW_HD int footprint_radius(const Sym2<T>& cov2d, T det) {
+  const T a = cov2d.a + T(COV2D_DILATION), c = cov2d.c + T(COV2D_DILATION);
+  const T mid = T(0.5) * (a + c);
+  const T disc = mid * mid - det;
+  const T l1 = mid + sqrt(disc > T(EIGEN_FLOOR) ? disc : T(EIGEN_FLOOR));
+  return static_cast<int>(ceil(T(RADIUS_SIGMAS) * sqrt(l1)));
+}
+
+// Tile rectangle [x0, x1) x [y0, y1) touched by a footprint (INRIA getRect, in pixel-centre
+// coordinates mean2d - 0.5). Returns the number of tiles.
+template <typename T>
+GSW_HD int tile_rect(const Vec2<T>& mean2d, int radius, int tiles_x, int tiles_y, int& x0,
+                     int& y0, int& x1, int& y1) {
+  const T px = mean2d.x - T(0.5), py = mean2d.y - T(0.5);
+  const T ts = T(TILE_SIZE);
+  auto clampi = [](T v, int hi) -> int {
+    const T f = floor(v);
+    return f < T(0) ? 0 : (f > T(hi) ? hi : static_cast<int>(f));
+  };
+  x0 = clampi((px - T(radius)) / ts, tiles_x);
+  x1 = clampi((px + T(radius) + ts - T(1)) / ts, tiles_x);
+  y0 = clampi((py - T(radius)) / ts, tiles_y);
+  y1 = clampi((py + T(radius) + ts - T(1)) / ts, tiles_y);
+  return (x1 - x0) * (y1 - y0);
+}
+
+// ------------------------------------------------------------------ spherical harmonics
+
+// Number of SH coefficients for a degree.
+GSW_HD int sh_num_coeffs(int degree) { return (degree + 1) * (degree + 1); }
+
+// Real SH basis of degree `degree` at the unit direction (x, y, z); fills basis[0..(d+1)^2).
+template <typename T>
+GSW_HD void sh_basis(int degree, T x, T y, T z, T* basis) {
+  basis[0] = T(SH_C0);
+  if (degree < 1) return;
+  basis[1] = -T(SH_C1) * y;
+  basis[2] = T(SH_C1) * z;
+  basis[3] = -T(SH_C1) * x;
+  if (degree < 2) return;
+  const T xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  basis[4] = T(SH_C2_0) * xy;
+  basis[5] = T(SH_C2_1) * yz;
+  basis[6] = T(SH_C2_2) * (T(2) * zz - xx - yy);
+  basis[7] = T(SH_C2_3) * xz;
+  basis[8] = T(SH_C2_4) * (xx - yy);
+  if (degree < 3) return;
+  basis[9] = T(SH_C3_0) * y * (T(3) * xx - yy);
+  basis[10] = T(SH_C3_1) * xy * z;
+  basis[11] = T(SH_C3_2) * y * (T(4) * zz - xx - yy);
+  basis[12] = T(SH_C3_3) * z * (T(2) * zz - T(3) * xx - T(3) * yy);
+  basis[13] = T(SH_C3_4) * x * (T(4) * zz - xx - yy);
+  basis[14] = T(SH_C3_5) * z * (xx - yy);
+  basis[15] = T(SH_C3_6) * x * (xx - T(3) * yy);
+}
+// VJP of sh_basis w.r.t. the unit direction, for cotangents v_basis.
+template <typename T>
+GSW_HD Vec3<T> sh_basis_vjp(int degree, T x, T y, T z, const T* v_basis) {
+  Vec3<T> g = {T(0), T(0), T(0)};
+  if (degree < 1) return g;
+  g.y -= T(SH_C1) * v_basis[1];
+  g.z += T(SH_C1) * v_basis[2];
+  g.x -= T(SH_C1) * v_basis[3];
+  if (degree < 2) return g;
+  const T xx = x * x, yy = y * y, zz = z * z;
+  g.x += T(SH_C2_0) * y * v_basis[4];
+  g.y += T(SH_C2_0) * x * v_basis[4];
+  g.y += T(SH_C2_1) * z * v_basis[5];
+  g.z += T(SH_C2_1) * y * v_basis[5];
+  g.x += T(SH_C2_2) * (-T(2) * x) * v_basis[6];
+  g.y += T(SH_C2_2) * (-T(2) * y) * v_basis[6];
+  g.z += T(SH_C2_2) * (T(4) * z) * v_basis[6];
+  g.x += T(SH_C2_3) * z * v_basis[7];
+  g.z += T(SH_C2_3) * x * v_basis[7];
+  g.x += T(SH_C2_4) * (T(2) * x) * v_basis[8];
+  g.y += T(SH_C2_4) * (-T(2) * y) * v_basis[8];
+  if (degree < 3) return g;
+  // 9: y (3xx - yy)
+  g.x += T(SH_C3_0) * (T(6) * x * y) * v_basis[9];
+  g.y += T(SH_C3_0) * (T(3) * xx - T(3) * yy) * v_basis[9];
+  // 10: x y z
+  g.x += T(SH_C3_1) * y * z * v_basis[10];
+  g.y += T(SH_C3_1) * x * z * v_basis[10];
+  g.z += T(SH_C3_1) * x * y * v_basis[10];
+  // 11: y (4zz - xx - yy)
+  g.x += T(SH_C3_2) * (-T(2) * x * y) * v_basis[11];
+  g.y += T(SH_C3_2) * (T(4) * zz - xx - T(3) * yy) * v_basis[11];
+  g.z += T(SH_C3_2) * (T(8) * y * z) * v_basis[11];
+  // 12: z (2zz - 3xx - 3yy)
+  g.x += T(SH_C3_3) * (-T(6) * x * z) * v_basis[12];
+  g.y += T(SH_C3_3) * (-T(6) * y * z) * v_basis[12];
+  g.z += T(SH_C3_3) * (T(6) * zz - T(3) * xx - T(3) * yy) * v_basis[12];
+  // 13: x (4zz - xx - yy)
+  g.x += T(SH_C3_4) * (T(4) * zz - T(3) * xx - yy) * v_basis[13];
+  g.y += T(SH_C3_4) * (-T(2) * x * y) * v_basis[13];
+  g.z += T(SH_C3_4) * (T(8) * x * z) * v_basis[13];
+  // 14: z (xx - yy)
+  g.x += T(SH_C3_5) * (T(2) * x * z) * v_basis[14];
+  g.y += T(SH_C3_5) * (-T(2) * y * z) * v_basis[14];
+  g.z += T(SH_C3_5) * (xx - yy) * v_basis[14];
+  // 15: x (xx - 3yy)
+  g.x += T(SH_C3_6) * (T(3) * xx - T(3) * yy) * v_basis[15];
+  g.y += T(SH_C3_6) * (-T(6) * x * y) * v_basis[15];
+  return g;
+}
+
+// Unit vector and its VJP.
+template <typename T>
+GSW_HD Vec3<T> normalize3(const Vec3<T>& v) {
+  const T inv = T(1) / sqrt(v.x * v.x + v.y * v.y + v.z * v.z);
+  return {v.x * inv, v.y * inv, v.z * inv};
+}
+template <typename T>
+GSW_HD Vec3<T> normalize3_vjp(const Vec3<T>& v, const Vec3<T>& v_n) {
+  const T inv = T(1) / sqrt(v.x * v.x + v.y * v.y + v.z * v.z);
+  const Vec3<T> n = {v.x * inv, v.y * inv, v.z * inv};
+  const T d = n.x * v_n.x + n.y * v_n.y + n.z * v_n.z;
+  return {(v_n.x - n.x * d) * inv, (v_n.y - n.y * d) * inv, (v_n.z - n.z * d) * inv};
+}
+
+// View-dependent colour: rgb = max(0, sum_k basis_k(dir) sh[k] + SH_COLOR_OFFSET), with
+// dir = normalise(mean - camera centre). `sh` points to K x 3 coefficients (channel fastest).
+template <typename T>
+GSW_HD Vec3<T> sh_to_color(int degree, const Vec3<T>& dir_unnorm, const T* sh) {
+  const Vec3<T> d = normalize3(dir_unnorm);
+  T basis[16];
+  sh_basis(degree, d.x, d.y, d.z, basis);
+  T rgb[3] = {T(SH_COLOR_OFFSET), T(SH_COLOR_OFFSET), T(SH_COLOR_OFFSET)};
+  const int K = sh_num_coeffs(degree);
+  for (int k = 0; k < K; ++k)
+    for (int ch = 0; ch < 3; ++ch) rgb[ch] += basis[k] * sh[3 * k + ch];
+  return {rgb[0] > T(0) ? rgb[0] : T(0), rgb[1] > T(0) ? rgb[1] : T(0),
+          rgb[2] > T(0) ? rgb[2] : T(0)};
+}
+// VJP of sh_to_color. `color` is the forward output (a clamped channel has zero gradient).
+// Accumulates into v_sh (K x 3) and returns the cotangent of the unnormalised direction.
+template <typename T>
+GSW_HD Vec3<T> sh_to_color_vjp(int degree, const Vec3<T>& dir_unnorm, const T* sh,
+                               const Vec3<T>& color, const Vec3<T>& v_color, T* v_sh) {
+  const Vec3<T> d = normalize3(dir_unnorm);
+  T basis[16];
+  sh_basis(degree, d.x, d.y, d.z, basis);
+  const T vc[3] = {color.x > T(0) ? v_color.x : T(0), color.y > T(0) ? v_color.y : T(0),
+                   color.z > T(0) ? v_color.z : T(0)};
+  const int K = sh_num_coeffs(degree);
+  T v_basis[16];
+  for (int k = 0; k < K; ++k) {
+    v_basis[k] = T(0);
+    for (int ch = 0; ch < 3; ++ch) {
+      v_sh[3 * k + ch] += basis[k] * vc[ch];
+      v_basis[k] += sh[3 * k + ch] * vc[ch];
+    }
+  }
+  const Vec3<T> v_d = sh_basis_vjp(degree, d.x, d.y, d.z, v_basis);
+  return normalize3_vjp(dir_unnorm, v_d);
+}
+
+// ------------------------------------------------------------------ per-pixel blending
+
+// Exponent of the 2-D Gaussian at pixel centre (px, py): -0.5 d^T conic d, d = mean2d - p.
+template <typename T>
+GSW_HD T gaussian_power(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py) {
+  const T dx = mean_x - px, dy = mean_y - py;
+  return T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+}
+
+// Blending opacity of one splat at one pixel; returns 0 when the splat is skipped
+// (power > 0 or alpha < ALPHA_MIN).
+template <typename T>
+GSW_HD T splat_alpha(T opacity, T power) {
+  if (power > T(0)) return T(0);
+  const T a = opacity * exp(power);
+  const T alpha = a < T(ALPHA_MAX) ? a : T(ALPHA_MAX);
+  return alpha < T(ALPHA_MIN) ? T(0) : alpha;
+}
+
+// Exponent below which a splat of this opacity is certainly skipped (alpha < ALPHA_MIN); the
+// caller tests `power < skip_power` before paying for exp(). -inf-safe for opacity 0.
+template <typename T>
+GSW_HD T splat_skip_power(T opacity) {
+  return log(T(ALPHA_MIN) / opacity) - T(SKIP_LOG_MARGIN);
+}
+
+// Cotangents of one splat's per-pixel alpha w.r.t. its 2-D parameters.
+template <typename T>
+struct SplatGrad {
+  Vec2<T> mean2d;
+  Sym2<T> conic;
+  T opacity;
+};
+
+// VJP of splat_alpha for a non-skipped splat: accumulates into g.
+template <typename T>
+GSW_HD void splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py, T opacity,
+                            T v_alpha, SplatGrad<T>& g) {
+  const T dx = mean_x - px, dy = mean_y - py;
+  const T power = T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  const T G = exp(power);
+  if (opacity * G >= T(ALPHA_MAX)) return;  // clamped: alpha does not depend on the inputs
+  g.opacity += G * v_alpha;
+  const T v_power = opacity * G * v_alpha;
+  g.conic.a += T(-0.5) * dx * dx * v_power;
+  g.conic.b += -dx * dy * v_power;
+  g.conic.c += T(-0.5) * dy * dy * v_power;
+  g.mean2d.x += -(conic.a * dx + conic.b * dy) * v_power;
+  g.mean2d.y += -(conic.b * dx + conic.c * dy) * v_power;
+}
+
+// Whether a pixel with transmittance T stops before blending a splat of opacity alpha
+// (INRIA: that splat is not blended).
+template <typename T>
+GSW_HD bool blend_terminates(T transmittance, T alpha) {
+  return transmittance * (T(1) - alpha) < T(T_MIN);
+}
+
+}  // namespace gsw

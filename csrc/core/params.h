@@ -1,0 +1,109 @@
+// Parameter structs of the rasterizer ops: raw pointers and sizes, torch-free, shared by the
+// CPU and CUDA backends. The dispatchers in csrc/ops fill them from validated tensors.
+//
+// Shapes: N Gaussians, K SH coefficients, M (tile, Gaussian) intersections, H x W image,
+// P = H * W pixels, C weight channels. Images are channel-major [3, H, W].
+#pragma once
+
+#include <cstdint>
+
+#include "math.h"
+
+namespace gsw {
+
+// Stage 1: per-Gaussian projection + colour.
+template <typename T>
+struct ProjectParams {
+  int N = 0;
+  int K = 0;           // SH coefficients per Gaussian in `sh` (ignored when sh_degree < 0)
+  int sh_degree = 0;   // active SH degree; -1: `sh` holds direct RGB colours [N, 3]
+  Camera<T> cam{};
+  // inputs
+  const T* means = nullptr;           // [N, 3] world
+  const T* quats = nullptr;           // [N, 4] (w, x, y, z), unnormalised
+  const T* log_scales = nullptr;      // [N, 3]
+  const T* opacity_logits = nullptr;  // [N]
+  const T* sh = nullptr;              // [N, K, 3] or [N, 3] (direct colours)
+  // outputs (forward) / saved (backward)
+  int32_t* radii = nullptr;  // [N] pixel radius, 0 = culled
+  T* means2d = nullptr;      // [N, 2] pixels (K p)
+  T* conics = nullptr;       // [N, 3] inverse dilated 2-D covariance (a, b, c)
+  T* depths = nullptr;       // [N] view-space z
+  T* colors = nullptr;       // [N, 3]
+  T* opacities = nullptr;    // [N] sigmoid(logit)
+};
+
+// Cotangents of stage 1: inputs are the per-Gaussian cotangents of the projected quantities,
+// outputs the cotangents of the Gaussian parameters.
+template <typename T>
+struct ProjectGradParams {
+  const T* v_means2d = nullptr;    // [N, 2]
+  const T* v_conics = nullptr;     // [N, 3]
+  const T* v_depths = nullptr;     // [N]
+  const T* v_colors = nullptr;     // [N, 3]
+  const T* v_opacities = nullptr;  // [N]
+  T* v_means = nullptr;            // [N, 3]
+  T* v_quats = nullptr;            // [N, 4]
+  T* v_log_scales = nullptr;       // [N, 3]
+  T* v_opacity_logits = nullptr;   // [N]
+  T* v_sh = nullptr;               // [N, K, 3] or [N, 3]
+};
+
+// Tile binning result: Gaussians of tile t are gauss_ids[tile_offsets[t] .. tile_offsets[t+1])
+// front to back. Intersection e of Gaussian g (e in [entry_offsets[g], entry_offsets[g+1]))
+// sits at sorted position entry_slots[e]; this lets per-intersection results be reduced per
+// Gaussian in a fixed order (deterministic, no atomics).
+struct TileBins {
+  int tiles_x = 0, tiles_y = 0;
+  int64_t M = 0;
+  const int32_t* tile_offsets = nullptr;   // [tiles_x * tiles_y + 1]
+  const int32_t* gauss_ids = nullptr;      // [M]
+  const int32_t* entry_offsets = nullptr;  // [N + 1]
+  const int32_t* entry_slots = nullptr;    // [M]
+};
+
+// Stage 2: per-tile alpha blending.
+template <typename T>
+struct RasterParams {
+  int N = 0;
+  int width = 0, height = 0;
+  TileBins bins{};
+  const T* means2d = nullptr;    // [N, 2]
+  const T* conics = nullptr;     // [N, 3]
+  const T* colors = nullptr;     // [N, 3]
+  const T* opacities = nullptr;  // [N]
+  const T* depths = nullptr;     // [N]
+  const T* background = nullptr; // [3]
+  // forward outputs / saved for backward
+  T* image = nullptr;            // [3, H, W]
+  T* alpha = nullptr;            // [H, W] accumulated opacity 1 - T_final
+  T* depth = nullptr;            // [H, W] sum_i w_i z_i (not normalised)
+  T* final_T = nullptr;          // [H, W]
+  int32_t* n_contrib = nullptr;  // [H, W] 1 + index (in the tile list) of the last blended splat
+};
+
+template <typename T>
+struct RasterGradParams {
+  const T* v_image = nullptr;  // [3, H, W]
+  const T* v_alpha = nullptr;  // [H, W] (may be null)
+  const T* v_depth = nullptr;  // [H, W] (may be null)
+  T* v_means2d = nullptr;      // [N, 2]
+  T* v_conics = nullptr;       // [N, 3]
+  T* v_colors = nullptr;       // [N, 3]
+  T* v_opacities = nullptr;    // [N]
+  T* v_depths = nullptr;       // [N]
+};
+
+// Per-Gaussian contribution of the blending weights w_i(p) = alpha_i(p) T_i(p) under a weight
+// map: V[i, c] = sum_p weights[c, p] w_i(p); hits[i] = #pixels with w_i(p) > 0;
+// max_weight[i] = max_p w_i(p).
+template <typename T>
+struct ContributionParams {
+  int C = 0;
+  const T* weights = nullptr;   // [C, H, W]
+  T* contribution = nullptr;    // [N, C]
+  int32_t* hits = nullptr;      // [N]
+  T* max_weight = nullptr;      // [N]
+};
+
+}  // namespace gsw
