@@ -15,6 +15,8 @@ constexpr double COV2D_DILATION = 0.3;
 constexpr double FRUSTUM_CLAMP = 1.3;
 // Screen-space radius = ceil(RADIUS_SIGMAS * sqrt(largest eigenvalue)).
 constexpr double RADIUS_SIGMAS = 3.0;
+// Upper bound of the pixel radius (keeps the int conversion defined for huge footprints).
+constexpr int MAX_RADIUS = 1 << 30;
 // Floor of (mid^2 - det) inside the eigenvalue square root.
 constexpr double EIGEN_FLOOR = 0.1;
 // Blending: alpha = min(ALPHA_MAX, opacity * G); contributions with alpha < ALPHA_MIN are skipped.

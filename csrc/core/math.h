@@ -25,6 +25,15 @@
 
 namespace gsw {
 
+#if !defined(__CUDACC__)
+// Host code: pick the float / double overloads (CUDA provides them globally).
+using std::ceil;
+using std::exp;
+using std::floor;
+using std::log;
+using std::sqrt;
+#endif
+
 // ------------------------------------------------------------------ small linear algebra
 
 template <typename T>
@@ -367,7 +376,8 @@ GSW_HD int footprint_radius(const Sym2<T>& cov2d, T det) {
   const T mid = T(0.5) * (a + c);
   const T disc = mid * mid - det;
   const T l1 = mid + sqrt(disc > T(EIGEN_FLOOR) ? disc : T(EIGEN_FLOOR));
-  return static_cast<int>(ceil(T(RADIUS_SIGMAS) * sqrt(l1)));
+  const T r = ceil(T(RADIUS_SIGMAS) * sqrt(l1));
+  return r < T(MAX_RADIUS) ? static_cast<int>(r) : MAX_RADIUS;  // also maps NaN to MAX_RADIUS
 }
 
 // Tile rectangle [x0, x1) x [y0, y1) touched by a footprint (INRIA getRect, in pixel-centre
@@ -379,7 +389,7 @@ GSW_HD int tile_rect(const Vec2<T>& mean2d, int radius, int tiles_x, int tiles_y
   const T ts = T(TILE_SIZE);
   auto clampi = [](T v, int hi) -> int {
     const T f = floor(v);
-    return f < T(0) ? 0 : (f > T(hi) ? hi : static_cast<int>(f));
+    return !(f >= T(0)) ? 0 : (f > T(hi) ? hi : static_cast<int>(f));  // NaN -> 0
   };
   x0 = clampi((px - T(radius)) / ts, tiles_x);
   x1 = clampi((px + T(radius) + ts - T(1)) / ts, tiles_x);
@@ -528,14 +538,44 @@ GSW_HD T gaussian_power(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py) {
   return T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
 }
 
+// exp() of the blending hot loop. Host float32: a branch-free Cephes-style approximation
+// (relative error ~2 ulp for arguments in [-87, 0]) that compilers vectorize across pixels;
+// device code and float64 use the library exp.
+template <typename T>
+GSW_HD T blend_exp(T x) {
+  return exp(x);
+}
+#if !defined(__CUDACC__)
+template <>
+inline float blend_exp<float>(float x) {
+  x = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
+  const float fx = x * 1.44269504088896341f + 0.5f;
+  int n = static_cast<int>(fx);  // truncation; fix up to floor below
+  n -= (static_cast<float>(n) > fx) ? 1 : 0;
+  const float nf = static_cast<float>(n);
+  const float r = (x - nf * 0.693359375f) + nf * 2.12194440e-4f;
+  float y = 1.9875691500e-4f;
+  y = y * r + 1.3981999507e-3f;
+  y = y * r + 8.3334519073e-3f;
+  y = y * r + 4.1665795894e-2f;
+  y = y * r + 1.6666665459e-1f;
+  y = y * r + 5.0000001201e-1f;
+  y = y * r * r + r + 1.0f;
+  const int bits = (n + 127) << 23;
+  float scale;
+  __builtin_memcpy(&scale, &bits, sizeof(float));
+  return y * scale;
+}
+#endif
+
 // Blending opacity of one splat at one pixel; returns 0 when the splat is skipped
-// (power > 0 or alpha < ALPHA_MIN).
+// (power > 0 or alpha < ALPHA_MIN). Branch-free so pixel loops vectorize.
 template <typename T>
 GSW_HD T splat_alpha(T opacity, T power) {
-  if (power > T(0)) return T(0);
-  const T a = opacity * exp(power);
+  const T a = opacity * blend_exp(power > T(0) ? T(0) : power);
   const T alpha = a < T(ALPHA_MAX) ? a : T(ALPHA_MAX);
-  return alpha < T(ALPHA_MIN) ? T(0) : alpha;
+  const T kept = alpha < T(ALPHA_MIN) ? T(0) : alpha;
+  return power > T(0) ? T(0) : kept;
 }
 
 // Exponent below which a splat of this opacity is certainly skipped (alpha < ALPHA_MIN); the
@@ -543,6 +583,19 @@ GSW_HD T splat_alpha(T opacity, T power) {
 template <typename T>
 GSW_HD T splat_skip_power(T opacity) {
   return log(T(ALPHA_MIN) / opacity) - T(SKIP_LOG_MARGIN);
+}
+
+// Half extents (pixels) of the axis-aligned box around the 2-D mean outside which a splat is
+// certainly skipped: the ellipse {power >= skip_power}. Returns false if the splat is skipped
+// everywhere (skip_power >= 0, i.e. opacity below ALPHA_MIN).
+template <typename T>
+GSW_HD bool splat_extent(const Sym2<T>& conic, T skip_power, T& ex, T& ey) {
+  if (!(skip_power < T(0))) return false;
+  const T det = conic.a * conic.c - conic.b * conic.b;
+  const T r2 = T(-2) * skip_power;
+  ex = sqrt(r2 * conic.c / det);
+  ey = sqrt(r2 * conic.a / det);
+  return true;
 }
 
 // Cotangents of one splat's per-pixel alpha w.r.t. its 2-D parameters.
@@ -553,21 +606,24 @@ struct SplatGrad {
   T opacity;
 };
 
-// VJP of splat_alpha for a non-skipped splat: accumulates into g.
+// VJP of splat_alpha at one pixel for a non-skipped splat: returns the cotangent
+// contributions (zero where alpha is clamped to ALPHA_MAX). Branch-free.
 template <typename T>
-GSW_HD void splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py, T opacity,
-                            T v_alpha, SplatGrad<T>& g) {
+GSW_HD SplatGrad<T> splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py,
+                                    T opacity, T v_alpha) {
   const T dx = mean_x - px, dy = mean_y - py;
   const T power = T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
-  const T G = exp(power);
-  if (opacity * G >= T(ALPHA_MAX)) return;  // clamped: alpha does not depend on the inputs
-  g.opacity += G * v_alpha;
-  const T v_power = opacity * G * v_alpha;
-  g.conic.a += T(-0.5) * dx * dx * v_power;
-  g.conic.b += -dx * dy * v_power;
-  g.conic.c += T(-0.5) * dy * dy * v_power;
-  g.mean2d.x += -(conic.a * dx + conic.b * dy) * v_power;
-  g.mean2d.y += -(conic.b * dx + conic.c * dy) * v_power;
+  const T G = blend_exp(power);
+  const T v = opacity * G < T(ALPHA_MAX) ? v_alpha : T(0);
+  const T v_power = opacity * G * v;
+  SplatGrad<T> g;
+  g.opacity = G * v;
+  g.conic.a = T(-0.5) * dx * dx * v_power;
+  g.conic.b = -dx * dy * v_power;
+  g.conic.c = T(-0.5) * dy * dy * v_power;
+  g.mean2d.x = -(conic.a * dx + conic.b * dy) * v_power;
+  g.mean2d.y = -(conic.b * dx + conic.c * dy) * v_power;
+  return g;
 }
 
 // Whether a pixel with transmittance T stops before blending a splat of opacity alpha

@@ -1,0 +1,40 @@
+// CPU backend of the rasterizer ops. Templated on float / double; parallel over Gaussians or
+// tiles on all of torch's intra-op threads. Every op is deterministic: no two threads ever
+// write the same output element, and per-Gaussian reductions run in a fixed order.
+#pragma once
+
+#include <cstdint>
+
+#include "core/params.h"
+
+namespace gsw::cpu {
+
+template <typename T>
+void project_forward(const ProjectParams<T>& p);
+template <typename T>
+void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g);
+
+// Number of tiles each Gaussian touches (0 when culled).
+template <typename T>
+void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
+                 int32_t* tiles_touched);
+// Fill the bins (pointers of `bins` are written through const_cast by the backend).
+// `entry_offsets` must already hold the exclusive prefix sum of tiles_touched.
+template <typename T>
+void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, int32_t* tile_offsets,
+               int32_t* gauss_ids, const int32_t* entry_offsets, int32_t* entry_slots,
+               int tiles_x, int tiles_y);
+
+template <typename T>
+void rasterize_forward(const RasterParams<T>& p);
+// `scratch` holds M * kSplatGradSize values.
+template <typename T>
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch);
+// `scratch` holds M * (C + 2) values.
+template <typename T>
+void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* scratch);
+
+// Per-intersection gradient record: mean2d (2), conic (3), opacity, colour (3), depth.
+constexpr int kSplatGradSize = 10;
+
+}  // namespace gsw::cpu

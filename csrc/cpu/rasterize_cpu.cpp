@@ -1,0 +1,361 @@
+// CPU blending stage: forward, backward and per-Gaussian contribution, one tile per task.
+//
+// Each tile gathers its depth-ordered splats into a small packed array, then walks its pixels.
+// Per-splat results of a tile are written to that tile's own range of the intersection list
+// (scratch[slot]), and reduced per Gaussian afterwards in a fixed order: deterministic, no
+// atomics, independent of the thread count.
+#include <algorithm>
+#include <vector>
+
+#include "cpu/backend_cpu.h"
+#include "cpu/parallel.h"
+
+namespace gsw::cpu {
+
+namespace {
+
+constexpr int kTilePixels = TILE_SIZE * TILE_SIZE;
+
+template <typename T>
+struct PackedSplat {
+  Sym2<T> conic;
+  T mx, my;
+  T opacity;
+  T skip_power;  // exponent below which alpha < ALPHA_MIN for sure
+  T color[3];
+  T depth;
+  int bx0, by0, bx1, by1;  // tile-local pixel box [bx0, bx1) x [by0, by1) that can be hit
+};
+
+struct TileView {
+  int x0, y0, x1, y1;  // pixel bounds [x0, x1) x [y0, y1)
+  int32_t start, end;  // range in the intersection list
+};
+
+template <typename T>
+TileView tile_view(const RasterParams<T>& p, int64_t tile) {
+  const int tx = static_cast<int>(tile % p.bins.tiles_x), ty = static_cast<int>(tile / p.bins.tiles_x);
+  TileView v;
+  v.x0 = tx * TILE_SIZE;
+  v.y0 = ty * TILE_SIZE;
+  v.x1 = std::min(v.x0 + TILE_SIZE, p.width);
+  v.y1 = std::min(v.y0 + TILE_SIZE, p.height);
+  v.start = p.bins.tile_offsets[tile];
+  v.end = p.bins.tile_offsets[tile + 1];
+  return v;
+}
+
+// Tile-local range of pixel indices whose centres (i + 0.5) lie in [c - e, c + e].
+template <typename T>
+void pixel_range(T c, T e, int lo, int hi, int& out_lo, int& out_hi) {
+  const T a = std::max(T(lo), std::min(T(hi), ceil(c - e - T(0.5))));
+  const T b = std::max(T(lo), std::min(T(hi), floor(c + e - T(0.5)) + T(1)));
+  out_lo = static_cast<int>(a) - lo;
+  out_hi = static_cast<int>(b) - lo;
+}
+
+// Packs the tile's splats front to back, with the tile-local box each one can touch.
+template <typename T>
+void gather_splats(const RasterParams<T>& p, const TileView& v, std::vector<PackedSplat<T>>& out,
+                   bool with_color) {
+  out.resize(v.end - v.start);
+  for (int32_t k = v.start; k < v.end; ++k) {
+    const int32_t g = p.bins.gauss_ids[k];
+    PackedSplat<T>& s = out[k - v.start];
+    s.conic = {p.conics[3 * g], p.conics[3 * g + 1], p.conics[3 * g + 2]};
+    s.mx = p.means2d[2 * g];
+    s.my = p.means2d[2 * g + 1];
+    s.opacity = p.opacities[g];
+    s.skip_power = splat_skip_power(s.opacity);
+    T ex, ey;
+    if (splat_extent(s.conic, s.skip_power, ex, ey)) {
+      pixel_range(s.mx, ex, v.x0, v.x1, s.bx0, s.bx1);
+      pixel_range(s.my, ey, v.y0, v.y1, s.by0, s.by1);
+    } else {
+      s.bx0 = s.bx1 = s.by0 = s.by1 = 0;
+    }
+    if (with_color) {
+      for (int c = 0; c < 3; ++c) s.color[c] = p.colors[3 * g + c];
+      s.depth = p.depths[g];
+    }
+  }
+}
+
+// One row segment [lo, hi) of a splat's box, front to back. Per pixel: w = blending weight
+// (0 when skipped, already finished or terminating here), and updates of the transmittance,
+// liveness and last-contributor arrays (all indexed by the tile-local x). Branch-free, so it
+// vectorizes across pixels.
+template <typename T>
+inline void blend_row(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo, int hi, T* tr,
+                      int32_t* alive, int32_t* last, T* w) {
+  for (int lx = lo; lx < hi; ++lx) {
+    const T power = gaussian_power(s.conic, s.mx, s.my, x_centre0 + T(lx), pyc);
+    const T alpha0 = splat_alpha(s.opacity, power);
+    const T alpha = alive[lx] ? alpha0 : T(0);
+    const bool term = (alpha > T(0)) & blend_terminates(tr[lx], alpha);
+    alive[lx] = term ? 0 : alive[lx];
+    const T a = term ? T(0) : alpha;
+    w[lx] = a * tr[lx];
+    tr[lx] *= T(1) - a;
+    last[lx] = a > T(0) ? j + 1 : last[lx];
+  }
+}
+
+// Every kAliveCheckInterval splats, a tile checks whether any of its pixels is still open.
+constexpr int kAliveCheckInterval = 16;
+
+// Front-to-back traversal of one tile, splat-major over each splat's box: identical decisions
+// to a per-pixel loop. Calls row_fn(j, ly, lo, hi, w) after each row segment with the weights.
+template <typename T, typename F>
+void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, T* tr,
+                            int32_t* last, F&& row_fn) {
+  int32_t alive[kTilePixels];
+  T w[TILE_SIZE];
+  for (int k = 0; k < kTilePixels; ++k) {
+    tr[k] = T(1);
+    last[k] = 0;
+  }
+  // Pixels outside the image (partial tiles) are never open.
+  for (int ly = 0; ly < TILE_SIZE; ++ly)
+    for (int lx = 0; lx < TILE_SIZE; ++lx)
+      alive[ly * TILE_SIZE + lx] = (lx < v.x1 - v.x0 && ly < v.y1 - v.y0) ? 1 : 0;
+  const int n = static_cast<int>(splats.size());
+  const T x_centre0 = T(v.x0) + T(0.5);
+  for (int j = 0; j < n; ++j) {
+    if (j % kAliveCheckInterval == 0) {
+      int open = 0;
+      for (int k = 0; k < kTilePixels; ++k) open |= alive[k];
+      if (!open) break;
+    }
+    const PackedSplat<T>& s = splats[j];
+    for (int ly = s.by0; ly < s.by1; ++ly) {
+      const int row = ly * TILE_SIZE;
+      blend_row(s, j, x_centre0, T(v.y0 + ly) + T(0.5), s.bx0, s.bx1, tr + row,
+                          alive + row, last + row, w);
+      row_fn(j, ly, s.bx0, s.bx1, w);
+    }
+  }
+}
+
+}  // namespace
+
+template <typename T>
+void rasterize_forward(const RasterParams<T>& p) {
+  const int64_t P = int64_t(p.width) * p.height;
+  const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
+  parallel_dynamic(num_tiles, [&](int64_t tile) {
+    thread_local std::vector<PackedSplat<T>> splats;
+    const TileView v = tile_view(p, tile);
+    gather_splats(p, v, splats, true);
+    T tr[kTilePixels], col[3][kTilePixels], dep[kTilePixels];
+    int32_t last[kTilePixels];
+    for (int k = 0; k < kTilePixels; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
+    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int lo, int hi, const T* w) {
+      const PackedSplat<T>& s = splats[j];
+      T* c0 = col[0] + ly * TILE_SIZE;
+      T* c1 = col[1] + ly * TILE_SIZE;
+      T* c2 = col[2] + ly * TILE_SIZE;
+      T* d = dep + ly * TILE_SIZE;
+      for (int lx = lo; lx < hi; ++lx) {
+        c0[lx] += w[lx] * s.color[0];
+        c1[lx] += w[lx] * s.color[1];
+        c2[lx] += w[lx] * s.color[2];
+        d[lx] += w[lx] * s.depth;
+      }
+    });
+    for (int py = v.y0; py < v.y1; ++py) {
+      for (int px = v.x0; px < v.x1; ++px) {
+        const int k = (py - v.y0) * TILE_SIZE + (px - v.x0);
+        const int64_t pix = int64_t(py) * p.width + px;
+        for (int c = 0; c < 3; ++c) p.image[c * P + pix] = col[c][k] + tr[k] * p.background[c];
+        p.alpha[pix] = T(1) - tr[k];
+        p.depth[pix] = dep[k];
+        p.final_T[pix] = tr[k];
+        p.n_contrib[pix] = last[k];
+      }
+    }
+  });
+}
+
+template <typename T>
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch) {
+  const int64_t P = int64_t(p.width) * p.height;
+  const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
+  constexpr int S = kSplatGradSize;
+  parallel_dynamic(num_tiles, [&](int64_t tile) {
+    thread_local std::vector<PackedSplat<T>> splats;
+    const TileView v = tile_view(p, tile);
+    gather_splats(p, v, splats, true);
+    T* out = scratch + int64_t(S) * v.start;
+    std::fill(out, out + int64_t(S) * (v.end - v.start), T(0));
+    // Per-pixel state, walking back to front from each pixel's last blended splat.
+    T tr[kTilePixels], t_final[kTilePixels], v_tfinal[kTilePixels];
+    T vi[3][kTilePixels], vd[kTilePixels];
+    T behind[3][kTilePixels], behind_d[kTilePixels];  // colour/depth behind, per unit T
+    int32_t n_pix[kTilePixels];
+    int max_n = 0;
+    for (int k = 0; k < kTilePixels; ++k) {
+      n_pix[k] = 0;
+      tr[k] = t_final[k] = v_tfinal[k] = vd[k] = behind_d[k] = T(1);
+      for (int c = 0; c < 3; ++c) vi[c][k] = behind[c][k] = T(0);
+    }
+    for (int py = v.y0; py < v.y1; ++py) {
+      for (int px = v.x0; px < v.x1; ++px) {
+        const int k = (py - v.y0) * TILE_SIZE + (px - v.x0);
+        const int64_t pix = int64_t(py) * p.width + px;
+        n_pix[k] = p.n_contrib[pix];
+        max_n = std::max(max_n, n_pix[k]);
+        tr[k] = t_final[k] = p.final_T[pix];
+        for (int c = 0; c < 3; ++c) vi[c][k] = g.v_image[c * P + pix];
+        vd[k] = g.v_depth ? g.v_depth[pix] : T(0);
+        behind_d[k] = T(0);
+        // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
+        v_tfinal[k] = vi[0][k] * p.background[0] + vi[1][k] * p.background[1] +
+                      vi[2][k] * p.background[2] - (g.v_alpha ? g.v_alpha[pix] : T(0));
+      }
+    }
+    const T x_centre0 = T(v.x0) + T(0.5);
+    // Per-lane (tile-local x) partial sums of one splat's cotangents.
+    T l_mx[TILE_SIZE], l_my[TILE_SIZE], l_a[TILE_SIZE], l_b[TILE_SIZE], l_c[TILE_SIZE];
+    T l_op[TILE_SIZE], l_r[TILE_SIZE], l_g[TILE_SIZE], l_bl[TILE_SIZE], l_d[TILE_SIZE];
+    for (int j = max_n - 1; j >= 0; --j) {
+      const PackedSplat<T>& s = splats[j];
+      for (int lx = 0; lx < TILE_SIZE; ++lx)
+        l_mx[lx] = l_my[lx] = l_a[lx] = l_b[lx] = l_c[lx] = l_op[lx] = l_r[lx] = l_g[lx] =
+            l_bl[lx] = l_d[lx] = T(0);
+      for (int ly = s.by0; ly < s.by1; ++ly) {
+        const T pyc = T(v.y0 + ly) + T(0.5);
+        const int row = ly * TILE_SIZE;
+        T* trr = tr + row;
+        const T* tf = t_final + row;
+        const T* vtf = v_tfinal + row;
+        const T *v0 = vi[0] + row, *v1 = vi[1] + row, *v2 = vi[2] + row, *vdr = vd + row;
+        T *b0 = behind[0] + row, *b1 = behind[1] + row, *b2 = behind[2] + row;
+        T* bd = behind_d + row;
+        const int32_t* np = n_pix + row;
+        for (int lx = s.bx0; lx < s.bx1; ++lx) {
+          const T pxc = x_centre0 + T(lx);
+          const T alpha0 = splat_alpha(s.opacity, gaussian_power(s.conic, s.mx, s.my, pxc, pyc));
+          const T a = j < np[lx] ? alpha0 : T(0);
+          const T om = T(1) - a;
+          const T t = trr[lx] / om;  // transmittance in front of splat j (unchanged if a = 0)
+          trr[lx] = t;
+          const T w = a * t;
+          l_r[lx] += w * v0[lx];
+          l_g[lx] += w * v1[lx];
+          l_bl[lx] += w * v2[lx];
+          l_d[lx] += w * vdr[lx];
+          T v_alpha = t * ((s.color[0] - b0[lx]) * v0[lx] + (s.color[1] - b1[lx]) * v1[lx] +
+                           (s.color[2] - b2[lx]) * v2[lx] + (s.depth - bd[lx]) * vdr[lx]) -
+                      tf[lx] / om * vtf[lx];
+          v_alpha = a > T(0) ? v_alpha : T(0);
+          const SplatGrad<T> sg = splat_alpha_vjp(s.conic, s.mx, s.my, pxc, pyc, s.opacity, v_alpha);
+          l_mx[lx] += sg.mean2d.x;
+          l_my[lx] += sg.mean2d.y;
+          l_a[lx] += sg.conic.a;
+          l_b[lx] += sg.conic.b;
+          l_c[lx] += sg.conic.c;
+          l_op[lx] += sg.opacity;
+          b0[lx] = a * s.color[0] + om * b0[lx];
+          b1[lx] = a * s.color[1] + om * b1[lx];
+          b2[lx] = a * s.color[2] + om * b2[lx];
+          bd[lx] = a * s.depth + om * bd[lx];
+        }
+      }
+      T* r = out + int64_t(S) * j;
+      for (int lx = 0; lx < TILE_SIZE; ++lx) {
+        r[0] += l_mx[lx];
+        r[1] += l_my[lx];
+        r[2] += l_a[lx];
+        r[3] += l_b[lx];
+        r[4] += l_c[lx];
+        r[5] += l_op[lx];
+        r[6] += l_r[lx];
+        r[7] += l_g[lx];
+        r[8] += l_bl[lx];
+        r[9] += l_d[lx];
+      }
+    }
+  });
+  parallel_items(p.N, [&](int64_t i) {
+    T acc[S];
+    for (int k = 0; k < S; ++k) acc[k] = T(0);
+    for (int32_t e = p.bins.entry_offsets[i]; e < p.bins.entry_offsets[i + 1]; ++e) {
+      const T* r = scratch + int64_t(S) * p.bins.entry_slots[e];
+      for (int k = 0; k < S; ++k) acc[k] += r[k];
+    }
+    g.v_means2d[2 * i] = acc[0];
+    g.v_means2d[2 * i + 1] = acc[1];
+    for (int k = 0; k < 3; ++k) g.v_conics[3 * i + k] = acc[2 + k];
+    g.v_opacities[i] = acc[5];
+    for (int k = 0; k < 3; ++k) g.v_colors[3 * i + k] = acc[6 + k];
+    g.v_depths[i] = acc[9];
+  });
+}
+
+template <typename T>
+void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* scratch) {
+  const int64_t P = int64_t(p.width) * p.height;
+  const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
+  const int C = c.C;
+  const int S = C + 2;  // C weighted sums, hit count, max weight
+  parallel_dynamic(num_tiles, [&](int64_t tile) {
+    thread_local std::vector<PackedSplat<T>> splats;
+    thread_local std::vector<T> wts;
+    const TileView v = tile_view(p, tile);
+    gather_splats(p, v, splats, false);
+    T* out = scratch + int64_t(S) * v.start;
+    std::fill(out, out + int64_t(S) * splats.size(), T(0));
+    // Tile-local copy of the weight map, [C][kTilePixels].
+    wts.assign(size_t(C) * kTilePixels, T(0));
+    for (int py = v.y0; py < v.y1; ++py)
+      for (int px = v.x0; px < v.x1; ++px)
+        for (int ch = 0; ch < C; ++ch)
+          wts[size_t(ch) * kTilePixels + (py - v.y0) * TILE_SIZE + (px - v.x0)] =
+              c.weights[ch * P + int64_t(py) * p.width + px];
+    T tr[kTilePixels];
+    int32_t last[kTilePixels];
+    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int lo, int hi, const T* w) {
+      T* r = out + int64_t(S) * j;
+      for (int ch = 0; ch < C; ++ch) {
+        const T* wc = wts.data() + size_t(ch) * kTilePixels + ly * TILE_SIZE;
+        T acc = T(0);
+        for (int lx = lo; lx < hi; ++lx) acc += wc[lx] * w[lx];
+        r[ch] += acc;
+      }
+      T hits = T(0), mx = r[C + 1];
+      for (int lx = lo; lx < hi; ++lx) {
+        hits += w[lx] > T(0) ? T(1) : T(0);
+        mx = std::max(mx, w[lx]);
+      }
+      r[C] += hits;
+      r[C + 1] = mx;
+    });
+  });
+  // Hit counts are exact in T (a record counts at most TILE_SIZE^2 pixels).
+  parallel_items(p.N, [&](int64_t i) {
+    T hits = T(0), mx = T(0);
+    T* v = c.contribution + int64_t(C) * i;
+    for (int ch = 0; ch < C; ++ch) v[ch] = T(0);
+    for (int32_t e = p.bins.entry_offsets[i]; e < p.bins.entry_offsets[i + 1]; ++e) {
+      const T* r = scratch + int64_t(S) * p.bins.entry_slots[e];
+      for (int ch = 0; ch < C; ++ch) v[ch] += r[ch];
+      hits += r[C];
+      mx = std::max(mx, r[C + 1]);
+    }
+    c.hits[i] = static_cast<int32_t>(hits);
+    c.max_weight[i] = mx;
+  });
+}
+
+template void rasterize_forward<float>(const RasterParams<float>&);
+template void rasterize_forward<double>(const RasterParams<double>&);
+template void rasterize_backward<float>(const RasterParams<float>&, const RasterGradParams<float>&,
+                                        float*);
+template void rasterize_backward<double>(const RasterParams<double>&, const RasterGradParams<double>&,
+                                         double*);
+template void contribution<float>(const RasterParams<float>&, const ContributionParams<float>&, float*);
+template void contribution<double>(const RasterParams<double>&, const ContributionParams<double>&,
+                                   double*);
+
+}  // namespace gsw::cpu

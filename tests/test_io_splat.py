@@ -1,0 +1,157 @@
+"""Tests for gsw.io.splat (antimatter15 .splat files)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gsw.constants import SH_C0
+from gsw.gaussians import Gaussians
+from gsw.io import SplatError, load_gaussians, load_ply, load_splat, save_gaussians, save_splat
+from gsw.io.splat import SPLAT_DTYPE, splat_sort_order
+
+DATA = Path(__file__).parents[2] / "shared" / "data"
+FIXTURE_DIR = DATA / "ply" / "sh3_fixture"
+
+
+def require(path: Path) -> Path:
+    if not path.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"missing test data: {path}")
+        pytest.skip(f"missing test data: {path}")
+    return path
+
+
+def make(n: int, degree: int = 0, seed: int = 0) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2
+    return Gaussians(
+        means=torch.randn(n, 3, generator=g),
+        log_scales=torch.randn(n, 3, generator=g) - 3,
+        quats=torch.randn(n, 4, generator=g),
+        opacity_logits=torch.randn(n, generator=g) * 2,
+        sh=torch.rand(n, k, 3, generator=g) * 2 - 1,
+    )
+
+
+def same_rotation_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-row max abs difference of unit quaternions, up to the q ~ -q sign ambiguity."""
+    a = torch.nn.functional.normalize(a.double(), dim=1)
+    b = torch.nn.functional.normalize(b.double(), dim=1)
+    return torch.minimum((a - b).abs().amax(1), (a + b).abs().amax(1))
+
+
+def test_record_layout():
+    assert SPLAT_DTYPE.itemsize == 32
+    assert [SPLAT_DTYPE.fields[k][1] for k in ("position", "scale", "rgba", "rot")] == [0, 12, 24, 28]
+
+
+def test_decoding(tmp_path):
+    rec = np.zeros(2, SPLAT_DTYPE)
+    rec["position"] = [[1, 2, 3], [-1, 0, 0.5]]
+    rec["scale"] = [[0.1, 0.2, 0.4], [1, 1, 1]]
+    rec["rgba"] = [[255, 128, 0, 255], [0, 0, 0, 0]]
+    rec["rot"] = [[255, 128, 128, 128], [128, 0, 128, 128]]
+    (tmp_path / "a.splat").write_bytes(rec.tobytes())
+    g = load_splat(tmp_path / "a.splat")
+    assert len(g) == 2 and g.sh_degree == 0 and g.dtype == torch.float32
+    torch.testing.assert_close(g.means, torch.tensor(rec["position"]))
+    torch.testing.assert_close(g.scales, torch.tensor(rec["scale"]))
+    rgb = 0.5 + SH_C0 * g.sh[:, 0]
+    torch.testing.assert_close(rgb, torch.tensor([[1.0, 128 / 255, 0.0], [0.0, 0.0, 0.0]]))
+    assert torch.isfinite(g.opacity_logits).all()
+    torch.testing.assert_close(g.opacities, torch.tensor([1.0, 0.0]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(g.quats, torch.tensor([[127 / 128, 0, 0, 0], [0, -1, 0, 0]]))
+
+
+def test_round_trip(tmp_path):
+    g = make(500, degree=2)
+    save_splat(g, tmp_path / "m.splat")
+    assert (tmp_path / "m.splat").stat().st_size == 500 * 32
+    h = load_splat(tmp_path / "m.splat")
+    assert h.sh_degree == 0
+    assert torch.equal(h.means, g.means)
+    torch.testing.assert_close(h.log_scales, g.log_scales, rtol=0, atol=1e-6)
+    rgb = (0.5 + SH_C0 * g.sh[:, 0]).clamp(0, 1)
+    assert (0.5 + SH_C0 * h.sh[:, 0] - rgb).abs().max() <= 0.5 / 255 + 1e-6
+    assert (h.opacities - g.opacities).abs().max() <= 0.5 / 255 + 1e-6
+    assert same_rotation_error(h.quats, g.quats).max() <= 1.5 / 128
+    # Re-encoding decoded data reproduces position, scale and colour bytes exactly.
+    save_splat(h, tmp_path / "again.splat")
+    a = np.fromfile(tmp_path / "m.splat", SPLAT_DTYPE)
+    b = np.fromfile(tmp_path / "again.splat", SPLAT_DTYPE)
+    for key in ("position", "scale", "rgba"):
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert np.abs(a["rot"].astype(int) - b["rot"]).max() <= 1
+
+
+def test_sorted_like_antimatter15(tmp_path):
+    g = make(200)
+    save_splat(g, tmp_path / "s.splat", sort=True)
+    h = load_splat(tmp_path / "s.splat")
+    order = splat_sort_order(g)
+    assert torch.equal(h.means, g.means[order])
+    key = g.scales.double().prod(1) * g.opacities.double()
+    assert (key[order][:-1] >= key[order][1:]).all()
+
+
+def test_bad_size(tmp_path):
+    (tmp_path / "bad.splat").write_bytes(b"\0" * 65)
+    with pytest.raises(SplatError, match="65 bytes is not a multiple of 32"):
+        load_splat(tmp_path / "bad.splat")
+    rec = np.zeros(1, SPLAT_DTYPE)
+    rec["position"] = np.nan
+    (tmp_path / "nan.splat").write_bytes(rec.tobytes())
+    with pytest.raises(SplatError, match="non-finite"):
+        load_splat(tmp_path / "nan.splat")
+
+
+def test_dispatch_by_extension(tmp_path):
+    g = make(10)
+    save_gaussians(g, tmp_path / "m.splat")
+    save_gaussians(g, tmp_path / "m.ply")
+    assert load_gaussians(tmp_path / "m.splat").sh_degree == 0
+    assert torch.equal(load_gaussians(tmp_path / "m.ply").means, g.means)
+
+
+def test_fixture_matches_ply(tmp_path):
+    """model.splat is the same scene as point_cloud.ply but a different checkpoint (22,764 vs 9,080
+    Gaussians, file order unrelated). Gaussians whose position is bit-identical in both files must
+    agree in every attribute up to the .splat quantisation, and re-encoding them must give the same bytes."""
+    ply = load_ply(require(FIXTURE_DIR / "point_cloud.ply"))
+    splat_path = require(FIXTURE_DIR / "model.splat")
+    splat = load_splat(splat_path)
+    assert len(ply) == 9080 and len(splat) == 22764
+    splat.check_finite()
+
+    # Match by exact position bytes.
+    def keys(t: torch.Tensor) -> np.ndarray:
+        return np.ascontiguousarray(t.numpy()).view(np.dtype((np.void, 12))).ravel()
+
+    _, i_ply, i_splat = np.intersect1d(keys(ply.means), keys(splat.means), return_indices=True)
+    assert len(i_ply) > 2000
+    p, s = ply[torch.from_numpy(i_ply)], splat[torch.from_numpy(i_splat)]
+    torch.testing.assert_close(s.log_scales, p.log_scales, rtol=0, atol=1e-5)
+    rgb_p = (0.5 + SH_C0 * p.sh[:, 0]).clamp(0, 1)
+    rgb_s = 0.5 + SH_C0 * s.sh[:, 0]
+    assert (rgb_p - rgb_s).abs().max() <= 0.5 / 255 + 1e-5
+    assert (p.opacities - s.opacities).abs().max() <= 0.5 / 255 + 1e-5
+    assert same_rotation_error(p.quats, s.quats).max() <= 1.0 / 128
+
+    # Our encoder reproduces the fixture's bytes (rounding quantisation), scales up to float32 exp rounding.
+    save_splat(p, tmp_path / "matched.splat")
+    ours = np.fromfile(tmp_path / "matched.splat", SPLAT_DTYPE)
+    theirs = np.fromfile(splat_path, SPLAT_DTYPE)[i_splat]
+    for key in ("position", "rgba", "rot"):
+        np.testing.assert_array_equal(ours[key], theirs[key], err_msg=key)
+    np.testing.assert_allclose(ours["scale"], theirs["scale"], rtol=1e-6)
+
+    # Whole-scene agreement: most PLY Gaussians have a splat nearby (relative to the scene size).
+    extent = float((ply.means.max(0).values - ply.means.min(0).values).norm())
+    nearest = torch.cat([torch.cdist(chunk, splat.means).min(1).values for chunk in ply.means.split(2048)])
+    assert float(nearest.median()) < 0.01 * extent
+
