@@ -3,10 +3,9 @@
 // Instead of sorting (tile, depth) keys of all M intersections, the visible Gaussians are
 // sorted once by depth (LSD radix sort on the float bits for float32, a stable sort for
 // float64) and then scattered into their tiles in that order (a counting sort by tile), which
-// keeps every tile's list depth-ordered: O(N + M) for float32.
+// keeps every tile's list depth-ordered: O(N + M) for float32, the scatter in parallel.
 #include <algorithm>
 #include <cstring>
-#include <numeric>
 #include <vector>
 
 #include "cpu/backend_cpu.h"
@@ -73,27 +72,59 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, i
     tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1,
               y1);
   };
-  // Counting sort by tile, visiting Gaussians front to back.
-  std::vector<int32_t> cursor(num_tiles + 1, 0);
-  for (int32_t g : order) {
-    int x0, y0, x1, y1;
-    rect_of(g, x0, y0, x1, y1);
-    for (int ty = y0; ty < y1; ++ty)
-      for (int tx = x0; tx < x1; ++tx) ++cursor[ty * tiles_x + tx + 1];
-  }
-  std::partial_sum(cursor.begin(), cursor.end(), cursor.begin());
-  std::memcpy(tile_offsets, cursor.data(), sizeof(int32_t) * (num_tiles + 1));
-  for (int32_t g : order) {
-    int x0, y0, x1, y1;
-    rect_of(g, x0, y0, x1, y1);
-    int32_t e = entry_offsets[g];
-    for (int ty = y0; ty < y1; ++ty)
-      for (int tx = x0; tx < x1; ++tx) {
-        const int32_t slot = cursor[ty * tiles_x + tx]++;
-        gauss_ids[slot] = g;
-        entry_slots[e++] = slot;
+  // Counting sort by tile in depth order, parallel over contiguous chunks of the depth order:
+  // chunk c writes tile t's entries after those of chunks < c, so the result equals the
+  // sequential scatter for any number of chunks.
+  const int64_t V = static_cast<int64_t>(order.size());
+  const int64_t chunks = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), V / 4096));
+  std::vector<int32_t> counts(size_t(chunks) * num_tiles, 0);
+  auto chunk_range = [&](int64_t c, int64_t& lo, int64_t& hi) {
+    lo = V * c / chunks;
+    hi = V * (c + 1) / chunks;
+  };
+  at::parallel_for(0, chunks, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      int64_t lo, hi;
+      chunk_range(c, lo, hi);
+      int32_t* cnt = counts.data() + size_t(c) * num_tiles;
+      for (int64_t k = lo; k < hi; ++k) {
+        int x0, y0, x1, y1;
+        rect_of(order[k], x0, y0, x1, y1);
+        for (int ty = y0; ty < y1; ++ty)
+          for (int tx = x0; tx < x1; ++tx) ++cnt[ty * tiles_x + tx];
       }
+    }
+  });
+  // tile_offsets, and each chunk's starting cursor per tile (counts become cursors).
+  tile_offsets[0] = 0;
+  for (int t = 0; t < num_tiles; ++t) {
+    int32_t run = tile_offsets[t];
+    for (int64_t c = 0; c < chunks; ++c) {
+      const int32_t n = counts[size_t(c) * num_tiles + t];
+      counts[size_t(c) * num_tiles + t] = run;
+      run += n;
+    }
+    tile_offsets[t + 1] = run;
   }
+  at::parallel_for(0, chunks, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      int64_t lo, hi;
+      chunk_range(c, lo, hi);
+      int32_t* cursor = counts.data() + size_t(c) * num_tiles;
+      for (int64_t k = lo; k < hi; ++k) {
+        const int32_t g = order[k];
+        int x0, y0, x1, y1;
+        rect_of(g, x0, y0, x1, y1);
+        int32_t e = entry_offsets[g];
+        for (int ty = y0; ty < y1; ++ty)
+          for (int tx = x0; tx < x1; ++tx) {
+            const int32_t slot = cursor[ty * tiles_x + tx]++;
+            gauss_ids[slot] = g;
+            entry_slots[e++] = slot;
+          }
+      }
+    }
+  });
 }
 
 template void count_tiles<float>(int, const float*, const int32_t*, int, int, int32_t*);

@@ -81,17 +81,18 @@ void gather_splats(const RasterParams<T>& p, const TileView& v, std::vector<Pack
   }
 }
 
-// One row segment [lo, hi) of a splat's box, front to back. Per pixel: w = blending weight
-// (0 when skipped, already finished or terminating here), and updates of the transmittance,
-// liveness and last-contributor arrays (all indexed by the tile-local x). Branch-free, so it
-// vectorizes across pixels.
+// One tile row for one splat, front to back, over all TILE_SIZE lanes (fixed trip count, so the
+// loop becomes straight-line SIMD); lanes outside the splat's box [lo, hi) are masked. Per
+// pixel: w = blending weight (0 when masked, skipped, finished or terminating here), and updates
+// of the transmittance, liveness and last-contributor arrays (indexed by the tile-local x).
 template <typename T>
 inline void blend_row(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo, int hi, T* tr,
                       int32_t* alive, int32_t* last, T* w) {
-  for (int lx = lo; lx < hi; ++lx) {
+  for (int lx = 0; lx < TILE_SIZE; ++lx) {
     const T power = gaussian_power(s.conic, s.mx, s.my, x_centre0 + T(lx), pyc);
     const T alpha0 = splat_alpha(s.opacity, power);
-    const T alpha = alive[lx] ? alpha0 : T(0);
+    const bool open = (alive[lx] != 0) & (lx >= lo) & (lx < hi);
+    const T alpha = open ? alpha0 : T(0);
     const bool term = (alpha > T(0)) & blend_terminates(tr[lx], alpha);
     alive[lx] = term ? 0 : alive[lx];
     const T a = term ? T(0) : alpha;
@@ -150,13 +151,14 @@ void rasterize_forward(const RasterParams<T>& p) {
     T tr[kTilePixels], col[3][kTilePixels], dep[kTilePixels];
     int32_t last[kTilePixels];
     for (int k = 0; k < kTilePixels; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
-    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int lo, int hi, const T* w) {
-      const PackedSplat<T>& s = splats[j];
+    const PackedSplat<T>* sp = splats.data();  // no TLS lookup in the lambda
+    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int, int, const T* w) {
+      const PackedSplat<T>& s = sp[j];
       T* c0 = col[0] + ly * TILE_SIZE;
       T* c1 = col[1] + ly * TILE_SIZE;
       T* c2 = col[2] + ly * TILE_SIZE;
       T* d = dep + ly * TILE_SIZE;
-      for (int lx = lo; lx < hi; ++lx) {
+      for (int lx = 0; lx < TILE_SIZE; ++lx) {  // w is 0 outside [lo, hi)
         c0[lx] += w[lx] * s.color[0];
         c1[lx] += w[lx] * s.color[1];
         c2[lx] += w[lx] * s.color[2];
@@ -233,10 +235,11 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
         T *b0 = behind[0] + row, *b1 = behind[1] + row, *b2 = behind[2] + row;
         T* bd = behind_d + row;
         const int32_t* np = n_pix + row;
-        for (int lx = s.bx0; lx < s.bx1; ++lx) {
+        for (int lx = 0; lx < TILE_SIZE; ++lx) {  // fixed trip count; lanes outside the box masked
           const T pxc = x_centre0 + T(lx);
           const T alpha0 = splat_alpha(s.opacity, gaussian_power(s.conic, s.mx, s.my, pxc, pyc));
-          const T a = j < np[lx] ? alpha0 : T(0);
+          const bool open = (j < np[lx]) & (lx >= s.bx0) & (lx < s.bx1);
+          const T a = open ? alpha0 : T(0);
           const T om = T(1) - a;
           const T t = trr[lx] / om;  // transmittance in front of splat j (unchanged if a = 0)
           trr[lx] = t;
@@ -301,7 +304,7 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
   const int S = C + 2;  // C weighted sums, hit count, max weight
   parallel_dynamic(num_tiles, [&](int64_t tile) {
     thread_local std::vector<PackedSplat<T>> splats;
-    thread_local std::vector<T> wts;
+    thread_local std::vector<T> wts, lanes;
     const TileView v = tile_view(p, tile);
     gather_splats(p, v, splats, false);
     T* out = scratch + int64_t(S) * v.start;
@@ -313,24 +316,45 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
         for (int ch = 0; ch < C; ++ch)
           wts[size_t(ch) * kTilePixels + (py - v.y0) * TILE_SIZE + (px - v.x0)] =
               c.weights[ch * P + int64_t(py) * p.width + px];
+    // Per-lane partial sums of the current splat, [C + 2][TILE_SIZE], flushed when it changes.
+    // (Plain pointers: thread_local access inside the hot lambda would cost a TLS lookup.)
+    lanes.assign(size_t(S) * TILE_SIZE, T(0));
+    T* lane_sum = lanes.data();
+    T* lane_hits = lane_sum + size_t(C) * TILE_SIZE;
+    T* lane_max = lane_hits + TILE_SIZE;
+    const T* wmap = wts.data();
+    int current = -1;
+    auto flush = [&]() {
+      if (current < 0) return;
+      T* r = out + int64_t(S) * current;
+      for (int k = 0; k <= C; ++k) {  // sums and hit count
+        T acc = T(0);
+        for (int lx = 0; lx < TILE_SIZE; ++lx) acc += lane_sum[k * TILE_SIZE + lx];
+        r[k] += acc;
+      }
+      T mx = r[C + 1];
+      for (int lx = 0; lx < TILE_SIZE; ++lx) mx = std::max(mx, lane_max[lx]);
+      r[C + 1] = mx;
+      std::fill(lane_sum, lane_sum + size_t(S) * TILE_SIZE, T(0));
+    };
     T tr[kTilePixels];
     int32_t last[kTilePixels];
-    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int lo, int hi, const T* w) {
-      T* r = out + int64_t(S) * j;
+    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int, int, const T* w) {
+      if (j != current) {
+        flush();
+        current = j;
+      }
       for (int ch = 0; ch < C; ++ch) {
-        const T* wc = wts.data() + size_t(ch) * kTilePixels + ly * TILE_SIZE;
-        T acc = T(0);
-        for (int lx = lo; lx < hi; ++lx) acc += wc[lx] * w[lx];
-        r[ch] += acc;
+        const T* wc = wmap + size_t(ch) * kTilePixels + ly * TILE_SIZE;
+        T* lane = lane_sum + size_t(ch) * TILE_SIZE;
+        for (int lx = 0; lx < TILE_SIZE; ++lx) lane[lx] += wc[lx] * w[lx];
       }
-      T hits = T(0), mx = r[C + 1];
-      for (int lx = lo; lx < hi; ++lx) {
-        hits += w[lx] > T(0) ? T(1) : T(0);
-        mx = std::max(mx, w[lx]);
+      for (int lx = 0; lx < TILE_SIZE; ++lx) {
+        lane_hits[lx] += w[lx] > T(0) ? T(1) : T(0);
+        lane_max[lx] = std::max(lane_max[lx], w[lx]);
       }
-      r[C] += hits;
-      r[C + 1] = mx;
     });
+    flush();
   });
   // Hit counts are exact in T (a record counts at most TILE_SIZE^2 pixels).
   parallel_items(p.N, [&](int64_t i) {

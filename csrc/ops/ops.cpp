@@ -8,6 +8,8 @@
 #include "core/params.h"
 #include "cpu/backend_cpu.h"
 #ifdef GSW_WITH_CUDA
+#include <c10/cuda/CUDAGuard.h>
+
 #include "cuda/backend_cuda.h"
 #endif
 
@@ -176,6 +178,7 @@ py::tuple project_forward(const Tensor& means, const Tensor& quats, const Tensor
     p.opacities = opacities.data_ptr<scalar_t>();
     if (means.is_cuda()) {
 #ifdef GSW_WITH_CUDA
+      const c10::cuda::CUDAGuard guard(means.device());
       cuda::project_forward(p);
 #else
       no_cuda();
@@ -230,6 +233,7 @@ py::tuple project_backward(const Tensor& means, const Tensor& quats, const Tenso
     gp.v_sh = v_sh.data_ptr<scalar_t>();
     if (means.is_cuda()) {
 #ifdef GSW_WITH_CUDA
+      const c10::cuda::CUDAGuard guard(means.device());
       cuda::project_backward(p, gp);
 #else
       no_cuda();
@@ -278,6 +282,7 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& radii, const Tensor& dep
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "gsw_count_tiles", [&] {
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
+      const c10::cuda::CUDAGuard guard(means2d.device());
       cuda::count_tiles(static_cast<int>(N), means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
                         b.tiles_x, b.tiles_y, touched.data_ptr<int32_t>());
 #else
@@ -307,7 +312,12 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& radii, const Tensor& dep
     };
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
-      fill(cuda::fill_bins<scalar_t>);
+      const c10::cuda::CUDAGuard guard(means2d.device());
+      cuda::fill_bins<scalar_t>(static_cast<int>(N), means2d.data_ptr<scalar_t>(),
+                                radii.data_ptr<int32_t>(), depths.data_ptr<scalar_t>(),
+                                b.tile_offsets.data_ptr<int32_t>(), b.gauss_ids.data_ptr<int32_t>(),
+                                b.entry_offsets.data_ptr<int32_t>(),
+                                b.entry_slots.data_ptr<int32_t>(), b.tiles_x, b.tiles_y, M);
 #else
       no_cuda();
 #endif
@@ -379,6 +389,7 @@ py::tuple rasterize_forward(const Tensor& means2d, const Tensor& conics, const T
     p.n_contrib = n_contrib.data_ptr<int32_t>();
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
+      const c10::cuda::CUDAGuard guard(means2d.device());
       cuda::rasterize_forward(p);
 #else
       no_cuda();
@@ -422,6 +433,7 @@ py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const 
     g.v_depths = v_depths.data_ptr<scalar_t>();
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
+      const c10::cuda::CUDAGuard guard(means2d.device());
       cuda::rasterize_backward(p, g);
 #else
       no_cuda();
@@ -457,6 +469,7 @@ py::tuple contribution(const Tensor& means2d, const Tensor& conics, const Tensor
     cp.max_weight = max_weight.data_ptr<scalar_t>();
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
+      const c10::cuda::CUDAGuard guard(means2d.device());
       cuda::contribution(p, cp);
 #else
       no_cuda();

@@ -1,0 +1,34 @@
+# gsw developer/user entry points. Every target creates or reuses the local virtualenv .venv,
+# installs torch (CPU build 2.13.0 by default) and builds the package into it.
+#   make demo   - run the main job on the built-in scene (no downloads)
+#   make test   - run the test suite
+#   make bench  - CPU rasterizer benchmark (writes benchmarks/results/)
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.gsw-deps
+
+.PHONY: demo test bench install clean
+
+$(STAMP):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q numpy kornia pillow pytest pybind11 "scikit-build-core>=0.10" "cmake>=3.21" ninja
+	touch $(STAMP)
+
+install: $(STAMP)
+	$(PY) -m pip install -q --no-build-isolation --no-deps -e .
+
+demo: install
+	$(VENV)/bin/gsw demo
+
+test: install
+	$(PY) -m pytest -q
+
+bench: install
+	$(PY) benchmarks/bench_cpu.py
+
+clean:
+	rm -rf build $(VENV) gsw-demo

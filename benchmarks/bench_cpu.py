@@ -1,0 +1,186 @@
+"""CPU rasterizer benchmark: forward, forward+backward and contribution on synthetic frustum scenes.
+
+Each configuration runs in its own subprocess so its peak resident memory is its own. Prints a
+markdown table and writes `benchmarks/results/cpu.json` and `cpu.md`.
+
+Usage:
+    python benchmarks/bench_cpu.py [--quick] [--repeats 7] [--out benchmarks/results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CONFIGS = [  # (N, width, height, sh_degree)
+    (10_000, 256, 256, 0), (10_000, 256, 256, 3),
+    (100_000, 800, 800, 0), (100_000, 800, 800, 3),
+    (1_000_000, 800, 800, 0), (1_000_000, 800, 800, 3),
+]
+REFERENCE_CONFIG = (2_000, 128, 128, 3)  # small enough for the dense pure-PyTorch reference
+TARGETS_MS = {(100_000, 800, 800, 3): 400.0, (1_000_000, 800, 800, 3): 1500.0,
+              (1_000_000, 800, 800, 0): 1500.0}
+
+
+def _median(xs: list[float]) -> float:
+    xs = sorted(xs)
+    return xs[len(xs) // 2]
+
+
+def _peak_rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def run_single(n: int, width: int, height: int, sh_degree: int, repeats: int, reference: bool) -> dict:
+    """Times one configuration in this process."""
+    import torch
+
+    from gsw.camera import Camera
+    from gsw.rasterize import contribution_from_projection, rasterize
+    from gsw.scenes import frustum_scene
+
+    cam = Camera.from_fov(0.8, width, height)
+    g = frustum_scene(n, cam, sh_degree=sh_degree, seed=0)
+    params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+    weights = torch.rand(3, height, width, generator=torch.Generator().manual_seed(0))
+
+    def forward():
+        with torch.no_grad():
+            return rasterize(g, cam)
+
+    def forward_backward():
+        for p in params:
+            p.grad = None
+        out = rasterize(g, cam)
+        out.image.sum().backward()
+        return out
+
+    def contrib():
+        out = forward()
+        start = time.perf_counter()
+        contribution_from_projection(out.projection, out.bins, weights, width, height)
+        return time.perf_counter() - start
+
+    def timeit(fn) -> float:
+        fn()  # warm-up
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - start)
+        return 1e3 * _median(times)
+
+    out = forward()
+    result = dict(n=n, width=width, height=height, sh_degree=sh_degree,
+                  visible=int(out.visible.sum()), intersections=int(out.bins.num_intersections),
+                  mean_alpha=float(out.alpha.mean()),
+                  forward_ms=timeit(forward), forward_backward_ms=timeit(forward_backward))
+    contrib()
+    result["contribution_ms"] = 1e3 * _median([contrib() for _ in range(repeats)])
+    if reference:
+        from gsw.reference import reference_rasterize
+
+        def ref_forward():
+            with torch.no_grad():
+                reference_rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh,
+                                    cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy, width, height,
+                                    sh_degree)
+
+        start = time.perf_counter()
+        ref_forward()
+        result["reference_forward_ms"] = 1e3 * (time.perf_counter() - start)
+    result["peak_rss_mb"] = _peak_rss_mb()
+    return result
+
+
+def machine_info() -> dict:
+    import torch
+
+    import gsw
+
+    cpu = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return dict(cpu=cpu, cores=os.cpu_count(), threads=torch.get_num_threads(),
+                python=platform.python_version(), torch=torch.__version__,
+                gsw=gsw.__version__, build=gsw.build_info(),
+                date=time.strftime("%Y-%m-%d %H:%M:%S"))
+
+
+def to_markdown(machine: dict, rows: list[dict]) -> str:
+    lines = [f"CPU: {machine['cpu']}, {machine['cores']} cores, {machine['threads']} torch threads; "
+             f"torch {machine['torch']}, gsw {machine['gsw']}, compiler {machine['build']['compiler']}; "
+             f"{machine['date']}. Synthetic frustum scene (`gsw.scenes.frustum_scene`, seed 0), "
+             "median of the repeats after one warm-up; fwd+bwd = render + `image.sum().backward()` "
+             "to all Gaussian parameters; contribution = 3-channel weight map on the same view.",
+             "",
+             "| N | image | SH | intersections | forward ms | fwd+bwd ms | contribution ms | "
+             "contrib/fwd | peak RSS MB | target fwd+bwd |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        key = (r["n"], r["width"], r["height"], r["sh_degree"])
+        target = TARGETS_MS.get(key)
+        verdict = "" if target is None else (
+            f"<= {target:.0f} ms: {'met' if r['forward_backward_ms'] <= target else 'NOT met'}")
+        lines.append(f"| {r['n']:,} | {r['width']}x{r['height']} | {r['sh_degree']} | "
+                     f"{r['intersections']:,} | {r['forward_ms']:.1f} | {r['forward_backward_ms']:.1f} | "
+                     f"{r['contribution_ms']:.1f} | {r['contribution_ms'] / r['forward_ms']:.2f} | "
+                     f"{r['peak_rss_mb']:.0f} | {verdict} |")
+    ref = [r for r in rows if "reference_forward_ms" in r]
+    for r in ref:
+        lines += ["", f"Pure-PyTorch reference (`gsw.reference`), {r['n']:,} Gaussians at "
+                  f"{r['width']}x{r['height']} SH {r['sh_degree']}: forward "
+                  f"{r['reference_forward_ms']:.0f} ms = {r['reference_forward_ms'] / r['forward_ms']:.0f}x "
+                  "the C++ forward."]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="only the small configurations")
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    parser.add_argument("--single", nargs=4, type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--reference", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.single:
+        print(json.dumps(run_single(*args.single, repeats=args.repeats, reference=args.reference)))
+        return 0
+    configs = [c for c in CONFIGS if not args.quick or c[0] <= 10_000]
+    rows = []
+    for cfg in [REFERENCE_CONFIG] + configs:
+        cmd = [sys.executable, __file__, "--single", *map(str, cfg), "--repeats", str(args.repeats)]
+        if cfg == REFERENCE_CONFIG:
+            cmd.append("--reference")
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(f"N={row['n']:>9,} {row['width']}x{row['height']} SH{row['sh_degree']}: forward "
+              f"{row['forward_ms']:8.1f} ms, fwd+bwd {row['forward_backward_ms']:8.1f} ms, "
+              f"contribution {row['contribution_ms']:8.1f} ms, peak RSS {row['peak_rss_mb']:.0f} MB",
+              flush=True)
+    machine = machine_info()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "cpu.json").write_text(json.dumps(dict(machine=machine, results=rows), indent=2) + "\n")
+    md = to_markdown(machine, rows)
+    (out / "cpu.md").write_text(md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,49 @@
+// CUDA backend of the rasterizer ops. Same parameter structs and the same math/constants
+// headers (core/*.h) as the CPU backend; templated on float / double (float32 is the fast path,
+// float64 exists for parity tests).
+//
+// Every function enqueues its kernels on torch's current CUDA stream of the current device (the
+// dispatcher sets the device from the tensors) and returns without synchronising. Temporary
+// buffers come from torch's caching allocator.
+//
+// Differences from the CPU backend (results agree to rounding):
+//  * binning sorts (tile << 32 | depth key) pairs of all intersections with cub's device radix
+//    sort (stable, so equal depths keep the Gaussian index order, as on the CPU); `fill_bins`
+//    needs the number of intersections M (the dispatcher knows it);
+//  * rasterize_backward and contribution reduce per-splat values over a warp (shuffles) and then
+//    add them to the per-Gaussian outputs with one atomic per warp: no scratch buffer, but the
+//    float summation order is not fixed (gradients are not bitwise deterministic);
+//  * entry_slots are filled exactly as on the CPU (not used by the CUDA kernels).
+#pragma once
+
+#include <cstdint>
+
+#include "core/params.h"
+
+namespace gsw::cuda {
+
+template <typename T>
+void project_forward(const ProjectParams<T>& p);
+template <typename T>
+void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g);
+
+// Number of tiles each Gaussian touches (0 when culled).
+template <typename T>
+void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
+                 int32_t* tiles_touched);
+// Fill the bins; `entry_offsets` must already hold the exclusive prefix sum of tiles_touched
+// (on the device) and M = entry_offsets[N] (on the host).
+template <typename T>
+void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths,
+               int32_t* tile_offsets, int32_t* gauss_ids, const int32_t* entry_offsets,
+               int32_t* entry_slots, int tiles_x, int tiles_y, int64_t M);
+
+template <typename T>
+void rasterize_forward(const RasterParams<T>& p);
+// Outputs of `g` need no initialisation.
+template <typename T>
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g);
+template <typename T>
+void contribution(const RasterParams<T>& p, const ContributionParams<T>& c);
+
+}  // namespace gsw::cuda
