@@ -221,7 +221,7 @@ def _resolve_sh_degree(gaussians: Gaussians, sh_degree: int | None) -> int:
 
 def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = None,
               background: Tensor | tuple[float, float, float] | None = None,
-              colors: Tensor | None = None) -> RenderOutput:
+              colors: Tensor | None = None, validate: bool = True) -> RenderOutput:
     """Renders Gaussians from a camera; differentiable w.r.t. every Gaussian parameter.
 
     Args:
@@ -231,6 +231,8 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
         background: [3] RGB composited behind the splats (default black).
         colors: optional [N, 3] per-Gaussian RGB that replaces the SH colour (a "colour
             override"; differentiable).
+        validate: raise a ValueError naming the field if any parameter is NaN/Inf (one pass
+            over the parameters; on CUDA it synchronises, so hot loops may turn it off).
 
     Returns:
         A :class:`RenderOutput` with image [3, H, W], alpha, depth and per-Gaussian data.
@@ -243,6 +245,8 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
         >>> rasterize(g, cam).image.shape
         torch.Size([3, 48, 64])
     """
+    if validate:
+        gaussians.check_finite()
     if colors is not None:
         n = gaussians.means.shape[0]
         if colors.shape != (n, 3):

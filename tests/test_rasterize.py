@@ -319,6 +319,10 @@ def test_bad_inputs_name_the_argument() -> None:
         rasterize(g, cam, sh_degree=3)
     with pytest.raises(ValueError, match="weights"):
         contribution(g, cam, torch.ones(1, 5, 5))
+    bad = g.clone()
+    bad.opacity_logits[3] = float("nan")
+    with pytest.raises(ValueError, match="opacity_logits: 1 of 10"):
+        rasterize(bad, cam)
     with pytest.raises(ValueError, match="background"):
         rasterize(g, cam, background=(1.0, 0.0))
     proj = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 1)
