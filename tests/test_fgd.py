@@ -1,0 +1,82 @@
+"""FGD: phase-1 pruning, phase-2 frequency scores and splitting."""
+
+import math
+
+import pytest
+import torch
+
+from gsw.camera import Camera
+from gsw.fgd import fgd_prune, fgd_split, high_frequency_scores, split_gaussians
+from gsw.gaussians import Gaussians
+from gsw.rasterize import rasterize
+from gsw.scenes import random_gaussians
+
+
+def _cams(n: int = 3, size: int = 48) -> list[Camera]:
+    return [Camera.look_at((3.0 * math.cos(a), 3.0 * math.sin(a), 0.5), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0),
+                           0.9, size, size) for a in torch.linspace(0, 1.5, n).tolist()]
+
+
+def test_prune_removes_invisible_and_transparent_keeps_visible() -> None:
+    cams = _cams()
+    g = random_gaussians(200, sh_degree=1, seed=0, extent=0.6, opacity_range=(0.3, 0.9))
+    g.means[:20] += torch.tensor([0.0, 0.0, 50.0])  # far outside every view
+    g.opacity_logits[20:40] = -30.0  # invisible
+    pruned, report = fgd_prune(g, cams)
+    assert report.num_before == 200
+    assert report.max_contribution[:40].max() <= report.threshold
+    assert report.num_removed >= 40 and len(pruned) == 200 - report.num_removed
+    # What is kept renders (almost) the same: only negligible Gaussians went away.
+    for cam in cams:
+        a, b = rasterize(g, cam).image, rasterize(pruned, cam).image
+        assert (a - b).abs().max() < 1e-3
+
+
+def test_prune_threshold_is_resolution_independent() -> None:
+    # Footprints of several pixels, so the 0.3 px^2 dilation does not dominate at either size.
+    g = random_gaussians(150, sh_degree=0, seed=1, extent=0.6, scale_range=(0.06, 0.15))
+    small = fgd_prune(g, _cams(2, 64))[1].max_contribution
+    large = fgd_prune(g, [c.scaled(2.0) for c in _cams(2, 64)])[1].max_contribution
+    visible = small > 1e-6
+    ratio = (large[visible] / small[visible]).median()
+    assert 0.9 < float(ratio) < 1.1
+
+
+def test_high_frequency_scores_see_both_directions() -> None:
+    h = w = 32
+    x = torch.arange(w, dtype=torch.float32)
+    vertical_stripes = (torch.sin(x * math.pi / 2) > 0).float().expand(3, h, w).clone()
+    horizontal_stripes = vertical_stripes.transpose(1, 2).contiguous()
+    flat = torch.full((3, h, w), 0.5)
+    s_v, s_h, s_f = (high_frequency_scores(im) for im in (vertical_stripes, horizontal_stripes, flat))
+    assert s_v.shape == (2, 2)
+    assert torch.allclose(s_v, s_h.T, rtol=1e-4)  # a true 2-D DFT treats both axes alike
+    assert s_v.min() > s_f.max() * 10
+
+
+def test_split_gaussians_replaces_parents_by_two_smaller_children() -> None:
+    g = random_gaussians(10, sh_degree=2, seed=2)
+    mask = torch.zeros(10, dtype=torch.bool)
+    mask[[1, 4, 7]] = True
+    out = split_gaussians(g, mask, generator=torch.Generator().manual_seed(0))
+    assert len(out) == 10 - 3 + 6
+    kids = out[7:]
+    parents = g[mask]
+    assert torch.allclose(kids.scales[:3], parents.scales / 1.6, rtol=1e-5)
+    assert torch.equal(kids.sh[:3], parents.sh) and torch.equal(kids.opacity_logits[3:], parents.opacity_logits)
+    # children stay within a few parent sigmas of the parent
+    dist = (kids.means[:3] - parents.means).norm(dim=1)
+    assert torch.all(dist < 5 * parents.scales.max(dim=1).values)
+
+
+def test_fgd_split_selects_candidates_and_is_deterministic() -> None:
+    cams = _cams(2, 64)
+    g = random_gaussians(300, sh_degree=1, seed=3, extent=0.6, scale_range=(0.01, 0.08))
+    out1, rep1 = fgd_split(g, cams, top_percent=10.0, seed=5)
+    out2, rep2 = fgd_split(g, cams, top_percent=10.0, seed=5)
+    assert rep1.num_candidates > 0 and 0 < rep1.num_split <= rep1.num_candidates
+    assert len(out1) == 300 + rep1.num_split
+    assert torch.equal(out1.means, out2.means)
+    assert rep1.patches_per_view == [round(16 * 0.1)] * 2
+    with pytest.raises(ValueError, match="top_percent"):
+        fgd_split(g, cams, top_percent=0.0)
