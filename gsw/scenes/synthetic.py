@@ -291,6 +291,7 @@ def default_cameras(
     radius: float = 4.0,
     elevation_deg: float = 30.0,
     fov_x_deg: float = 50.0,
+    azimuth_offset_deg: float = 0.0,
 ) -> list[Camera]:
     """An orbit of cameras around :data:`DEFAULT_SCENE_CENTER` framing the default scene.
 
@@ -301,12 +302,14 @@ def default_cameras(
         radius: orbit radius, world units.
         elevation_deg: camera elevation above the ground plane, degrees.
         fov_x_deg: horizontal field of view, degrees.
+        azimuth_offset_deg: rotation of the whole orbit (e.g. half a step for held-out views).
 
     Returns:
         ``n`` cameras (see :func:`gsw.camera.orbit_cameras`).
     """
     return orbit_cameras(
-        DEFAULT_SCENE_CENTER, radius, n, width=width, height=height, elevation_deg=elevation_deg, fov_x_deg=fov_x_deg
+        DEFAULT_SCENE_CENTER, radius, n, width=width, height=height, elevation_deg=elevation_deg,
+        fov_x_deg=fov_x_deg, azimuth_offset_deg=azimuth_offset_deg,
     )
 
 
