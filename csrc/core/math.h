@@ -540,14 +540,9 @@ GSW_HD T gaussian_power(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py) {
 
 // exp() of the blending hot loop. Host float32: a branch-free Cephes-style approximation
 // (relative error ~2 ulp for arguments in [-87, 0]) that compilers vectorize across pixels;
-// device code and float64 use the library exp.
-template <typename T>
-GSW_HD T blend_exp(T x) {
-  return exp(x);
-}
-#if !defined(__CUDACC__)
-template <>
-inline float blend_exp<float>(float x) {
+// host float64 and all device code use the library exp. (Separate host overloads, so every
+// translation unit sees the same definition of blend_exp.)
+inline float host_blend_exp(float x) {
   x = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
   const float fx = x * 1.44269504088896341f + 0.5f;
   int n = static_cast<int>(fx);  // truncation; fix up to floor below
@@ -566,7 +561,16 @@ inline float blend_exp<float>(float x) {
   __builtin_memcpy(&scale, &bits, sizeof(float));
   return y * scale;
 }
+inline double host_blend_exp(double x) { return exp(x); }
+
+template <typename T>
+GSW_HD T blend_exp(T x) {
+#if defined(__CUDA_ARCH__)
+  return exp(x);
+#else
+  return host_blend_exp(x);
 #endif
+}
 
 // Blending opacity of one splat at one pixel; returns 0 when the splat is skipped
 // (power > 0 or alpha < ALPHA_MIN). Branch-free so pixel loops vectorize.

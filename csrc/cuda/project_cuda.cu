@@ -68,6 +68,48 @@ __global__ void __launch_bounds__(kThreads) project_forward_kernel(const Project
   }
 }
 
+// 128-bit moves of per-Gaussian coefficient arrays (float32 only).
+template <typename T>
+struct VecIO {
+  static constexpr bool kOk = false;
+};
+template <>
+struct VecIO<float> {
+  static constexpr bool kOk = true;
+};
+
+template <typename T, int n>
+__device__ __forceinline__ void load_coeffs(const T* src, T* dst, bool vec) {
+  if constexpr (VecIO<T>::kOk && n % 4 == 0) {
+    if (vec) {
+#pragma unroll
+      for (int k = 0; k < n; k += 4) {
+        const float4 v = *reinterpret_cast<const float4*>(src + k);
+        dst[k] = v.x;
+        dst[k + 1] = v.y;
+        dst[k + 2] = v.z;
+        dst[k + 3] = v.w;
+      }
+      return;
+    }
+  }
+#pragma unroll
+  for (int k = 0; k < n; ++k) dst[k] = src[k];
+}
+template <typename T, int n>
+__device__ __forceinline__ void store_coeffs(T* dst, const T* src, bool vec) {
+  if constexpr (VecIO<T>::kOk && n % 4 == 0) {
+    if (vec) {
+#pragma unroll
+      for (int k = 0; k < n; k += 4)
+        *reinterpret_cast<float4*>(dst + k) = make_float4(src[k], src[k + 1], src[k + 2], src[k + 3]);
+      return;
+    }
+  }
+#pragma unroll
+  for (int k = 0; k < n; ++k) dst[k] = src[k];
+}
+
 template <typename T, int DEG>
 __global__ void __launch_bounds__(kThreads)
     project_backward_kernel(const ProjectParams<T> p, const ProjectGradParams<T> g) {
@@ -111,20 +153,24 @@ __global__ void __launch_bounds__(kThreads)
   const T* v_col = g.v_colors + 3 * i;
   if (DEG >= 0) {
     constexpr int KD = DEG >= 0 ? (DEG + 1) * (DEG + 1) : 1;
-    T vs[3 * KD];
+    // This Gaussian's coefficients and their cotangents go through registers, moved with
+    // 128-bit accesses where the layout allows (float32, 3 K divisible by 4).
+    const T* sh_i = p.sh + int64_t(3) * p.K * i;
+    const bool vec = VecIO<T>::kOk && (coeffs % 4 == 0) &&
+                     ((reinterpret_cast<uintptr_t>(p.sh) | reinterpret_cast<uintptr_t>(g.v_sh)) % 16 == 0);
+    T shl[3 * KD], vs[3 * KD];
+    load_coeffs<T, 3 * KD>(sh_i, shl, vec);
 #pragma unroll
     for (int k = 0; k < 3 * KD; ++k) vs[k] = T(0);
     const Vec3<T> center = camera_center(cam);
     const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
     const T* col = p.colors + 3 * i;
-    const Vec3<T> v_dir = sh_to_color_vjp(DEG, dir, p.sh + int64_t(3) * p.K * i,
-                                          Vec3<T>{col[0], col[1], col[2]},
+    const Vec3<T> v_dir = sh_to_color_vjp(DEG, dir, shl, Vec3<T>{col[0], col[1], col[2]},
                                           Vec3<T>{v_col[0], v_col[1], v_col[2]}, vs);
     v_world.x += v_dir.x;
     v_world.y += v_dir.y;
     v_world.z += v_dir.z;
-#pragma unroll
-    for (int k = 0; k < 3 * KD; ++k) v_sh[k] = vs[k];
+    store_coeffs<T, 3 * KD>(v_sh, vs, vec);
     for (int k = 3 * KD; k < coeffs; ++k) v_sh[k] = T(0);  // coefficients above the degree
   } else {
     for (int k = 0; k < 3; ++k) v_sh[k] = v_col[k];

@@ -23,21 +23,24 @@ namespace {
 constexpr int kBlock = TILE_SIZE * TILE_SIZE;  // threads per tile = pixels per tile
 constexpr int kBatch = kBlock;                 // splats staged per batch
 static_assert(kBlock % 32 == 0, "a tile must hold whole warps");
+constexpr int kVoteEvery = 8;  // splats between two "is the whole warp done?" votes
 
+// Shared-memory records, padded and aligned so that a thread reads one with 128-bit loads.
 template <typename T>
-struct SplatGeo {
+struct alignas(4 * sizeof(T) < 16 ? 4 * sizeof(T) : 16) SplatGeo {
   T mx, my;
   T ca, cb, cc;
   T opacity;
+  T pad0, pad1;
 };
 template <typename T>
-struct SplatColor {
+struct alignas(4 * sizeof(T) < 16 ? 4 * sizeof(T) : 16) SplatColor {
   T r, g, b, depth;
 };
 
 template <typename T>
 __device__ __forceinline__ SplatGeo<T> load_geo(const RasterParams<T>& p, int32_t g) {
-  SplatGeo<T> s;
+  SplatGeo<T> s{};
   s.mx = p.means2d[2 * g];
   s.my = p.means2d[2 * g + 1];
   s.ca = p.conics[3 * g];
@@ -102,8 +105,10 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
     }
     __syncthreads();
     const int n = min(kBatch, c.end - b);
+    // A warp leaves the batch once all its pixels are done (checked every kVoteEvery splats;
+    // done pixels blend nothing, so when it is checked changes no result).
     for (int k = 0; k < n; ++k) {
-      if (__all_sync(kFullMask, done)) break;
+      if ((k % kVoteEvery) == 0 && __all_sync(kFullMask, done)) break;
       T w = T(0);
       if (!done) {
         const T alpha = alpha_at(s_geo[k], pxc, pyc);
