@@ -1,0 +1,155 @@
+"""Evaluation of decoders: bit accuracy under attacks, unbiasedness and false positives on unmarked images.
+
+Example:
+    >>> false_positive_threshold(32), false_positive_threshold(48), false_positive_threshold(64)
+    (30, 41, 51)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .dwt import ll_subband
+from .hidden import bit_accuracy
+from .noise import NoiseLayer
+
+__all__ = ["false_positive_threshold", "binomial_tail", "psnr", "eval_attacks", "unbiasedness"]
+
+
+def binomial_tail(k: int, m: int) -> float:
+    """P(at least m of k fair coin flips match) = P(X >= m), X ~ Binomial(k, 1/2)."""
+    return sum(math.comb(k, i) for i in range(m, k + 1)) / 2.0**k
+
+
+def false_positive_threshold(k: int, fpr: float = 1e-6) -> int:
+    """Smallest number of matching bits m with P(X >= m) <= fpr for an unmarked image (X ~ Bin(k, 1/2))."""
+    return next(m for m in range(k + 1) if binomial_tail(k, m) <= fpr)
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-image PSNR (dB) of images in [0,1]: [B,...] -> [B]."""
+    mse = (a.float() - b.float()).pow(2).flatten(1).mean(1)
+    return -10.0 * torch.log10(mse.clamp_min(1e-12))
+
+
+@torch.no_grad()
+def eval_attacks(
+    embed_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    decode_fn: Callable[[torch.Tensor], torch.Tensor],
+    images: list[torch.Tensor],
+    attacks: dict[str, NoiseLayer],
+    num_bits: int,
+    msgs_per_image: int = 4,
+    seed: int = 0,
+    device: torch.device | str = "cpu",
+) -> dict[str, object]:
+    """Embed random messages into every image (full size), attack, decode.
+
+    Args:
+        embed_fn: (imgs [B,3,H,W] in [0,1], msgs [B,k]) -> watermarked imgs.
+        decode_fn: LL2 subband -> logits [B,k].
+        images: uint8 tensors [3,H,W].
+        attacks: name -> noise layer (used at ``strength`` 1; random layers draw from their range).
+
+    Returns:
+        ``{"bit_acc": {attack: mean}, "bit_acc_std": {...}, "psnr": mean PSNR of watermarked images,
+        "n": number of (image, message) pairs}``.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    accs: dict[str, list[torch.Tensor]] = {n: [] for n in attacks}
+    psnrs = []
+    for img in images:
+        x = (img.to(device).float() / 255.0)[None].expand(msgs_per_image, -1, -1, -1).contiguous()
+        msgs = torch.randint(0, 2, (msgs_per_image, num_bits), generator=gen).float().to(device)
+        x_w = embed_fn(x, msgs)
+        x_w = (x_w.clamp(0, 1) * 255).round() / 255  # a saved 8-bit image
+        psnrs.append(psnr(x_w, x).cpu())
+        for name, layer in attacks.items():
+            layer.strength = 1.0
+            y = layer(x_w, generator=gen)
+            accs[name].append(bit_accuracy(decode_fn(ll_subband(y)).float(), msgs).cpu())
+    out_acc = {n: float(torch.cat(v).mean()) for n, v in accs.items()}
+    out_std = {n: float(torch.cat(v).std()) for n, v in accs.items()}
+    return {"bit_acc": out_acc, "bit_acc_std": out_std, "psnr": float(torch.cat(psnrs).mean()),
+            "n": len(images) * msgs_per_image}
+
+
+@torch.no_grad()
+def unbiasedness(
+    decode_fn: Callable[[torch.Tensor], torch.Tensor],
+    images: list[torch.Tensor],
+    num_bits: int,
+    num_messages: int = 1000,
+    seed: int = 0,
+    device: torch.device | str = "cpu",
+    extra_views: int = 0,
+) -> dict[str, object]:
+    """Decode unmarked images and compare their bits with ``num_messages`` random messages.
+
+    Args:
+        decode_fn: LL2 subband -> logits [B,k].
+        images: unmarked photos, uint8 [3,H,W] (decoded at full size).
+        extra_views: if > 0, also decode this many random crops (side 0.5..1 of the image, random flips)
+            of every image, to estimate the per-bit means with more samples.
+
+    Returns:
+        dict with mean bit accuracy vs the random messages, per-bit P(bit = 1) over images (and its
+        max deviation from 0.5), per-bit accuracy vs messages, the false-positive threshold for 1e-6 and the
+        number of (image, message) pairs reaching it, the largest number of matching bits seen, and the
+        correlation of decoded bits.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    bits = torch.cat([(decode_fn(ll_subband(img[None].to(device).float() / 255.0)).float() > 0).float().cpu()
+                      for img in images])  # [N,k]
+    msgs = torch.randint(0, 2, (num_messages, num_bits), generator=gen).float()
+    matches = bits @ msgs.T + (1 - bits) @ (1 - msgs).T  # [N, M] matching bits
+    thr = false_positive_threshold(num_bits)
+    per_bit_p1 = bits.mean(0)
+    per_bit_acc = ((bits[:, None, :] == msgs[None]).float().mean((0, 1)))
+    n = bits.shape[0]
+    corr = torch.corrcoef(bits.T) if n > 2 else torch.zeros(num_bits, num_bits)
+    off = corr[~torch.eye(num_bits, dtype=torch.bool)]
+    off = off[torch.isfinite(off)]
+    res: dict[str, object] = {
+        "num_images": n,
+        "num_messages": num_messages,
+        "mean_bit_acc": float(matches.mean() / num_bits),
+        "per_bit_p1": per_bit_p1.tolist(),
+        "per_bit_p1_max_dev": float((per_bit_p1 - 0.5).abs().max()),
+        "per_bit_p1_stderr_if_fair": 0.5 / math.sqrt(n),
+        "per_bit_acc_vs_messages_min": float(per_bit_acc.min()),
+        "per_bit_acc_vs_messages_max": float(per_bit_acc.max()),
+        "fp_threshold": thr,
+        "fp_threshold_prob": binomial_tail(num_bits, thr),
+        "false_positives": int((matches >= thr).sum()),
+        "max_matching_bits": int(matches.max()),
+        "mean_abs_bit_corr": float(off.abs().mean()) if off.numel() else 0.0,
+    }
+    if extra_views > 0:
+        vb = []
+        for img in images:
+            h, w = img.shape[-2:]
+            for _ in range(extra_views):
+                s = 0.5 + 0.5 * float(torch.rand(1, generator=gen))
+                ch, cw = max(16, int(h * s)), max(16, int(w * s))
+                y0 = int(torch.randint(0, h - ch + 1, (1,), generator=gen))
+                x0 = int(torch.randint(0, w - cw + 1, (1,), generator=gen))
+                c = img[:, y0 : y0 + ch, x0 : x0 + cw]
+                if float(torch.rand(1, generator=gen)) < 0.5:
+                    c = c.flip(-1)
+                vb.append((decode_fn(ll_subband(c[None].to(device).float() / 255.0)).float() > 0).float().cpu())
+        vbits = torch.cat(vb)
+        p1 = vbits.mean(0)
+        res.update(views_num=vbits.shape[0], views_per_bit_p1=p1.tolist(),
+                   views_per_bit_p1_max_dev=float((p1 - 0.5).abs().max()),
+                   views_mean_bit_acc=float(((vbits @ msgs.T + (1 - vbits) @ (1 - msgs).T) / num_bits).mean()))
+    return res
+
+
+def summarize_bits(values: list[float]) -> dict[str, float]:
+    a = np.asarray(values)
+    return {"min": float(a.min()), "max": float(a.max()), "mean": float(a.mean())}

@@ -1,0 +1,69 @@
+"""HiDDeN encoder/decoder: shapes, sizes, determinism, and a tiny training run that reduces the loss."""
+
+import torch
+
+from gsw.watermark import HiddenDecoder, HiddenEncoder, bit_accuracy, bits_from_logits, ll_subband
+from gsw.watermark import training as T
+
+
+def test_shapes_and_parameter_count():
+    enc, dec = HiddenEncoder(48), HiddenDecoder(48)
+    x, m = torch.rand(2, 3, 64, 40), torch.randint(0, 2, (2, 48)).float()
+    r = enc(x, m)
+    assert r.shape == x.shape
+    ll = ll_subband(x + r)
+    assert ll.shape == (2, 3, 16, 10)
+    assert dec(ll).shape == (2, 48)
+    assert dec(ll_subband(torch.rand(1, 3, 37, 91))).shape == (1, 48)  # any size (global pooling)
+    n = sum(p.numel() for p in dec.parameters())
+    assert 250_000 < n < 320_000  # 8 x 64-channel blocks + 64->k block + k x k linear
+    blocks = [m for m in dec.layers]
+    assert len(blocks) == 9 and isinstance(blocks[0][2], torch.nn.GELU)
+
+
+def test_determinism_and_batch_independence_in_eval():
+    torch.manual_seed(0)
+    d1 = HiddenDecoder(32).eval()
+    torch.manual_seed(0)
+    d2 = HiddenDecoder(32).eval()
+    ll = ll_subband(torch.rand(4, 3, 64, 64))
+    with torch.no_grad():
+        a, b = d1(ll), d2(ll)
+        assert torch.equal(a, b)
+        assert torch.allclose(d1(ll[:1]), a[:1], atol=1e-5)
+
+
+def test_bit_helpers():
+    logits = torch.tensor([[2.0, -1.0, 0.5, -0.1]])
+    assert torch.equal(bits_from_logits(logits), torch.tensor([[1.0, 0.0, 1.0, 0.0]]))
+    assert float(bit_accuracy(logits, torch.tensor([[1.0, 0.0, 0.0, 0.0]]))) == 0.75
+
+
+def test_embed_hits_target_psnr():
+    torch.manual_seed(0)
+    enc = HiddenEncoder(8).eval()
+    x = torch.rand(3, 3, 32, 32) * 0.5 + 0.25  # away from the clamp
+    with torch.no_grad():
+        y = T.embed(enc, x, torch.randint(0, 2, (3, 8)).float(), psnr=30.0)
+    psnr = -10 * torch.log10((y - x).pow(2).mean((1, 2, 3)))
+    assert torch.allclose(psnr, torch.full((3,), 30.0), atol=0.05)
+
+
+def test_tiny_training_run_reduces_loss(tmp_path):
+    g = torch.Generator().manual_seed(0)
+    images = [(torch.nn.functional.interpolate(torch.rand(1, 3, 8, 8, generator=g), size=(48, 48),
+                                               mode="bilinear")[0] * 255).to(torch.uint8) for _ in range(8)]
+    cfg = T.TrainConfig(num_bits=4, channels=8, enc_blocks=1, dec_blocks=2, crop=16, batch_size=16, lr=1e-2,
+                        psnr_start=14.0, psnr_target=14.0, steps=20, noise_layers=("identity", "noise"),
+                        log_every=5, ckpt_every_s=1e9, seed=0)
+    ckpt = tmp_path / "k4.pt"
+    torch.manual_seed(0)
+    state = T.train(cfg, images, "cpu", ckpt_path=ckpt, verbose=False)
+    losses = [e["loss"] for e in state["log"]]
+    assert len(losses) == 4
+    assert losses[-1] < losses[0] - 0.05, losses
+    assert ckpt.exists()
+    # resuming a finished run is a no-op that keeps the step count
+    cfg.steps = 21
+    state2 = T.train(cfg, images, "cpu", ckpt_path=ckpt, verbose=False)
+    assert state2["step"] == 21

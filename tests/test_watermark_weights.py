@@ -1,0 +1,95 @@
+"""Shipped decoder weights: loading, integrity checks, user weights, unbiasedness on val photos."""
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from gsw.watermark import AVAILABLE_BITS, HiddenDecoder, WeightsError, WhiteningLayer, load_decoder, save_decoder
+from gsw.watermark.zoo import WEIGHTS_DIR, sha256_file
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.mark.parametrize("bits", AVAILABLE_BITS)
+def test_shipped_decoders_load_and_decode(bits):
+    dec = load_decoder(bits)
+    assert not dec.training and not any(p.requires_grad for p in dec.parameters())
+    x = torch.rand(2, 3, 96, 80)
+    logits = dec.decode_image(x)
+    assert logits.shape == (2, bits) and torch.isfinite(logits).all()
+    assert torch.equal(dec.bits(x), (logits > 0).float())
+    assert (WEIGHTS_DIR / f"hidden_k{bits}.pt").stat().st_size < 4_000_000
+
+
+def _copy_weights(tmp_path):
+    d = tmp_path / "weights"
+    shutil.copytree(WEIGHTS_DIR, d)
+    return d
+
+
+def test_corrupt_file_is_rejected(tmp_path):
+    d = _copy_weights(tmp_path)
+    f = d / "hidden_k32.pt"
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    f.write_bytes(bytes(data))
+    with pytest.raises(WeightsError, match="corrupt"):
+        load_decoder(32, weights_dir=d)
+
+
+def test_missing_file_and_manifest(tmp_path):
+    d = _copy_weights(tmp_path)
+    (d / "hidden_k48.pt").unlink()
+    with pytest.raises(WeightsError, match="not found"):
+        load_decoder(48, weights_dir=d)
+    (d / "manifest.json").unlink()
+    with pytest.raises(WeightsError, match="manifest"):
+        load_decoder(32, weights_dir=d)
+    with pytest.raises(WeightsError, match="no shipped decoder"):
+        load_decoder(16)
+
+
+def test_user_weights_roundtrip_and_checks(tmp_path):
+    torch.manual_seed(0)
+    dec, wl = HiddenDecoder(16).eval(), WhiteningLayer(16).fit(torch.randn(200, 16))
+    path = tmp_path / "mine.pt"
+    sha = save_decoder(dec, wl, path)
+    assert sha == sha256_file(path)
+    model = load_decoder(16, path, sha256=sha)
+    ll = torch.rand(2, 3, 8, 8)
+    with torch.no_grad():
+        assert torch.allclose(model(ll), wl(dec(ll)), atol=1e-5)
+    with pytest.raises(WeightsError, match="corrupt"):
+        load_decoder(16, path, sha256="0" * 64)
+    with pytest.raises(WeightsError, match="16-bit"):
+        load_decoder(32, path)
+    (tmp_path / "junk.pt").write_bytes(b"not a torch file")
+    with pytest.raises(WeightsError, match="cannot read"):
+        load_decoder(16, tmp_path / "junk.pt")
+
+
+def test_manifest_matches_files():
+    man = json.loads((WEIGHTS_DIR / "manifest.json").read_text())
+    for bits in AVAILABLE_BITS:
+        entry = man["files"][f"hidden_k{bits}.pt"]
+        assert entry["num_bits"] == bits
+        assert entry["sha256"] == sha256_file(WEIGHTS_DIR / f"hidden_k{bits}.pt")
+
+
+def test_unmarked_val_photos_decode_to_chance():
+    val = DATA / "bsds500" / "val"
+    if not val.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"missing test data {val}")
+        pytest.skip(f"missing test data {val}")
+    from gsw.watermark.evaluation import unbiasedness
+    from gsw.watermark.training import load_images
+
+    images = [img[:, :128, :128] for img in load_images(val, limit=20)]
+    res = unbiasedness(load_decoder(32), images, 32, num_messages=200, seed=0)
+    assert abs(res["mean_bit_acc"] - 0.5) < 0.02
+    assert res["false_positives"] == 0
