@@ -46,7 +46,7 @@ class EmbedConfig:
         split_quantile: FGD phase-2 low-contribution quantile that is split.
         attacks: train-time attack sampling: probability of decoding an attacked render.
         background: render background.
-        seed: RNG seed (view order, FGD split, attacks).
+        seed: RNG seed (view order, attacks).
     """
 
     epochs: int = 8
@@ -152,7 +152,7 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
     if cfg.fgd:
         model, prune = fgd_prune(model, cameras, images, threshold=cfg.prune_threshold, background=bg)
         model, split = fgd_split(model, cameras, top_percent=cfg.top_percent,
-                                 low_quantile=cfg.split_quantile, seed=cfg.seed, background=bg)
+                                 low_quantile=cfg.split_quantile, background=bg)
     timings["fgd"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

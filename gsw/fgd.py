@@ -11,7 +11,9 @@ Departures from the official code, on purpose (see GUIDE section 2):
 * Phase 2 uses a true 2-D DFT over (height, width) of each 16x16 patch and channel, and tracks
   Gaussians by their actual contribution to the selected patches (the contribution kernel with a
   patch mask), not by their projected centre.
-* Split follows 3DGS: the parent is replaced by two children sampled from it, scales / 1.6.
+* Split is appearance-preserving (moment-matched children along the longest axis, see
+  :func:`split_gaussians`), not 3DGS' random sampling with scales / 1.6: positions stay frozen
+  during fine-tuning, so nothing would repair a visibly changed render.
 
 This module imports the rasterizer (it needs the compiled extension).
 """
@@ -34,8 +36,6 @@ PRUNE_THRESHOLD = 1e-8
 #: Phase-2 patch size (pixels) and share of patches kept (percent).
 PATCH_SIZE = 16
 TOP_PERCENT = 1.0
-#: 3DGS split: scale divisor of the children.
-SPLIT_SCALE_DIVISOR = 1.6
 
 
 @dataclass
@@ -151,37 +151,47 @@ def high_frequency_scores(image: Tensor, patch: int = PATCH_SIZE) -> Tensor:
     return (spectrum * q).mean(dim=(-3, -2, -1))
 
 
-def split_gaussians(gaussians: Gaussians, mask: Tensor, *, generator: torch.Generator | None = None) -> Gaussians:
-    """3DGS split: each selected Gaussian is replaced by two children sampled from it.
+def split_gaussians(gaussians: Gaussians, mask: Tensor) -> Gaussians:
+    """Appearance-preserving split: each selected Gaussian becomes two along its longest axis.
 
-    Children positions are drawn from N(mean, Sigma), scales divided by 1.6, rotation, opacity
-    and SH copied.
+    The children sit at `mean +- s/2 * a` (`a` the longest principal axis, `s` its standard
+    deviation) with that axis' standard deviation reduced to `s * sqrt(3)/2`, so the pair has the
+    parent's mean and covariance (moment matching); other axes, rotation and SH are copied, and
+    each child's opacity is `1 - sqrt(1 - o)` so that the two overlapping children composite to
+    the parent's opacity at its centre. Deterministic. (3DGS instead samples the children from the
+    parent and divides all scales by 1.6, which visibly changes a trained model's renders; the
+    official 3D-GSW code also keeps the parent.)
 
     Args:
         gaussians: the model.
         mask: [N] bool, Gaussians to split.
-        generator: RNG for the child positions (CPU generator).
 
     Returns:
-        The model with the selected Gaussians replaced (N + mask.sum() Gaussians).
+        The model with the selected Gaussians replaced by their children (N + mask.sum()).
     """
     parents = gaussians[mask]
     if len(parents) == 0:
         return gaussians.clone()
-    scales = parents.scales.repeat(2, 1)
-    noise = torch.randn(scales.shape, generator=generator, dtype=scales.dtype).to(scales.device)
-    q = parents.rotations.repeat(2, 1)
+    scales = parents.scales
+    axis = scales.argmax(dim=1)
+    rows = torch.arange(len(parents), device=scales.device)
+    q = parents.rotations
     w, x, y, z = q.unbind(1)
     rot = torch.stack([
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=1).view(-1, 3, 3)
-    offsets = (rot @ (noise * scales).unsqueeze(-1)).squeeze(-1)
+    direction = rot[rows, :, axis]  # world-space longest axis (a column of R)
+    offset = direction * (0.5 * scales[rows, axis]).unsqueeze(1)
+    log_scales = parents.log_scales.clone()
+    log_scales[rows, axis] += 0.5 * math.log(0.75)  # s * sqrt(3)/2
+    opacity = parents.opacities
+    child_opacity = (1 - torch.sqrt((1 - opacity).clamp_min(0))).clamp(1e-6, 1 - 1e-6)
     children = Gaussians(
-        means=parents.means.repeat(2, 1) + offsets,
-        log_scales=parents.log_scales.repeat(2, 1) - math.log(SPLIT_SCALE_DIVISOR),
+        means=torch.cat([parents.means + offset, parents.means - offset]),
+        log_scales=log_scales.repeat(2, 1),
         quats=parents.quats.repeat(2, 1),
-        opacity_logits=parents.opacity_logits.repeat(2),
+        opacity_logits=torch.logit(child_opacity).repeat(2),
         sh=parents.sh.repeat(2, 1, 1),
     )
     return Gaussians.cat([gaussians[~mask], children])
@@ -189,7 +199,7 @@ def split_gaussians(gaussians: Gaussians, mask: Tensor, *, generator: torch.Gene
 
 @torch.no_grad()
 def fgd_split(gaussians: Gaussians, cameras: Sequence[Camera], *, top_percent: float = TOP_PERCENT,
-              low_quantile: float = 0.5, patch: int = PATCH_SIZE, seed: int = 0,
+              low_quantile: float = 0.5, patch: int = PATCH_SIZE,
               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[Gaussians, SplitReport]:
     """FGD phase 2: splits the low-contribution Gaussians of the most high-frequency patches.
 
@@ -205,7 +215,6 @@ def fgd_split(gaussians: Gaussians, cameras: Sequence[Camera], *, top_percent: f
         top_percent: share of patches kept per view, in percent (paper: 1).
         low_quantile: candidates at or below this contribution quantile are split.
         patch: patch size.
-        seed: RNG seed of the children positions.
         background: background colour of the renders.
 
     Returns:
@@ -234,7 +243,6 @@ def fgd_split(gaussians: Gaussians, cameras: Sequence[Camera], *, top_percent: f
     if candidates.any():
         cut = torch.quantile(total[candidates].double(), low_quantile).to(total.dtype)
         split = candidates & (total <= cut)
-    gen = torch.Generator().manual_seed(seed)
-    out = split_gaussians(gaussians, split, generator=gen)
+    out = split_gaussians(gaussians, split)
     return out, SplitReport(num_before=n, num_candidates=int(candidates.sum()),
                             num_split=int(split.sum()), patches_per_view=per_view)

@@ -94,4 +94,4 @@ class WatermarkLoss(nn.Module):
             terms["lpips"] = self.lpips(x, y).mean()
         total = (w.l1 * terms["l1"] + w.subband * terms["subband"] + w.message * terms["message"]
                  + (w.lpips * terms["lpips"] if "lpips" in terms else 0.0))
-        return total, {k: float(v) for k, v in terms.items()}, logits[0]
+        return total, {k: float(v.detach()) for k, v in terms.items()}, logits[0]
