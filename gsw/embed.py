@@ -195,7 +195,7 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
                 loss.backward()
                 mask.step(opt)  # positions, when trained, are not masked (paper)
                 acc = float(((out_logits > 0).float() == target).float().mean())
-                terms.update(loss=float(loss), bit_acc=acc)
+                terms.update(loss=float(loss.detach()), bit_acc=acc)
                 history.append(terms)
                 bar.update(loss=f"{terms['loss']:.4f}", bits=f"{acc:.3f}",
                            psnr=f"{_psnr(render.detach(), originals[v]):.1f}")

@@ -1,0 +1,76 @@
+"""gsw.embed / extract / verify on the built-in scene (small and fast)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gsw.embed import EmbedConfig, embed, extract, verify
+from gsw.losses import LossWeights
+from gsw.scenes import default_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return default_scene(width=64, height=64, n_cameras=6, detail=0.5)
+
+
+@pytest.fixture(scope="module")
+def result(scene):
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=6, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    before = scene.gaussians.clone()
+    res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=cfg,
+                progress=False)
+    # the input model is never modified
+    for name, t in before.parameters().items():
+        assert torch.equal(t, scene.gaussians.parameters()[name]), name
+    return res
+
+
+def test_embed_result_structure(scene, result) -> None:
+    assert result.message_hex == "c0ffee42" and result.message.shape == (32,)
+    assert result.prune is not None and result.split is not None
+    n_in = len(scene.gaussians)
+    assert len(result.gaussians) == n_in - result.prune.num_removed + result.split.num_split
+    assert len(result.bit_accuracy) == len(result.psnr) == len(scene.cameras)
+    assert len(result.history) == 6 * len(scene.cameras)
+    assert {"renders", "fgd", "finetune", "evaluate", "total"} <= set(result.timings)
+    # positions are frozen by default; FGD children aside, kept Gaussians did not move
+    assert not result.gaussians.means.requires_grad
+
+
+def test_embedding_raises_bit_accuracy(scene, result) -> None:
+    bg = tuple(float(v) for v in scene.background)
+    before = verify((scene.gaussians, scene.cameras), result.message, background=bg)
+    after = verify((result.gaussians, scene.cameras), result.message, background=bg)
+    assert sum(after.bit_accuracy) / 6 >= sum(before.bit_accuracy) / 6 + 0.1
+    assert after.p_value < before.p_value
+    assert min(result.psnr) > 28.0
+
+
+def test_extract_and_verify_images(scene, result) -> None:
+    from gsw.rasterize import rasterize
+
+    bg = tuple(float(v) for v in scene.background)
+    imgs = [rasterize(result.gaussians, c, background=bg).image.clamp(0, 1) for c in scene.cameras]
+    ext = extract(imgs)
+    assert ext.bits.shape == (6, 32) and ext.logits.shape == (6, 32)
+    v = verify(imgs, result.message_hex)
+    assert v.matches == [int((b == result.message).sum()) for b in ext.bits]
+    assert v.bit_accuracy == [m / 32 for m in v.matches]
+    with pytest.raises(ValueError, match="RGB"):
+        extract(torch.rand(2, 64, 64))
+    with pytest.raises(ValueError, match="num_bits"):
+        verify(imgs, "key:secret")
+
+
+def test_bad_inputs(scene) -> None:
+    with pytest.raises(ValueError, match="camera"):
+        embed(scene.gaussians, [], progress=False)
+    with pytest.raises(ValueError, match="expected 32"):
+        embed(scene.gaussians, scene.cameras, message=[0, 1, 1], progress=False)
+    bad = scene.gaussians.clone()
+    bad.means[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="means"):
+        embed(bad, scene.cameras, progress=False)
