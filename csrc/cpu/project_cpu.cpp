@@ -1,114 +1,27 @@
-// CPU projection stage: per-Gaussian EWA projection, culling, footprint and SH colour.
-#include <cstring>
-
+// CPU projection stage: the shared per-Gaussian code of core/project.h over all Gaussians.
+#include "core/project.h"
 #include "cpu/backend_cpu.h"
 #include "cpu/parallel.h"
 
 namespace gsw::cpu {
 
-namespace {
-
-template <typename T>
-Vec3<T> load3(const T* p) {
-  return {p[0], p[1], p[2]};
-}
-
-template <typename T>
-int tiles_x_of(const Camera<T>& cam) {
-  return (cam.width + TILE_SIZE - 1) / TILE_SIZE;
-}
-template <typename T>
-int tiles_y_of(const Camera<T>& cam) {
-  return (cam.height + TILE_SIZE - 1) / TILE_SIZE;
-}
-
-}  // namespace
-
 template <typename T>
 void project_forward(const ProjectParams<T>& p) {
-  const Camera<T>& cam = p.cam;
-  const Vec3<T> center = camera_center(cam);
-  const int tx = tiles_x_of(cam), ty = tiles_y_of(cam);
-  parallel_items(p.N, [&](int64_t i) {
-    T* m2 = p.means2d + 2 * i;
-    T* cn = p.conics + 3 * i;
-    T* col = p.colors + 3 * i;
-    auto cull = [&]() {
-      p.radii[i] = 0;
-      m2[0] = m2[1] = T(0);
-      cn[0] = cn[1] = cn[2] = T(0);
-      col[0] = col[1] = col[2] = T(0);
-      p.depths[i] = T(0);
-      p.opacities[i] = T(0);
-    };
-    const Vec3<T> mean = load3(p.means + 3 * i);
-    const Vec3<T> pc = world_to_cam(cam, mean);
-    if (!(pc.z > T(NEAR_PLANE))) return cull();
-    const Mat3<T> cov = cov_world_to_cam(cam, covariance_3d(p.quats + 4 * i, p.log_scales + 3 * i));
-    const Projection<T> proj = project_ewa(cam, pc, cov);
-    Sym2<T> conic;
-    T det;
-    if (!conic_from_cov2d(proj.cov2d, conic, det)) return cull();
-    const int radius = footprint_radius(proj.cov2d, det);
-    int x0, y0, x1, y1;
-    if (radius <= 0 || tile_rect(proj.mean2d, radius, tx, ty, x0, y0, x1, y1) == 0) return cull();
-
-    p.radii[i] = radius;
-    m2[0] = proj.mean2d.x;
-    m2[1] = proj.mean2d.y;
-    cn[0] = conic.a;
-    cn[1] = conic.b;
-    cn[2] = conic.c;
-    p.depths[i] = pc.z;
-    p.opacities[i] = sigmoid(p.opacity_logits[i]);
-    if (p.sh_degree >= 0) {
-      const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
-      const Vec3<T> c = sh_to_color(p.sh_degree, dir, p.sh + int64_t(3) * p.K * i);
-      col[0] = c.x;
-      col[1] = c.y;
-      col[2] = c.z;
-    } else {
-      std::memcpy(col, p.sh + 3 * i, 3 * sizeof(T));
-    }
-  });
+  parallel_items(p.N, [&](int64_t i) { project_gaussian(p, i, p.sh_degree); });
 }
 
 template <typename T>
 void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g) {
-  const Camera<T>& cam = p.cam;
-  const Vec3<T> center = camera_center(cam);
+  const Vec3<T> center = camera_center(p.cam);
   const int coeffs = p.sh_degree >= 0 ? 3 * p.K : 3;
   parallel_items(p.N, [&](int64_t i) {
-    T* v_mean = g.v_means + 3 * i;
-    T* v_quat = g.v_quats + 4 * i;
-    T* v_ls = g.v_log_scales + 3 * i;
-    T* v_sh = g.v_sh + int64_t(coeffs) * i;
-    for (int k = 0; k < 3; ++k) v_mean[k] = v_ls[k] = T(0);
-    for (int k = 0; k < 4; ++k) v_quat[k] = T(0);
-    for (int k = 0; k < coeffs; ++k) v_sh[k] = T(0);
-    g.v_opacity_logits[i] = T(0);
+    zero_gaussian_grads(g, i, coeffs);
     if (p.radii[i] <= 0) return;
-
-    const T* quat = p.quats + 4 * i;
-    const T* log_scale = p.log_scales + 3 * i;
-    const Vec3<T> mean = load3(p.means + 3 * i);
-    const Vec3<T> pc = world_to_cam(cam, mean);
-    const Mat3<T> cov = cov_world_to_cam(cam, covariance_3d(quat, log_scale));
-    const T* cn = p.conics + 3 * i;
-    const Sym2<T> conic = {cn[0], cn[1], cn[2]};
-    const T* vc = g.v_conics + 3 * i;
-    const Sym2<T> v_cov2d = conic_from_cov2d_vjp(conic, Sym2<T>{vc[0], vc[1], vc[2]});
-    const Vec2<T> v_mean2d = {g.v_means2d[2 * i], g.v_means2d[2 * i + 1]};
-
-    Vec3<T> v_pc = {T(0), T(0), g.v_depths[i]};
-    Mat3<T> v_cov = mat3_zero<T>();
-    project_ewa_vjp(cam, pc, cov, v_mean2d, v_cov2d, v_pc, v_cov);
-    Vec3<T> v_world = world_to_cam_vjp(cam, v_pc);
-    covariance_3d_vjp(quat, log_scale, cov_world_to_cam_vjp(cam, v_cov), v_quat, v_ls);
-    g.v_opacity_logits[i] = sigmoid_vjp(p.opacities[i], g.v_opacities[i]);
-
+    Vec3<T> v_world = project_gaussian_vjp_geometry(p, g, i);
     const T* v_col = g.v_colors + 3 * i;
+    T* v_sh = g.v_sh + int64_t(coeffs) * i;
     if (p.sh_degree >= 0) {
+      const Vec3<T> mean = load_vec3(p.means + 3 * i);
       const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
       const T* col = p.colors + 3 * i;
       const Vec3<T> v_dir =
@@ -120,9 +33,9 @@ void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g) 
     } else {
       for (int k = 0; k < 3; ++k) v_sh[k] = v_col[k];
     }
-    v_mean[0] = v_world.x;
-    v_mean[1] = v_world.y;
-    v_mean[2] = v_world.z;
+    g.v_means[3 * i] = v_world.x;
+    g.v_means[3 * i + 1] = v_world.y;
+    g.v_means[3 * i + 2] = v_world.z;
   });
 }
 

@@ -1,7 +1,8 @@
 // CUDA projection stage: one thread per Gaussian, EWA projection + culling + footprint + SH
-// colour fused in one kernel (and its VJP in one kernel). The per-Gaussian code is the CPU
-// backend's, calling the same core/math.h functions; the SH degree is a template parameter so
-// the basis arrays stay in registers.
+// colour fused in one kernel (and its VJP in one kernel), running the shared per-Gaussian code
+// of core/project.h; the SH degree is a template parameter so the basis arrays stay in
+// registers, and the SH cotangents move through registers with 128-bit accesses.
+#include "core/project.h"
 #include "cuda/common.cuh"
 
 namespace gsw::cuda {
@@ -10,62 +11,10 @@ namespace {
 
 constexpr int kThreads = 256;
 
-template <typename T>
-__device__ __forceinline__ Vec3<T> load3(const T* p) {
-  return {p[0], p[1], p[2]};
-}
-
 template <typename T, int DEG>
 __global__ void __launch_bounds__(kThreads) project_forward_kernel(const ProjectParams<T> p) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= p.N) return;
-  const Camera<T>& cam = p.cam;
-  T* m2 = p.means2d + 2 * i;
-  T* cn = p.conics + 3 * i;
-  T* col = p.colors + 3 * i;
-  auto cull = [&]() {
-    p.radii[i] = 0;
-    m2[0] = m2[1] = T(0);
-    cn[0] = cn[1] = cn[2] = T(0);
-    col[0] = col[1] = col[2] = T(0);
-    p.depths[i] = T(0);
-    p.opacities[i] = T(0);
-  };
-  const Vec3<T> mean = load3(p.means + 3 * i);
-  const Vec3<T> pc = world_to_cam(cam, mean);
-  if (!(pc.z > T(NEAR_PLANE))) return cull();
-  const Mat3<T> cov =
-      cov_world_to_cam(cam, covariance_3d(p.quats + 4 * i, p.log_scales + 3 * i));
-  const Projection<T> proj = project_ewa(cam, pc, cov);
-  Sym2<T> conic;
-  T det;
-  if (!conic_from_cov2d(proj.cov2d, conic, det)) return cull();
-  const int radius = footprint_radius(proj.cov2d, det);
-  const int tx = (cam.width + TILE_SIZE - 1) / TILE_SIZE;
-  const int ty = (cam.height + TILE_SIZE - 1) / TILE_SIZE;
-  int x0, y0, x1, y1;
-  if (radius <= 0 || tile_rect(proj.mean2d, radius, tx, ty, x0, y0, x1, y1) == 0) return cull();
-
-  p.radii[i] = radius;
-  m2[0] = proj.mean2d.x;
-  m2[1] = proj.mean2d.y;
-  cn[0] = conic.a;
-  cn[1] = conic.b;
-  cn[2] = conic.c;
-  p.depths[i] = pc.z;
-  p.opacities[i] = sigmoid(p.opacity_logits[i]);
-  if (DEG >= 0) {
-    const Vec3<T> center = camera_center(cam);
-    const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
-    const Vec3<T> c = sh_to_color(DEG, dir, p.sh + int64_t(3) * p.K * i);
-    col[0] = c.x;
-    col[1] = c.y;
-    col[2] = c.z;
-  } else {
-    col[0] = p.sh[3 * i];
-    col[1] = p.sh[3 * i + 1];
-    col[2] = p.sh[3 * i + 2];
-  }
+  if (i < p.N) project_gaussian(p, i, DEG);
 }
 
 // 128-bit moves of per-Gaussian coefficient arrays (float32 only).
@@ -115,41 +64,14 @@ __global__ void __launch_bounds__(kThreads)
     project_backward_kernel(const ProjectParams<T> p, const ProjectGradParams<T> g) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= p.N) return;
-  const Camera<T>& cam = p.cam;
   const int coeffs = DEG >= 0 ? 3 * p.K : 3;
-  T* v_mean = g.v_means + 3 * i;
-  T* v_quat = g.v_quats + 4 * i;
-  T* v_ls = g.v_log_scales + 3 * i;
-  T* v_sh = g.v_sh + int64_t(coeffs) * i;
   if (p.radii[i] <= 0) {
-    for (int k = 0; k < 3; ++k) v_mean[k] = v_ls[k] = T(0);
-    for (int k = 0; k < 4; ++k) v_quat[k] = T(0);
-    for (int k = 0; k < coeffs; ++k) v_sh[k] = T(0);
-    g.v_opacity_logits[i] = T(0);
+    zero_gaussian_grads(g, i, coeffs);
     return;
   }
-  const T* quat = p.quats + 4 * i;
-  const T* log_scale = p.log_scales + 3 * i;
-  const Vec3<T> mean = load3(p.means + 3 * i);
-  const Vec3<T> pc = world_to_cam(cam, mean);
-  const Mat3<T> cov = cov_world_to_cam(cam, covariance_3d(quat, log_scale));
-  const T* cn = p.conics + 3 * i;
-  const Sym2<T> conic = {cn[0], cn[1], cn[2]};
-  const T* vc = g.v_conics + 3 * i;
-  const Sym2<T> v_cov2d = conic_from_cov2d_vjp(conic, Sym2<T>{vc[0], vc[1], vc[2]});
-  const Vec2<T> v_mean2d = {g.v_means2d[2 * i], g.v_means2d[2 * i + 1]};
-
-  Vec3<T> v_pc = {T(0), T(0), g.v_depths[i]};
-  Mat3<T> v_cov = mat3_zero<T>();
-  project_ewa_vjp(cam, pc, cov, v_mean2d, v_cov2d, v_pc, v_cov);
-  Vec3<T> v_world = world_to_cam_vjp(cam, v_pc);
-  T vq[4] = {T(0), T(0), T(0), T(0)};
-  T vls[3] = {T(0), T(0), T(0)};
-  covariance_3d_vjp(quat, log_scale, cov_world_to_cam_vjp(cam, v_cov), vq, vls);
-  for (int k = 0; k < 4; ++k) v_quat[k] = vq[k];
-  for (int k = 0; k < 3; ++k) v_ls[k] = vls[k];
-  g.v_opacity_logits[i] = sigmoid_vjp(p.opacities[i], g.v_opacities[i]);
-
+  T* v_sh = g.v_sh + int64_t(coeffs) * i;
+  const Vec3<T> mean = load_vec3(p.means + 3 * i);
+  Vec3<T> v_world = project_gaussian_vjp_geometry(p, g, i);
   const T* v_col = g.v_colors + 3 * i;
   if (DEG >= 0) {
     constexpr int KD = DEG >= 0 ? (DEG + 1) * (DEG + 1) : 1;
@@ -162,7 +84,7 @@ __global__ void __launch_bounds__(kThreads)
     load_coeffs<T, 3 * KD>(sh_i, shl, vec);
 #pragma unroll
     for (int k = 0; k < 3 * KD; ++k) vs[k] = T(0);
-    const Vec3<T> center = camera_center(cam);
+    const Vec3<T> center = camera_center(p.cam);
     const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
     const T* col = p.colors + 3 * i;
     const Vec3<T> v_dir = sh_to_color_vjp(DEG, dir, shl, Vec3<T>{col[0], col[1], col[2]},
@@ -175,9 +97,9 @@ __global__ void __launch_bounds__(kThreads)
   } else {
     for (int k = 0; k < 3; ++k) v_sh[k] = v_col[k];
   }
-  v_mean[0] = v_world.x;
-  v_mean[1] = v_world.y;
-  v_mean[2] = v_world.z;
+  g.v_means[3 * i] = v_world.x;
+  g.v_means[3 * i + 1] = v_world.y;
+  g.v_means[3 * i + 2] = v_world.z;
 }
 
 template <typename T, typename F>
