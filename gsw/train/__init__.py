@@ -1,0 +1,15 @@
+"""3D Gaussian Splatting training (the INRIA recipe) on gsw's rasterizer.
+
+Example:
+    >>> from gsw.train import TrainConfig, train  # doctest: +SKIP
+    >>> from gsw.data.loaders import load_nerf_synthetic  # doctest: +SKIP
+    >>> res = train(load_nerf_synthetic("lego", "train", downscale=4), config=TrainConfig.scaled(3000),
+    ...             test_set=load_nerf_synthetic("lego", "test", downscale=4), output_dir="out")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from gsw.train.progress import Progress
+from gsw.train.trainer import TrainConfig, TrainResult, evaluate, init_box, points_init, random_init, train
+
+__all__ = ["Progress", "TrainConfig", "TrainResult", "evaluate", "init_box", "points_init", "random_init", "train"]
