@@ -281,8 +281,11 @@ class Camera:
                 ``rotation`` is the camera-to-world rotation (rows), ``position`` the camera centre.
 
         Returns:
-            The camera (float64 ``viewmat``, ``cx = W / 2``, ``cy = H / 2``, ``name = img_name``).
+            The camera (float64 ``viewmat``, ``name = img_name``; ``cx = W / 2``, ``cy = H / 2``
+            unless the entry carries the optional ``cx`` / ``cy`` keys written by :meth:`to_inria`).
         """
+        if not isinstance(entry, dict):
+            raise ValueError(f"INRIA camera entry must be an object, got {type(entry).__name__}")
         missing = [k for k in ("width", "height", "position", "rotation", "fx", "fy") if k not in entry]
         if missing:
             raise ValueError(f"INRIA camera entry lacks {', '.join(missing)}")
@@ -300,8 +303,8 @@ class Camera:
             c2w,
             fx=float(entry["fx"]),
             fy=float(entry["fy"]),
-            cx=width / 2.0,
-            cy=height / 2.0,
+            cx=float(entry.get("cx", width / 2.0)),
+            cy=float(entry.get("cy", height / 2.0)),
             width=width,
             height=height,
             name=str(entry.get("img_name", "")),
@@ -315,18 +318,12 @@ class Camera:
 
         Returns:
             ``{"id", "img_name", "width", "height", "position", "rotation", "fy", "fx"}`` with plain Python
-            numbers.
-
-        Raises:
-            ValueError: if the principal point is not the image centre (INRIA cannot represent it).
+            numbers, plus ``cx`` / ``cy`` when the principal point is off-centre (INRIA's format assumes
+            the centre; its tools ignore the extra keys, :meth:`from_inria` reads them back).
         """
-        off_x, off_y = abs(self.cx - self.width / 2.0), abs(self.cy - self.height / 2.0)
-        if off_x > 1e-6 * self.width or off_y > 1e-6 * self.height:
-            raise ValueError(
-                f"INRIA cameras.json assumes a centred principal point; camera {self.name!r} has "
-                f"cx={self.cx}, cy={self.cy} for {self.width}x{self.height}"
-            )
         c2w = self.c2w.detach().double().cpu()
+        off_centre = (abs(self.cx - self.width / 2.0) > 1e-6 * self.width
+                      or abs(self.cy - self.height / 2.0) > 1e-6 * self.height)
         return {
             "id": id,
             "img_name": self.name,
@@ -336,6 +333,7 @@ class Camera:
             "rotation": c2w[:3, :3].tolist(),
             "fy": self.fy,
             "fx": self.fx,
+            **({"cx": self.cx, "cy": self.cy} if off_centre else {}),
         }
 
     @classmethod
@@ -548,7 +546,7 @@ def save_inria_cameras(cameras: Sequence[Camera], path: str | os.PathLike) -> No
     """Write cameras as an INRIA ``cameras.json`` (ids ``0..C-1``), atomically.
 
     Args:
-        cameras: the cameras (centred principal points).
+        cameras: the cameras.
         path: destination file.
     """
     entries = [cam.to_inria(i) for i, cam in enumerate(cameras)]

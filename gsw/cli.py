@@ -72,7 +72,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """Built-in scene -> 32-bit watermark -> extraction; prints a table, writes PNGs."""
     import gsw
     from gsw.embed import EmbedConfig, embed, verify
-    from gsw.imageio import write_image
+    from gsw.data.images import write_image
     from gsw.losses import LossWeights
     from gsw.metrics import psnr, ssim
     from gsw.scenes import default_scene
@@ -196,7 +196,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
 
 
 def _read_images(paths: Sequence[str]) -> list:
-    from gsw.imageio import read_image
+    from gsw.data.images import read_image
 
     images = []
     for p in paths:
@@ -264,7 +264,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     """Renders a PLY/.splat model from cameras.json or an orbit."""
     import gsw
     from gsw.camera import load_inria_cameras
-    from gsw.imageio import write_image
+    from gsw.data.images import write_image
 
     model = Path(args.model)
     g = gsw.load_gaussians(model)

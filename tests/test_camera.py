@@ -167,10 +167,14 @@ def test_inria_round_trip_exact(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cameras.json", "out.json"]
 
 
-def test_to_inria_rejects_off_centre_principal_point():
+def test_inria_keeps_an_off_centre_principal_point_in_extra_keys():
     cam = Camera(viewmat=torch.eye(4), fx=10.0, fy=10.0, cx=5.0, cy=4.0, width=8, height=8)
-    with pytest.raises(ValueError, match="centred principal point"):
-        cam.to_inria(0)
+    entry = cam.to_inria(0)
+    assert (entry["cx"], entry["cy"]) == (5.0, 4.0)
+    back = Camera.from_inria(entry)
+    assert (back.cx, back.cy) == (5.0, 4.0) and torch.allclose(back.viewmat.float(), cam.viewmat)
+    assert "cx" not in Camera(viewmat=torch.eye(4), fx=10.0, fy=10.0, cx=4.0, cy=4.0, width=8,
+                              height=8).to_inria(0)
 
 
 # ------------------------------------------------------------------------------------------ helpers

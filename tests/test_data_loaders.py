@@ -11,11 +11,9 @@ import pytest
 import torch
 
 from gsw.camera import Camera
-from gsw.data.images import read_image, write_png
+from gsw.data.images import read_image, write_image
 from gsw.data.loaders import (
     DatasetError,
-    camera_from_inria_entry,
-    camera_to_inria_entry,
     detect_format,
     load_dataset,
     load_inria_model,
@@ -80,7 +78,7 @@ def test_nerf_synthetic_camera_convention(tmp_path):
     frames, points, pixels = [], [], []
     for k, (eye, col, row) in enumerate([((0.0, -4.0, 0.5), 40, 17), ((3.0, 2.0, 1.0), 9, 30)]):
         c2w = _gl_c2w(eye, (0.0, 0.0, 0.0))
-        write_png(tmp_path / "train" / f"r_{k}.png", _marker_image(col, row))
+        write_image(tmp_path / "train" / f"r_{k}.png", _marker_image(col, row))
         frames.append({"file_path": f"./train/r_{k}", "transform_matrix": c2w})
         points.append(_gl_point_for_pixel(c2w, col + 0.5, row + 0.5, 3.0, f, f, W / 2, H / 2))
         pixels.append((col, row))
@@ -101,7 +99,7 @@ def test_nerf_synthetic_background_and_alpha(tmp_path):
     img = torch.zeros(4, H, W)
     img[0] = 1.0
     img[3, :, : W // 2] = 1.0  # left half opaque red, right half transparent
-    write_png(tmp_path / "train" / "a.png", img)
+    write_image(tmp_path / "train" / "a.png", img)
     _write_nerf(tmp_path, "train", [{"file_path": "train/a.png", "transform_matrix": _gl_c2w((0, -4, 0), (0, 0, 0))}])
     white = load_nerf_synthetic(tmp_path, "train", holdout_every=0)
     black = load_nerf_synthetic(tmp_path, "train", holdout_every=0, background=(0, 0, 0))
@@ -115,7 +113,7 @@ def test_nerf_synthetic_holdout_and_downscale(tmp_path):
     (tmp_path / "train").mkdir(parents=True)
     frames = []
     for k in range(10):
-        write_png(tmp_path / "train" / f"r_{k}.png", torch.full((3, H, W), k / 10.0))
+        write_image(tmp_path / "train" / f"r_{k}.png", torch.full((3, H, W), k / 10.0))
         frames.append({"file_path": f"./train/r_{k}", "transform_matrix": _gl_c2w((4.0, k - 5.0, 1.0), (0, 0, 0))})
     _write_nerf(tmp_path, "train", frames, angle=0.8)
     train = load_nerf_synthetic(tmp_path, "train")
@@ -139,7 +137,7 @@ def test_instant_ngp_camera_convention(tmp_path):
     c2w = _gl_c2w((1.0, -4.0, 2.0), (0.2, 0.0, 0.3))
     col, row = 50, 8
     (tmp_path / "images").mkdir()
-    write_png(tmp_path / "images" / "0001.png", _marker_image(col, row, rgba=False))
+    write_image(tmp_path / "images" / "0001.png", _marker_image(col, row, rgba=False))
     meta = {"fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": W, "h": H, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
             "aabb_scale": 16, "frames": [{"file_path": "images/0001.png", "transform_matrix": c2w}]}
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
@@ -176,7 +174,7 @@ def test_inria_round_trip(tmp_path):
     save_inria_model(tmp_path, g[:10], cams, 30)
     model = load_inria_model(tmp_path)
     assert model.iteration == 7000 and model.images is None and len(model.gaussians) == 50
-    gl, cl, il = model.gaussians, model.cameras, model.images
+    gl, cl = model.gaussians, model.cameras
     for name, t in g.parameters().items():
         assert torch.equal(gl.parameters()[name], t.float()), name
     assert len(load_inria_model(tmp_path, iteration=30).gaussians) == 10
@@ -187,7 +185,7 @@ def test_inria_round_trip(tmp_path):
     # with source images (full resolution on disk, cameras at that size -> used as is)
     (tmp_path / "imgs").mkdir()
     for k, cam in enumerate(cams):
-        write_png(tmp_path / "imgs" / f"{cam.name}.png", torch.full((3, H, W), k / 4))
+        write_image(tmp_path / "imgs" / f"{cam.name}.png", torch.full((3, H, W), k / 4))
     model = load_inria_model(tmp_path, images_dir=tmp_path / "imgs")
     assert model.images.shape == (3, 3, H, W)
     assert torch.allclose(model.images[2], torch.full((3, H, W), 0.5), atol=1 / 255)
@@ -202,7 +200,7 @@ def test_inria_camera_convention():
     rot = torch.stack([right, down, fwd], dim=1)  # columns = camera axes in world
     entry = {"id": 0, "img_name": "x", "width": W, "height": H, "position": [5.0, 0.0, 0.0],
              "rotation": rot.tolist(), "fx": 40.0, "fy": 42.0}
-    cam = camera_from_inria_entry(entry)
+    cam = Camera.from_inria(entry)
     # a point 2 units in front, 0.5 right and 0.25 down of the axis
     p = torch.tensor([[5.0 - 2.0, 0.5, -0.25]], dtype=torch.float64)
     uv, depth = cam.project(p)
@@ -210,7 +208,7 @@ def test_inria_camera_convention():
     assert float(depth) == pytest.approx(2.0)
     # off-centre principal points survive via the extra cx/cy keys
     off = Camera(viewmat=cam.viewmat, fx=40.0, fy=42.0, cx=30.0, cy=20.0, width=W, height=H, name="o")
-    back = camera_from_inria_entry(camera_to_inria_entry(off, 3))
+    back = Camera.from_inria(off.to_inria(3))
     assert (back.cx, back.cy) == (30.0, 20.0) and torch.allclose(back.viewmat, off.viewmat)
 
 
@@ -235,8 +233,8 @@ def test_missing_files(tmp_path):
 
 def test_inconsistent_sizes(tmp_path):
     (tmp_path / "train").mkdir()
-    write_png(tmp_path / "train" / "a.png", torch.zeros(3, H, W))
-    write_png(tmp_path / "train" / "b.png", torch.zeros(3, H, W + 2))
+    write_image(tmp_path / "train" / "a.png", torch.zeros(3, H, W))
+    write_image(tmp_path / "train" / "b.png", torch.zeros(3, H, W + 2))
     m = _gl_c2w((0, -4, 0), (0, 0, 0))
     _write_nerf(tmp_path, "train", [{"file_path": "train/a", "transform_matrix": m},
                                     {"file_path": "train/b", "transform_matrix": m}])
@@ -259,7 +257,7 @@ def test_malformed_and_unknown(tmp_path):
     with pytest.raises(DatasetError, match="transform_matrix|image not found"):
         load_nerf_synthetic(tmp_path, holdout_every=0)
     (tmp_path / "train").mkdir()
-    write_png(tmp_path / "train" / "a.png", torch.zeros(3, H, W))
+    write_image(tmp_path / "train" / "a.png", torch.zeros(3, H, W))
     (tmp_path / "transforms_train.json").write_text(json.dumps(
         {"frames": [{"file_path": "train/a", "transform_matrix": _gl_c2w((0, -4, 0), (0, 0, 0))}]}))
     with pytest.raises(DatasetError, match="no focal length"):
@@ -317,7 +315,7 @@ def test_inria_errors(tmp_path):
 
 def test_read_image_formats(tmp_path):
     rgba = torch.rand(4, 5, 7)
-    write_png(tmp_path / "x.png", rgba)
+    write_image(tmp_path / "x.png", rgba)
     back = read_image(tmp_path / "x.png")
     assert back.shape == (4, 5, 7) and torch.allclose(back, rgba, atol=0.5 / 255 + 1e-6)
     with pytest.raises(FileNotFoundError):

@@ -17,28 +17,25 @@ from gsw.data.distortion import (
     undistort_normalized,
     undistort_pixels,
 )
-from gsw.data.images import read_image, resize_image, write_png
+from gsw.data.images import read_image, resize_image, write_image
 from gsw.data.loaders import (
     Dataset,
     DatasetError,
     InriaModel,
-    camera_from_inria_entry,
-    camera_to_inria_entry,
     detect_format,
     holdout_indices,
     load_dataset,
     load_inria_model,
     load_instant_ngp,
     load_nerf_synthetic,
-    save_inria_cameras_json,
     save_inria_model,
     scene_extent,
 )
 
 __all__ = [
-    "Dataset", "DatasetError", "Distortion", "InriaModel", "camera_from_inria_entry", "camera_to_inria_entry",
+    "Dataset", "DatasetError", "Distortion", "InriaModel", 
     "detect_format", "distort_normalized", "distort_pixels", "holdout_indices", "load_dataset",
     "load_inria_model", "load_instant_ngp", "load_nerf_synthetic", "read_image", "resize_image",
-    "save_inria_cameras_json", "save_inria_model", "scene_extent", "undistort_image", "undistort_normalized",
-    "undistort_pixels", "write_png",
+    "save_inria_model", "scene_extent", "undistort_image", "undistort_normalized",
+    "undistort_pixels", "write_image",
 ]

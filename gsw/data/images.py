@@ -1,9 +1,4 @@
-"""Image file IO and resizing for the dataset loaders.
-
-Decoding uses Pillow when it is importable and otherwise ``kornia_rs`` (the Rust image codecs that ship with
-kornia, a dependency of the package), so PNG/JPEG loading works in either environment. Tensors are channel-major
-float32 in ``[0, 1]``.
-"""
+"""Image file IO (Pillow, atomic writes) and resizing. Tensors are channel-major float32 in ``[0, 1]``."""
 
 from __future__ import annotations
 
@@ -17,39 +12,16 @@ from torch import Tensor
 
 from gsw._atomic import atomic_write
 
-__all__ = ["read_image", "write_png", "resize_image", "composite", "IMAGE_SUFFIXES"]
+__all__ = ["read_image", "write_image", "resize_image", "composite", "IMAGE_SUFFIXES"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
 
-def _read_pil(path: Path) -> np.ndarray:
-    from PIL import Image  # noqa: PLC0415
-
-    with Image.open(path) as im:
-        has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
-        return np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
-
-
-def _read_kornia_rs(path: Path) -> np.ndarray:
-    import kornia_rs  # noqa: PLC0415
-
-    arr = np.asarray(kornia_rs.read_image(str(path)))
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    if arr.dtype == np.uint16:  # 16-bit PNG
-        arr = (arr.astype(np.float32) / 257.0).round().astype(np.uint8)
-    if arr.shape[-1] == 1:
-        arr = np.repeat(arr, 3, axis=-1)
-    elif arr.shape[-1] == 2:  # gray + alpha
-        arr = np.concatenate([np.repeat(arr[..., :1], 3, axis=-1), arr[..., 1:]], axis=-1)
-    return arr
-
-
 def read_image(path: str | os.PathLike) -> Tensor:
-    """Read an image file.
+    """Reads an image file (Pillow).
 
     Args:
-        path: a PNG or JPEG file.
+        path: a PNG, JPEG or other Pillow-readable file.
 
     Returns:
         ``[C, H, W]`` float32 in ``[0, 1]``; ``C = 4`` when the file has an alpha channel, else 3.
@@ -58,51 +30,45 @@ def read_image(path: str | os.PathLike) -> Tensor:
         FileNotFoundError: the file does not exist.
         ValueError: the file cannot be decoded.
     """
+    from PIL import Image  # noqa: PLC0415
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
     try:
-        import PIL  # noqa: F401, PLC0415
-
-        reader = _read_pil
-    except ImportError:
-        reader = _read_kornia_rs
-    try:
-        arr = reader(path)
+        with Image.open(path) as im:
+            has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
+            arr = np.array(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.uint8, order="C")
     except Exception as exc:  # decoder-specific exception types
         raise ValueError(f"cannot decode image {path}: {exc}") from exc
-    if arr.dtype != np.uint8 or arr.ndim != 3 or arr.shape[-1] not in (3, 4):
-        raise ValueError(f"unsupported image layout in {path}: shape {arr.shape}, dtype {arr.dtype}")
-    arr = np.array(arr, dtype=np.uint8, copy=True, order="C")
     return torch.from_numpy(arr).permute(2, 0, 1).float().div_(255.0)
 
 
-def write_png(path: str | os.PathLike, image: Tensor) -> Path:
-    """Write a ``[3, H, W]`` or ``[4, H, W]`` float image in ``[0, 1]`` as an 8-bit PNG, atomically.
+def write_image(path: str | os.PathLike, image: Tensor, *, quality: int = 95) -> Path:
+    """Writes a ``[3, H, W]`` or ``[4, H, W]`` float image in ``[0, 1]`` as 8 bits, atomically.
 
     Args:
-        path: destination ``.png`` file (its directory must exist).
-        image: channel-major image.
+        path: destination file; the format follows the suffix (``.png``, ``.jpg``, ...); its
+            directory must exist.
+        image: channel-major image (values are clamped to [0, 1] and rounded).
+        quality: JPEG quality when writing a JPEG.
 
     Returns:
         The path written.
     """
+    from PIL import Image  # noqa: PLC0415
+
     path = Path(path)
     if image.dim() != 3 or image.shape[0] not in (3, 4):
-        raise ValueError(f"write_png expects [3|4, H, W], got {list(image.shape)}")
+        raise ValueError(f"write_image expects [3|4, H, W], got {list(image.shape)}")
+    if not torch.isfinite(image).all():
+        raise ValueError("image contains NaN or Inf")
+    fmt = Image.registered_extensions().get(path.suffix.lower())
+    if fmt is None:
+        raise ValueError(f"unknown image format for {path}")
     arr = (image.detach().float().cpu().clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
-    arr = np.ascontiguousarray(arr)
-    try:
-        from PIL import Image  # noqa: PLC0415
-
-        with atomic_write(path, "wb") as f:
-            Image.fromarray(arr).save(f, format="PNG")
-    except ImportError:
-        import kornia_rs  # noqa: PLC0415
-
-        tmp = path.with_name(f".{path.name}.tmp.png")
-        kornia_rs.write_image_png_u8(str(tmp), arr, "rgba" if arr.shape[-1] == 4 else "rgb")
-        os.replace(tmp, path)
+    with atomic_write(path, "wb") as f:
+        Image.fromarray(np.ascontiguousarray(arr)).save(f, format=fmt, **({"quality": quality} if fmt == "JPEG" else {}))
     return path
 
 

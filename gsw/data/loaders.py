@@ -18,15 +18,14 @@ from typing import Any, NamedTuple, Sequence
 import torch
 from torch import Tensor
 
-from gsw._atomic import atomic_write
-from gsw.camera import Camera
+from gsw.camera import Camera, save_inria_cameras
 from gsw.data.distortion import Distortion, undistort_image
 from gsw.data.images import IMAGE_SUFFIXES, composite, read_image, resize_image
 from gsw.gaussians import Gaussians
 
 __all__ = [
     "Dataset", "DatasetError", "InriaModel", "load_nerf_synthetic", "load_instant_ngp", "load_inria_model",
-    "load_dataset", "detect_format", "save_inria_model", "camera_to_inria_entry", "camera_from_inria_entry",
+    "load_dataset", "detect_format", "save_inria_model",
     "scene_extent",
 ]
 
@@ -374,46 +373,6 @@ def load_instant_ngp(path: str | os.PathLike, split: str = "all", *, downscale: 
 # ------------------------------------------------------------------------------------------- INRIA
 
 
-def camera_to_inria_entry(camera: Camera, id: int) -> dict[str, Any]:  # noqa: A002
-    """An INRIA ``cameras.json`` entry; an off-centre principal point is kept in extra ``cx``/``cy`` keys
-    (ignored by INRIA tools, read back by :func:`camera_from_inria_entry`)."""
-    centred = (abs(camera.cx - camera.width / 2) <= 1e-6 * camera.width
-               and abs(camera.cy - camera.height / 2) <= 1e-6 * camera.height)
-    if centred:
-        return camera.to_inria(id)
-    from dataclasses import replace  # noqa: PLC0415
-
-    tmp = replace(camera, cx=camera.width / 2.0, cy=camera.height / 2.0)
-    tmp._source = camera._source
-    entry = tmp.to_inria(id)
-    entry.update(cx=camera.cx, cy=camera.cy)
-    return entry
-
-
-def camera_from_inria_entry(entry: Any, context: str = "cameras.json") -> Camera:
-    """Inverse of :func:`camera_to_inria_entry` (honours optional ``cx``/``cy``)."""
-    if not isinstance(entry, dict):
-        raise DatasetError(f"{context}: camera entry must be an object, got {type(entry).__name__}")
-    try:
-        cam = Camera.from_inria(entry)
-    except (ValueError, TypeError) as exc:
-        raise DatasetError(f"{context}: {exc}") from None
-    if "cx" in entry or "cy" in entry:
-        src = cam._source
-        from dataclasses import replace  # noqa: PLC0415
-
-        cam = replace(cam, cx=float(entry.get("cx", cam.cx)), cy=float(entry.get("cy", cam.cy)))
-        cam._source = src
-    return cam
-
-
-def save_inria_cameras_json(cameras: Sequence[Camera], path: str | os.PathLike) -> None:
-    """Write ``cameras.json`` atomically (ids ``0..C-1``)."""
-    entries = [camera_to_inria_entry(c, i) for i, c in enumerate(cameras)]
-    with atomic_write(path, "w") as f:
-        json.dump(entries, f, indent=1)
-
-
 def save_inria_model(folder: str | os.PathLike, gaussians: Gaussians, cameras: Sequence[Camera],
                      iteration: int) -> Path:
     """Write an INRIA model folder: ``point_cloud/iteration_{iteration}/point_cloud.ply`` + ``cameras.json``.
@@ -427,7 +386,7 @@ def save_inria_model(folder: str | os.PathLike, gaussians: Gaussians, cameras: S
     ply_dir.mkdir(parents=True, exist_ok=True)
     ply = ply_dir / "point_cloud.ply"
     save_ply(gaussians, ply)
-    save_inria_cameras_json(cameras, folder / "cameras.json")
+    save_inria_cameras(cameras, folder / "cameras.json")
     return ply
 
 
@@ -473,7 +432,12 @@ def load_inria_model(folder: str | os.PathLike, *, iteration: int | None = None,
     entries = _read_json(folder / "cameras.json")
     if not isinstance(entries, list) or not entries:
         raise DatasetError(f"{folder / 'cameras.json'}: expected a non-empty JSON list of camera entries")
-    cameras = [camera_from_inria_entry(e, f"{folder / 'cameras.json'} entry {k}") for k, e in enumerate(entries)]
+    cameras = []
+    for k, e in enumerate(entries):
+        try:
+            cameras.append(Camera.from_inria(e))
+        except (ValueError, TypeError) as exc:
+            raise DatasetError(f"{folder / 'cameras.json'} entry {k}: {exc}") from None
     if downscale != 1.0:
         cameras = [c.scaled(1.0 / downscale) for c in cameras]
     images = None

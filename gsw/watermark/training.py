@@ -362,3 +362,411 @@ def finetune_encoder(
     for p_ in decoder.parameters():
         p_.requires_grad_(True)
     return log
+
+
+# ================================================================= fast trainer (GPU-resident, multi-k)
+#
+# The trainer above keeps the photos on the host, crops them in Python and runs real JPEG on the CPU:
+# ~0.35 s/step on an H100, too slow to converge in a few minutes.  :func:`train_multi` instead
+#
+# * keeps the training photos on the device as one uint8 tensor and takes a batch of random crops (+ flips)
+#   with one batched gather (:func:`image_bank`, :func:`bank_crops`);
+# * trains several bit lengths at once: one encoder/decoder pair per bit length, all fed the same image
+#   batch, one backward and one fused AdamW step for all of them;
+# * attacks with device-only noise layers (:class:`GpuAttacks`, the ranges of
+#   :func:`gsw.watermark.noise.training_noise_layers`, kornia's differentiable JPEG), random parameters
+#   from device generators (per image) or a host ``random.Random`` (per batch), so a step never waits for
+#   the device;
+# * follows a curriculum: first ``clean_frac`` of the run without attacks at a strong watermark
+#   (``psnr_start``), then the attack strength ramps to 1 and the PSNR to ``psnr_target``.
+
+
+@dataclasses.dataclass
+class MultiConfig:
+    bits: tuple[int, ...] = (32, 48, 64)
+    channels: int = 64
+    enc_blocks: int = 4
+    dec_blocks: int = 8
+    crop: int = 128
+    batch_size: int = 64  # per bit length; split into ``noise_chunks`` chunks, one random attack each
+    noise_chunks: int = 2
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    warmup: float = 0.03
+    psnr_start: float = 22.0  # strong watermark while learning the code ...
+    psnr_target: float = 30.0  # ... tightened to this
+    clean_frac: float = 0.3  # no attacks before this fraction of the run
+    noise_ramp_end: float = 0.6  # attack strength 0 -> 1 between clean_frac and this
+    psnr_ramp_end: float = 0.8  # PSNR psnr_start -> psnr_target between clean_frac and this
+    noise_layers: tuple[str, ...] = ("identity", "crop", "resize", "jpeg", "blur", "noise", "rotation", "combined")
+    steps: int = 1000  # used when time_budget_s is None
+    time_budget_s: float | None = None
+    amp: bool = True  # bf16 autocast for the networks (DWT, attacks and loss in float32)
+    channels_last: bool = True
+    seed: int = 0
+    log_every: int = 100
+    enc_down: int = 1  # the encoder works on the crop downsampled by this factor (see embed_scaled)
+    templates: int = 0  # > 0: the encoder also adds learned periodic per-bit templates of this side (LL2 px)
+
+
+class TemplateEncoder(torch.nn.Module):
+    """A :class:`HiddenEncoder` plus learned per-bit templates (a training aid for the decoder).
+
+    residual = HiDDeN residual + sum_j (2 m_j - 1) P_j, where each P_j [3, t, t] is a periodic tile at the
+    decoder's LL2 resolution, tiled over the image and upsampled x4 (bilinear).  The templates give the
+    decoder an image-independent code to lock onto at once; the HiDDeN part adds an image-adaptive one.
+    """
+
+    def __init__(self, hidden: HiddenEncoder, side: int = 16, scale: float = 1.0) -> None:
+        super().__init__()
+        self.hidden = hidden
+        self.num_bits = hidden.num_bits
+        self.templates = torch.nn.Parameter(torch.randn(hidden.num_bits, 3, side, side) * scale)
+
+    def forward(self, imgs: torch.Tensor, msgs: torch.Tensor) -> torch.Tensor:
+        h, w = imgs.shape[-2:]
+        hs, ws = -(-h // 4), -(-w // 4)
+        t = self.templates.shape[-1]
+        pat = torch.einsum("bk,kchw->bchw", msgs.to(self.templates.dtype) * 2.0 - 1.0, self.templates)
+        pat = pat / math.sqrt(self.num_bits)
+        pat = pat.repeat(1, 1, -(-hs // t), -(-ws // t))[..., :hs, :ws]
+        pat = F.interpolate(pat, size=(hs * 4, ws * 4), mode="bilinear", align_corners=False)[..., :h, :w]
+        return self.hidden(imgs, msgs) + pat.to(imgs.dtype if not torch.is_autocast_enabled() else pat.dtype)
+
+
+def embed_scaled(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor, psnr: float,
+                 down: int = 1) -> torch.Tensor:
+    """:func:`embed` with the encoder run on ``imgs`` downsampled by ``down`` (antialiased bilinear) and its
+    residual upsampled back (bilinear) before the rescale to ``psnr``: the watermark then lives in the low
+    frequencies that the decoder's LL2 input keeps, and the encoder costs ``down**2`` times less."""
+    if down <= 1:
+        return embed(encoder, imgs, msgs, psnr)
+    h, w = imgs.shape[-2:]
+    small = F.interpolate(imgs, size=(max(4, round(h / down)), max(4, round(w / down))), mode="bilinear",
+                          align_corners=False, antialias=True)
+    delta = F.interpolate(encoder(small, msgs).float(), size=(h, w), mode="bilinear", align_corners=False)
+    rms = delta.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
+    return clamp_st(imgs + delta * (10.0 ** (-psnr / 20.0) / rms))
+
+
+def image_bank(images: list[torch.Tensor], device: torch.device | str) -> torch.Tensor:
+    """uint8 [N,3,H,W] on ``device``: portrait photos transposed to landscape, all cropped (centre) to the
+    smallest common size."""
+    ims = [img if img.shape[-2] <= img.shape[-1] else img.transpose(-1, -2) for img in images]
+    h = min(i.shape[-2] for i in ims)
+    w = min(i.shape[-1] for i in ims)
+    out = []
+    for i in ims:
+        y0, x0 = (i.shape[-2] - h) // 2, (i.shape[-1] - w) // 2
+        out.append(i[:, y0 : y0 + h, x0 : x0 + w])
+    return torch.stack(out).contiguous().to(device)
+
+
+def bank_crops(bank: torch.Tensor, n: int, size: int, gen: torch.Generator,
+               channels_last: bool = False) -> torch.Tensor:
+    """n random ``size`` x ``size`` crops of the bank with random horizontal and vertical flips, one gather;
+    float [n,3,size,size] in [0,1] on the bank's device."""
+    dev = bank.device
+    N, _, H, W = bank.shape
+    u = torch.rand(n, 5, device=dev, generator=gen)
+    k = (u[:, 0] * N).long().clamp_max(N - 1)
+    oy = (u[:, 1] * (H - size + 1)).long().clamp_max(H - size)
+    ox = (u[:, 2] * (W - size + 1)).long().clamp_max(W - size)
+    ar = torch.arange(size, device=dev)
+    ry = oy[:, None] + torch.where(u[:, 3:4] < 0.5, ar, size - 1 - ar)  # vertical flip
+    rx = ox[:, None] + torch.where(u[:, 4:5] < 0.5, ar, size - 1 - ar)  # horizontal flip
+    c = bank[k[:, None, None], :, ry[:, :, None], rx[:, None, :]]  # [n,size,size,3] (NHWC)
+    x = c.permute(0, 3, 1, 2).float() / 255.0
+    return x.contiguous(memory_format=torch.channels_last) if channels_last else x.contiguous()
+
+
+class GpuAttacks:
+    """Device-only training attacks, same names and ranges as :func:`training_noise_layers`.
+
+    ``apply(name, x, strength)``: per-batch parameters (crop size, resize scale, blur sigma) come from the
+    host RNG, per-image ones (crop position, JPEG quality, noise std, rotation angle) from the device
+    generator; a parameter is ``weakest + t (strongest - weakest)``, ``t ~ U(0, strength)``.  JPEG is kornia's
+    differentiable codec.
+    """
+
+    def __init__(self, device: torch.device, seed: int) -> None:
+        import random
+
+        self.device = torch.device(device)
+        self.rng = random.Random(seed)
+        self.gen = torch.Generator(device=self.device).manual_seed(seed + 1)
+
+    def _t(self, s: float) -> float:
+        return self.rng.random() * s
+
+    def _tv(self, n: int, s: float) -> torch.Tensor:
+        return torch.rand(n, device=self.device, generator=self.gen) * s
+
+    def crop(self, x: torch.Tensor, s: float, lo: float = 0.35) -> torch.Tensor:
+        B, _, H, W = x.shape
+        side = math.sqrt(1.0 + self._t(s) * (lo - 1.0))
+        ch, cw = min(H, max(4, round(H * side))), min(W, max(4, round(W * side)))
+        if (ch, cw) == (H, W):
+            return x
+        u = torch.rand(B, 2, device=x.device, generator=self.gen)
+        oy = (u[:, 0] * (H - ch + 1)).long().clamp_max(H - ch)
+        ox = (u[:, 1] * (W - cw + 1)).long().clamp_max(W - cw)
+        ry = oy[:, None] + torch.arange(ch, device=x.device)
+        rx = ox[:, None] + torch.arange(cw, device=x.device)
+        b = torch.arange(B, device=x.device)[:, None, None]
+        return x[b, :, ry[:, :, None], rx[:, None, :]].permute(0, 3, 1, 2)
+
+    def resize(self, x: torch.Tensor, s: float) -> torch.Tensor:
+        sc = 1.0 - 0.5 * self._t(s)
+        H, W = x.shape[-2:]
+        size = (max(4, round(H * sc)), max(4, round(W * sc)))
+        if size == (H, W):
+            return x
+        return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
+
+    def jpeg(self, x: torch.Tensor, s: float, q_hi: float = 90.0, q_lo: float = 50.0) -> torch.Tensor:
+        from .noise import diff_jpeg
+
+        q = (q_hi + self._tv(x.shape[0], s) * (q_lo - q_hi)).round()
+        return diff_jpeg(x.float(), q)
+
+    def blur(self, x: torch.Tensor, s: float, lo: float = 0.1, hi: float = 2.0) -> torch.Tensor:
+        sigma = lo + self._t(s) * (hi - lo)
+        r = min(max(1, math.ceil(3.0 * sigma)), x.shape[-1] - 1, x.shape[-2] - 1)
+        t = torch.arange(-r, r + 1, dtype=torch.float64)
+        k = torch.exp(-0.5 * (t / sigma) ** 2)
+        k = (k / k.sum()).to(device=x.device, dtype=x.dtype)
+        c = x.shape[1]
+        y = F.pad(x, (r, r, r, r), mode="reflect")
+        y = F.conv2d(y, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+        return F.conv2d(y, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+    def noise(self, x: torch.Tensor, s: float) -> torch.Tensor:
+        std = self._tv(x.shape[0], s) * 0.08
+        n = torch.randn(x.shape, device=x.device, generator=self.gen, dtype=x.dtype)
+        return clamp_st(x + n * std.view(-1, 1, 1, 1).to(x.dtype))
+
+    def rotation(self, x: torch.Tensor, s: float) -> torch.Tensor:
+        B, _, H, W = x.shape
+        u = torch.rand(B, 2, device=x.device, generator=self.gen)
+        a = torch.deg2rad(15.0 * u[:, 0] * s * torch.where(u[:, 1] < 0.5, -1.0, 1.0))
+        cos, sin = torch.cos(a), torch.sin(a)
+        z = torch.zeros_like(a)
+        theta = torch.stack([torch.stack([cos, -sin * H / W, z], -1), torch.stack([sin * W / H, cos, z], -1)], 1)
+        grid = F.affine_grid(theta, [B, 3, H, W], align_corners=False)
+        return F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+    def combined(self, x: torch.Tensor, s: float) -> torch.Tensor:
+        x = self.crop(x, s, lo=0.5)
+        x = self.blur(x, s, lo=0.1, hi=1.0)
+        return self.jpeg(x, s, q_hi=90.0, q_lo=60.0)
+
+    def identity(self, x: torch.Tensor, s: float) -> torch.Tensor:
+        return x
+
+    def apply(self, name: str, x: torch.Tensor, strength: float) -> torch.Tensor:
+        return getattr(self, name)(x, strength)
+
+
+def _sched(cfg: MultiConfig, p: float) -> tuple[float, float, float]:
+    """(lr factor, attack strength, PSNR) at progress p in [0,1]."""
+    lr = _lr_factor(p, cfg.warmup)
+    span = lambda end: min(1.0, max(0.0, (p - cfg.clean_frac) / max(1e-9, end - cfg.clean_frac)))  # noqa: E731
+    strength = span(cfg.noise_ramp_end) if p >= cfg.clean_frac else 0.0
+    psnr = cfg.psnr_start + (cfg.psnr_target - cfg.psnr_start) * (span(cfg.psnr_ramp_end) if p >= cfg.clean_frac else 0.0)
+    return lr, strength, psnr
+
+
+def _to_cl(m: torch.nn.Module, on: bool) -> torch.nn.Module:
+    return m.to(memory_format=torch.channels_last) if on else m
+
+
+def train_multi(
+    cfg: MultiConfig,
+    bank: torch.Tensor,
+    *,
+    encoders: list[HiddenEncoder] | None = None,
+    decoders: list[HiddenDecoder] | None = None,
+    whitenings: list[WhiteningLayer] | None = None,
+    finetune_encoders: bool = False,
+    val_fn: Any = None,
+    val_every_s: float = 60.0,
+    verbose: bool = True,
+    tag: str = "",
+) -> dict[str, Any]:
+    """Train one encoder/decoder pair per bit length in ``cfg.bits`` on crops of ``bank`` (from
+    :func:`image_bank`, on the training device).
+
+    With ``finetune_encoders=True`` (pass trained ``encoders``, ``decoders`` and ``whitenings``) only the
+    encoders are trained, against the frozen eval-mode decoders followed by their whitening, at
+    ``psnr_target`` and full attack strength from the start (the situation of the 3DGS embedding).
+
+    Returns ``{"encoders", "decoders", "step", "elapsed", "log", "val", "steps_per_s"}``.
+    """
+    dev = bank.device
+    torch.manual_seed(cfg.seed)
+    if encoders is None:
+        encoders = [HiddenEncoder(k, cfg.enc_blocks, cfg.channels) for k in cfg.bits]
+        if cfg.templates > 0:
+            encoders = [TemplateEncoder(e, cfg.templates) for e in encoders]
+    if decoders is None:
+        decoders = [HiddenDecoder(k, cfg.dec_blocks, cfg.channels) for k in cfg.bits]
+    encoders = [_to_cl(e.to(dev), cfg.channels_last) for e in encoders]
+    decoders = [_to_cl(d.to(dev), cfg.channels_last) for d in decoders]
+    if finetune_encoders:
+        assert whitenings is not None
+        whitenings = [w.to(dev) for w in whitenings]
+        for d in decoders:
+            d.eval().requires_grad_(False)
+        params = [p for e in encoders for p in e.parameters()]
+    else:
+        whitenings = None
+        for d in decoders:
+            d.train()
+        params = [p for m in (*encoders, *decoders) for p in m.parameters()]
+    for e in encoders:
+        e.train()
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                            **({"fused": True} if dev.type == "cuda" else {}))
+    gen = torch.Generator(device=dev).manual_seed(cfg.seed * 7919 + (1 if finetune_encoders else 0))
+    attacks = GpuAttacks(dev, cfg.seed + (101 if finetune_encoders else 0))
+    names = list(cfg.noise_layers)
+    M, L = len(cfg.bits), len(names)
+    acc_sum = torch.zeros(M, L, device=dev)
+    cnt = [0] * L
+    loss_sum = torch.zeros((), device=dev)
+    n_loss = 0
+    log: list[dict[str, Any]] = []
+    vals: list[dict[str, Any]] = []
+    step, elapsed = 0, 0.0
+    t_last = t_val = time.perf_counter()
+    t_start = t_last
+
+    def progress() -> float:
+        if cfg.time_budget_s is not None:
+            return min(1.0, elapsed / cfg.time_budget_s)
+        return min(1.0, step / max(1, cfg.steps))
+
+    B = cfg.batch_size
+    chunks = _chunks(B, max(1, cfg.noise_chunks))
+    while progress() < 1.0:
+        p = progress()
+        if finetune_encoders:
+            lrf, strength, psnr = 0.5 * (1 + math.cos(math.pi * p)), 1.0, cfg.psnr_target
+        else:
+            lrf, strength, psnr = _sched(cfg, p)
+        for g in opt.param_groups:
+            g["lr"] = cfg.lr * lrf
+        imgs = bank_crops(bank, B, cfg.crop, gen, cfg.channels_last)
+        if strength <= 0.0:
+            picks = [names.index("identity") if "identity" in names else 0] * len(chunks)
+        else:
+            picks = [attacks.rng.randrange(L) for _ in chunks]
+        total = 0.0
+        for m, k in enumerate(cfg.bits):
+            msgs = torch.randint(0, 2, (B, k), device=dev, generator=gen).float()
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
+                x_w = embed_scaled(encoders[m], imgs, msgs, psnr, cfg.enc_down)
+            for sl, li in zip(chunks, picks):
+                y = attacks.apply(names[li], x_w[sl], strength)
+                ll = ll_subband(y.float())
+                if cfg.channels_last:
+                    ll = ll.contiguous(memory_format=torch.channels_last)
+                with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
+                    logits = decoders[m](ll)
+                logits = logits.float()
+                if whitenings is not None:
+                    logits = whitenings[m](logits)
+                total = total + F.binary_cross_entropy_with_logits(logits, msgs[sl]) * (
+                    (sl.stop - sl.start) / B)
+                acc_sum[m, li] += bit_accuracy(logits.detach(), msgs[sl]).mean()
+        for li in picks:
+            cnt[li] += 1
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        if not finetune_encoders:
+            for m in range(M):
+                torch.nn.utils.clip_grad_norm_(
+                    list(encoders[m].parameters()) + list(decoders[m].parameters()), 1.0, foreach=True)
+        opt.step()
+        loss_sum += total.detach() / M
+        n_loss += 1
+        step += 1
+        now = time.perf_counter()
+        elapsed += now - t_last
+        t_last = now
+        if step % cfg.log_every == 0 or progress() >= 1.0:
+            accs = (acc_sum / torch.tensor([max(1, c) for c in cnt], device=dev)).tolist()  # sync
+            now = time.perf_counter()
+            elapsed += now - t_last
+            t_last = now
+            entry: dict[str, Any] = {"step": step, "elapsed": round(elapsed, 1), "lr": cfg.lr * lrf,
+                                     "psnr": round(psnr, 2), "strength": round(strength, 3),
+                                     "loss": float(loss_sum) / max(1, n_loss)}
+            for m, k in enumerate(cfg.bits):
+                entry[f"k{k}"] = {names[li]: round(accs[m][li], 4) for li in range(L) if cnt[li]}
+            log.append(entry)
+            acc_sum.zero_()
+            loss_sum.zero_()
+            cnt, n_loss = [0] * L, 0
+            if verbose:
+                brief = " ".join(f"k{k}:" + "/".join(f"{v:.3f}" for v in entry[f"k{k}"].values())
+                                 for k in cfg.bits)
+                print(f"[{tag}step {step} {elapsed:.0f}s {step / max(elapsed, 1e-9):.2f} it/s psnr {psnr:.1f} "
+                      f"str {strength:.2f} loss {entry['loss']:.4f}] {brief}", flush=True)
+        if val_fn is not None and time.perf_counter() - t_val > val_every_s:
+            for mod in (*encoders, *decoders):
+                mod.eval()
+            v = val_fn(encoders, decoders, psnr)
+            for e in encoders:
+                e.train()
+            if not finetune_encoders:
+                for d in decoders:
+                    d.train()
+            v.update(step=step, elapsed=round(elapsed, 1))
+            vals.append(v)
+            if verbose:
+                print(f"[{tag}val] {json.dumps(v)}", flush=True)
+            t_val = time.perf_counter()
+            t_last = t_val  # validation time is not training time
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    for mod in (*encoders, *decoders):
+        mod.eval()
+    if finetune_encoders:
+        for d in decoders:
+            d.requires_grad_(True)
+    return {"encoders": encoders, "decoders": decoders, "step": step, "elapsed": elapsed, "log": log,
+            "val": vals, "steps_per_s": step / max(elapsed, 1e-9), "wall_s": time.perf_counter() - t_start}
+
+
+@torch.no_grad()
+def fit_whitening_multi(
+    decoders: list[HiddenDecoder],
+    images: list[torch.Tensor],
+    bank: torch.Tensor,
+    num_crops: int = 4000,
+    crop_sizes: tuple[int, ...] = (96, 128, 192, 256),
+    seed: int = 1,
+    mode: str = "pca",
+) -> tuple[list[WhiteningLayer], int]:
+    """PCA whitening of each (eval-mode) decoder on the same unmarked inputs: every full photo of
+    ``images`` plus ``num_crops`` random crops (+ flips) of ``bank`` in ``crop_sizes``.
+    Returns the layers (on the CPU) and the number of samples."""
+    dev = bank.device
+    for d in decoders:
+        d.eval()
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    outs: list[list[torch.Tensor]] = [[] for _ in decoders]
+    for img in images:
+        ll = ll_subband(img[None].to(dev).float() / 255.0)
+        for i, d in enumerate(decoders):
+            outs[i].append(d(ll).float().cpu())
+    per = num_crops // len(crop_sizes)
+    for s in crop_sizes:
+        for i0 in range(0, per, 250):
+            ll = ll_subband(bank_crops(bank, min(250, per - i0), s, gen))
+            for i, d in enumerate(decoders):
+                outs[i].append(d(ll).float().cpu())
+    layers = [WhiteningLayer(d.num_bits).fit(torch.cat(o), mode=mode) for d, o in zip(decoders, outs)]
+    return layers, int(torch.cat(outs[0]).shape[0])
