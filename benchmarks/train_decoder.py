@@ -1,32 +1,32 @@
-"""Pre-train, whiten, evaluate the HiDDeN watermark decoders (one process per bit length).
+"""Pre-train, whiten and evaluate the HiDDeN watermark decoders, all bit lengths in one process.
 
-Per bit length k (``--bits 32 48 64``; with several, one subprocess each, concurrently on one GPU):
-
-1. train encoder + decoder on random 128x128 crops + flips of ``--train`` (time budget ``--train-s``),
-   logging bit accuracy per noise layer and validating on ``--val``; checkpoint ``k{k}.pt`` in ``--out``
-   every minute (rerun the same command to resume);
-2. PCA-whiten the decoder on unmarked training photos;
-3. fine-tune the encoder alone against the frozen whitened decoder (``--ft-s``);
-4. evaluate on ``--val`` (full-size photos): bit accuracy clean / under each training noise layer /
-   under the paper's fixed attacks, for the pre-trained pair and for the shipped (whitened) decoder;
-   unbiasedness and false positives of the whitened decoder on unmarked photos x 1,000 messages;
-5. write ``k{k}.pt`` (final state, whitening included) and ``k{k}.json`` (config, logs, results).
+1. ``gsw.watermark.training.train_multi``: one encoder/decoder pair per bit length (``--bits``), all fed
+   the same batches of random crops (+ flips) of the training photos, which stay on the device; device-only
+   attacks (kornia's differentiable JPEG); curriculum: no attacks and a strong watermark (``--psnr-start``)
+   for the first ``--clean-frac`` of the run, then the attacks ramp in and the PSNR tightens to ``--psnr``.
+   Budgeted by wall time (``--train-s``).
+2. PCA whitening of each decoder on unmarked photos (the training photos + random crops).
+3. Evaluation on ``--val`` photos at full size (real JPEG): encoder + raw decoder under every training
+   noise layer and the paper's attacks; unbiasedness and false positives of the whitened and raw
+   decoders (val photos x 1,000 messages); then the encoders alone are fine-tuned for ``--ft-s`` against
+   the frozen whitened decoders (what ships) and evaluated again.
+4. ``k{k}.pt`` (encoder, decoder, whitening) and ``k{k}.json`` (config, logs, results) in ``--out``,
+   written as soon as each stage ends; ``--deadline-s`` shortens the later stages to end in time.
 
 ``benchmarks/export_decoders.py`` then writes the package weights, the manifest and the report.
-
 Runs without the compiled extension: ``gsw/watermark`` is imported as a top-level package.
 
-    python benchmarks/train_decoder.py --bits 32 48 64 --train-s 300 --ft-s 60 --out out/decoders
+    python benchmarks/train_decoder.py --bits 32 48 64 --train-s 330 --ft-s 25 --out out/decoders
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
-import os
+import math
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,10 +37,12 @@ sys.path.insert(0, str(ROOT / "gsw"))  # import gsw/watermark without gsw/__init
 import torch  # noqa: E402
 
 import watermark.training as T  # noqa: E402
+from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import bit_accuracy  # noqa: E402
-from watermark.dwt import ll_subband  # noqa: E402
 from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
+
+T0 = time.perf_counter()
 
 
 def default_data() -> Path:
@@ -50,105 +52,47 @@ def default_data() -> Path:
     return ROOT.parent / "shared" / "data" / "bsds500"
 
 
-def make_val_fn(val_images, cfg, device):
-    gen = torch.Generator().manual_seed(123)
-    crops = T.random_crops(val_images, 64, 256, gen, device)
-    msgs = torch.randint(0, 2, (64, cfg.num_bits), generator=gen).float().to(device)
-    layers = training_noise_layers(cfg.jpeg_mode)
+def left(args) -> float:
+    return args.deadline_s - (time.perf_counter() - T0)
+
+
+def log(msg: str) -> None:
+    print(f"[{time.perf_counter() - T0:6.1f}s] {msg}", flush=True)
+
+
+def make_val_fn(val_bank, cfg):
+    gen = torch.Generator(device=val_bank.device).manual_seed(123)
+    crops = T.bank_crops(val_bank, 64, cfg.crop, gen)
+    msgs = {k: torch.randint(0, 2, (64, k), device=val_bank.device, generator=gen).float() for k in cfg.bits}
 
     @torch.no_grad()
-    def val_fn(enc, dec, psnr):
-        g = torch.Generator().manual_seed(7)
-        x_w = T.embed(enc, crops, msgs, psnr)
+    def val_fn(encs, decs, psnr):
+        att = T.GpuAttacks(val_bank.device, 7)
         out = {}
-        for name, layer in layers.items():
-            layer.strength = 1.0
-            out[name] = round(float(bit_accuracy(dec(ll_subband(layer(x_w, generator=g))).float(), msgs).mean()), 4)
+        for e, d, k in zip(encs, decs, cfg.bits):
+            x_w = T.embed_scaled(e, crops, msgs[k], psnr, cfg.enc_down)
+            out[f"k{k}"] = {n: round(float(bit_accuracy(d(ll_subband(att.apply(n, x_w, 1.0).float())).float(),
+                                                        msgs[k]).mean()), 4) for n in cfg.noise_layers}
         return out
 
     return val_fn
 
 
-def run_one(args, k: int) -> None:
-    device = torch.device(args.device if args.device else ("cuda" if torch.cuda.is_available() else "cpu"))
-    torch.set_num_threads(args.threads)
-    if device.type == "cuda":
-        torch.backends.cudnn.benchmark = True
-        torch.backends.cuda.matmul.allow_tf32 = True
-        torch.backends.cudnn.allow_tf32 = True
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / f"k{k}.pt"
-    t0 = time.perf_counter()
-    train_images = T.load_images(Path(args.data) / "train", args.limit_images)
-    val_images = T.load_images(Path(args.data) / "val", args.limit_images)
-    cfg = T.TrainConfig(num_bits=k, batch_size=args.batch, crop=args.crop, lr=args.lr,
-                        psnr_start=args.psnr_start, psnr_target=args.psnr, time_budget_s=args.train_s,
-                        steps=args.steps, jpeg_mode=args.jpeg_mode,
-                        amp=(device.type == "cuda") if args.amp == "auto" else args.amp == "on", seed=args.seed + k, log_every=args.log_every)
-    if args.train_s is None:
-        cfg.time_budget_s = None
-    prev = torch.load(ckpt, map_location="cpu", weights_only=False) if ckpt.exists() else None
-    if prev is not None and prev.get("stage") == "done":
-        print(f"[k={k}] already done", flush=True)
-        return
-    state = T.train(cfg, train_images, device, ckpt_path=ckpt, val_fn=make_val_fn(val_images, cfg, device),
-                    val_every_s=args.val_every_s)
-    enc, dec = state.pop("modules")
-    t_train = time.perf_counter() - t0
-    whiten, raw = T.fit_decoder_whitening(dec, train_images, device, num_crops=args.whiten_crops)
-    whiten = whiten.to(device)
-    # pre-trained pair, before the encoder fine-tune
-    dec_raw = lambda ll: dec(ll)  # noqa: E731
-    dec_white = lambda ll: whiten(dec(ll).float())  # noqa: E731
-    attacks = dict(training_noise_layers("real"))  # evaluation uses the real codec only
-    attacks.update(paper_attacks())
-    emb = lambda x, m: T.embed(enc, x, m, cfg.psnr_target)  # noqa: E731
-    val_eval = val_images[: args.eval_images]
-    res: dict = {}
-    dec.eval()
-    res["pair_raw"] = eval_attacks(emb, dec_raw, val_eval, attacks, k, args.msgs_per_image, seed=1, device=device)
-    res["pair_whitened_before_ft"] = eval_attacks(emb, dec_white, val_eval, {"identity": attacks["identity"]}, k,
-                                                  args.msgs_per_image, seed=1, device=device)
-    ft_log = []
-    if args.ft_s > 0:
-        ft_log = T.finetune_encoder(enc, dec, whiten, cfg, train_images, device, time_budget_s=args.ft_s)
-        res["pair_whitened"] = eval_attacks(emb, dec_white, val_eval, attacks, k, args.msgs_per_image, seed=1,
-                                            device=device)
-    res["unbiased_whitened"] = unbiasedness(dec_white, val_images, k, 1000, seed=2, device=device, extra_views=10)
-    res["unbiased_raw"] = unbiasedness(dec_raw, val_images, k, 1000, seed=2, device=device)
-    meta = {
-        "num_bits": k,
-        "config": dataclasses.asdict(cfg),
-        "args": vars(args),
-        "steps": state["step"],
-        "train_elapsed_s": state["elapsed"],
-        "wall_s": time.perf_counter() - t0,
-        "wall_train_s": t_train,
-        "device": torch.cuda.get_device_name(0) if device.type == "cuda" else platform.processor() or "cpu",
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "num_train_images": len(train_images),
-        "num_val_images": len(val_images),
-        "whitening_fit_samples": int(raw.shape[0]),
-        "results": res,
-        "train_log": state["log"],
-        "val_log": state["val"],
-        "ft_log": ft_log,
-    }
-    state.update(stage="done", encoder=enc.state_dict(), decoder=dec.state_dict(),
-                 whitening=whiten.cpu().state_dict(), meta=meta)
-    state.pop("optimizer", None)
-    T._atomic_save(state, ckpt)
-    (out / f"k{k}.json").write_text(json.dumps(meta, indent=1))
-    brief = {n: round(v, 4) for n, v in res["pair_raw"]["bit_acc"].items()}
-    print(f"[k={k}] DONE steps={state['step']} pair_raw={brief}", flush=True)
-    if "pair_whitened" in res:
-        print(f"[k={k}] pair_whitened={ {n: round(v, 4) for n, v in res['pair_whitened']['bit_acc'].items()} }")
-    u = res["unbiased_whitened"]
-    print(f"[k={k}] unbiased: acc={u['mean_bit_acc']:.4f} p1dev={u['per_bit_p1_max_dev']:.3f} "
-          f"views_p1dev={u.get('views_per_bit_p1_max_dev')} fp={u['false_positives']} max={u['max_matching_bits']}",
-          flush=True)
+def eval_chunked(args, emb, dec, images, attacks, k, seed, device, frac_of_left=1.0):
+    """eval_attacks over chunks of 10 photos, stopping early when the time share runs out."""
+    t_end = time.perf_counter() + max(0.0, left(args)) * frac_of_left
+    parts = []
+    for i in range(0, len(images), 10):
+        if parts and time.perf_counter() > t_end:
+            break
+        parts.append(eval_attacks(emb, dec, images[i : i + 10], attacks, k, args.msgs_per_image,
+                                  seed=seed + i, device=device))
+    n = sum(p["n"] for p in parts)
+    acc = {a: sum(p["bit_acc"][a] * p["n"] for p in parts) / n for a in attacks}
+    var = {a: sum(p["n"] * (p["bit_acc_std"][a] ** 2 + (p["bit_acc"][a] - acc[a]) ** 2) for p in parts) / n
+           for a in attacks}
+    return {"bit_acc": acc, "bit_acc_std": {a: math.sqrt(v) for a, v in var.items()},
+            "psnr": sum(p["psnr"] * p["n"] for p in parts) / n, "n": n, "num_images": n // args.msgs_per_image}
 
 
 def main() -> None:
@@ -156,45 +100,128 @@ def main() -> None:
     ap.add_argument("--bits", type=int, nargs="+", default=[32, 48, 64])
     ap.add_argument("--data", default=str(default_data()))
     ap.add_argument("--out", default=str(ROOT / "out" / "decoders"))
-    ap.add_argument("--train-s", type=float, default=300.0, help="training time budget per bit length")
+    ap.add_argument("--train-s", type=float, default=330.0, help="training wall-time budget (all bit lengths)")
     ap.add_argument("--steps", type=int, default=1000, help="step budget when --train-s 0")
-    ap.add_argument("--ft-s", type=float, default=60.0, help="encoder fine-tune against the whitened decoder")
-    ap.add_argument("--batch", type=int, default=128)
+    ap.add_argument("--ft-s", type=float, default=25.0, help="encoder fine-tune against the whitened decoders")
+    ap.add_argument("--deadline-s", type=float, default=1e9, help="end everything by then (from the start)")
+    ap.add_argument("--batch", type=int, default=64, help="per bit length")
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--psnr", type=float, default=30.0)
-    ap.add_argument("--psnr-start", type=float, default=24.0)
-    ap.add_argument("--jpeg-mode", default="real_diffgrad", choices=["real", "diff", "real_diffgrad"])
+    ap.add_argument("--psnr-start", type=float, default=22.0)
+    ap.add_argument("--clean-frac", type=float, default=0.3)
+    ap.add_argument("--enc-down", type=int, default=2, help="encoder resolution divisor (training aid)")
+    ap.add_argument("--channels", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--log-every", type=int, default=100)
-    ap.add_argument("--val-every-s", type=float, default=90.0)
+    ap.add_argument("--log-every", type=int, default=200)
+    ap.add_argument("--val-every-s", type=float, default=60.0)
     ap.add_argument("--whiten-crops", type=int, default=4000)
     ap.add_argument("--eval-images", type=int, default=100)
     ap.add_argument("--msgs-per-image", type=int, default=4)
+    ap.add_argument("--num-messages", type=int, default=1000)
     ap.add_argument("--limit-images", type=int, default=None)
-    ap.add_argument("--threads", type=int, default=4)
     ap.add_argument("--device", default=None)
     ap.add_argument("--amp", default="auto", choices=["auto", "on", "off"], help="bf16 autocast (auto: on CUDA)")
-    ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.train_s is not None and args.train_s <= 0:
-        args.train_s = None
-    if len(args.bits) == 1 or args.one:
-        for k in args.bits:
-            run_one(args, k)
-        return
-    procs = []
-    for k in args.bits:
-        cmd = [sys.executable, "-u", __file__, "--one", *sys.argv[1:]]
-        i = cmd.index("--bits")
-        j = i + 1
-        while j < len(cmd) and not cmd[j].startswith("--"):
-            j += 1
-        cmd[i:j] = ["--bits", str(k)]
-        procs.append(subprocess.Popen(cmd, env=dict(os.environ, PYTHONUNBUFFERED="1")))
-    rcs = [p.wait() for p in procs]
-    print("return codes", dict(zip(args.bits, rcs)), flush=True)
-    sys.exit(max(rcs))
+    device = torch.device(args.device if args.device else ("cuda" if torch.cuda.is_available() else "cpu"))
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    train_images = T.load_images(Path(args.data) / "train", args.limit_images)
+    val_images = T.load_images(Path(args.data) / "val", args.limit_images)
+    bank, val_bank = T.image_bank(train_images, device), T.image_bank(val_images, device)
+    log(f"{len(train_images)} train / {len(val_images)} val photos, bank {tuple(bank.shape)} on {device}")
+    amp = (device.type == "cuda") if args.amp == "auto" else args.amp == "on"
+    cfg = T.MultiConfig(bits=tuple(args.bits), channels=args.channels, crop=args.crop, batch_size=args.batch,
+                        lr=args.lr, psnr_start=args.psnr_start, psnr_target=args.psnr, clean_frac=args.clean_frac,
+                        steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
+                        channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
+                        enc_down=args.enc_down)
+    st = T.train_multi(cfg, bank, val_fn=make_val_fn(val_bank, cfg), val_every_s=args.val_every_s, tag="train ")
+    encs, decs = st["encoders"], st["decoders"]
+    log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")
+    torch.backends.cudnn.benchmark = False  # evaluation sees many image sizes
+    whitens, nfit = T.fit_whitening_multi(decs, train_images, bank, num_crops=args.whiten_crops)
+    whitens = [w.to(device) for w in whitens]
+    log(f"whitening fitted on {nfit} samples")
+    dev_name = torch.cuda.get_device_name(0) if device.type == "cuda" else (platform.processor() or "cpu")
+    metas = {}
+    for i, k in enumerate(cfg.bits):
+        metas[k] = {
+            "num_bits": k, "config": {**dataclasses.asdict(cfg), "num_bits": k, "ft_s": args.ft_s},
+            "args": vars(args), "steps": st["step"], "train_elapsed_s": st["elapsed"],
+            "steps_per_s": st["steps_per_s"], "device": dev_name, "torch": torch.__version__,
+            "python": platform.python_version(), "num_train_images": len(train_images),
+            "num_val_images": len(val_images), "whitening_fit_samples": nfit, "results": {},
+            "train_log": st["log"], "val_log": st["val"], "ft_log": [],
+        }
+
+    def save(stage: str, ft_encs=None) -> None:
+        for i, k in enumerate(cfg.bits):
+            metas[k]["wall_s"] = time.perf_counter() - T0
+            metas[k]["stage"] = stage
+            blob = {"stage": stage, "num_bits": k, "encoder": encs[i].state_dict(), "decoder": decs[i].state_dict(),
+                    "whitening": whitens[i].state_dict(), "config": metas[k]["config"], "step": st["step"]}
+            if ft_encs is not None:
+                blob["encoder_ft"] = ft_encs[i].state_dict()
+            torch.save(blob, out / f"k{k}.pt")
+            (out / f"k{k}.json").write_text(json.dumps(metas[k], indent=1))
+
+    save("whitened")
+    attacks = dict(training_noise_layers("real"))  # evaluation uses the real codec only
+    attacks.update(paper_attacks())
+    val_eval = val_images[: args.eval_images]
+    psnr_t = cfg.psnr_target
+    for i, k in enumerate(cfg.bits):
+        emb = lambda x, m, e=encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
+        r = eval_chunked(args, emb, decs[i], val_eval, attacks, k, 1, device, frac_of_left=0.45 / (len(cfg.bits) - i))
+        metas[k]["results"]["pair_raw"] = r
+        log(f"k={k} pair_raw ({r['n']} pairs, PSNR {r['psnr']:.1f}): "
+            + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
+    save("evaluated_raw")
+    for i, k in enumerate(cfg.bits):
+        dw = lambda ll, d=decs[i], w=whitens[i]: w(d(ll).float())  # noqa: E731
+        u = unbiasedness(dw, val_images, k, args.num_messages, seed=2, device=device, extra_views=10)
+        metas[k]["results"]["unbiased_whitened"] = u
+        metas[k]["results"]["unbiased_raw"] = unbiasedness(decs[i], val_images, k, args.num_messages, seed=2,
+                                                           device=device)
+        emb = lambda x, m, e=encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
+        metas[k]["results"]["pair_whitened_before_ft"] = eval_chunked(
+            args, emb, dw, val_eval, {"identity": attacks["identity"]}, k, 1, device, frac_of_left=0.05)
+        log(f"k={k} unbiased: acc={u['mean_bit_acc']:.4f} p1dev={u['per_bit_p1_max_dev']:.3f} "
+            f"views_p1dev={u.get('views_per_bit_p1_max_dev'):.3f} fp={u['false_positives']} "
+            f"max={u['max_matching_bits']} before-ft whitened acc="
+            f"{metas[k]['results']['pair_whitened_before_ft']['bit_acc']['identity']:.4f}")
+    save("evaluated_unbiased")
+    ft_s = min(args.ft_s, max(0.0, left(args) * 0.4))
+    if ft_s >= 3:
+        ft_encs = [copy.deepcopy(e) for e in encs]
+        fcfg = dataclasses.replace(cfg, time_budget_s=ft_s, lr=5e-4, log_every=max(10, args.log_every // 4))
+        torch.backends.cudnn.benchmark = device.type == "cuda"
+        ft = T.train_multi(fcfg, bank, encoders=ft_encs, decoders=decs, whitenings=whitens,
+                           finetune_encoders=True, tag="ft ")
+        torch.backends.cudnn.benchmark = False
+        log(f"encoder fine-tune: {ft['step']} steps in {ft['elapsed']:.0f} s")
+        for i, k in enumerate(cfg.bits):
+            metas[k]["ft_log"] = ft["log"]
+            metas[k]["ft_steps"] = ft["step"]
+            metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
+        save("finetuned", ft["encoders"])
+        for i, k in enumerate(cfg.bits):
+            emb = lambda x, m, e=ft["encoders"][i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
+            dw = lambda ll, d=decs[i], w=whitens[i]: w(d(ll).float())  # noqa: E731
+            r = eval_chunked(args, emb, dw, val_eval, attacks, k, 1, device,
+                             frac_of_left=0.8 / (len(cfg.bits) - i))
+            metas[k]["results"]["pair_whitened"] = r
+            log(f"k={k} pair_whitened ({r['n']} pairs): "
+                + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
+        save("done", ft["encoders"])
+    else:
+        save("done")
+    log("done")
 
 
 if __name__ == "__main__":

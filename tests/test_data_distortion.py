@@ -16,7 +16,7 @@ from gsw.data.distortion import (
     undistort_normalized,
     undistort_pixels,
 )
-from gsw.data.images import write_png
+from gsw.data.images import write_image
 from gsw.data.loaders import DatasetError, load_instant_ngp
 
 D = Distortion(k1=-0.12, k2=0.03, p1=0.004, p2=-0.003)
@@ -65,7 +65,7 @@ def test_undistort_image_recovers_pattern():
 
 def _write_capture(tmp_path, distortion: Distortion, image: torch.Tensor) -> None:
     (tmp_path / "images").mkdir(exist_ok=True)
-    write_png(tmp_path / "images" / "f.png", image)
+    write_image(tmp_path / "images" / "f.png", image)
     meta = {"fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "w": W, "h": H, "k1": distortion.k1, "k2": distortion.k2,
             "p1": distortion.p1, "p2": distortion.p2,
             "frames": [{"file_path": "images/f.png", "transform_matrix": torch.eye(4).tolist()}]}
