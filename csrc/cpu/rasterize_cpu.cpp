@@ -106,10 +106,11 @@ inline void blend_row(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo
 constexpr int kAliveCheckInterval = 16;
 
 // Front-to-back traversal of one tile, splat-major over each splat's box: identical decisions
-// to a per-pixel loop. Calls row_fn(j, ly, lo, hi, w) after each row segment with the weights.
-template <typename T, typename F>
+// to a per-pixel loop. Calls row_fn(j, ly, w) after each row with the weights (0 outside the
+// box) and splat_end(j) after the last row of splat j.
+template <typename T, typename F, typename G>
 void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, T* tr,
-                            int32_t* last, F&& row_fn) {
+                            int32_t* last, F&& row_fn, G&& splat_end) {
   int32_t alive[kTilePixels];
   T w[TILE_SIZE];
   for (int k = 0; k < kTilePixels; ++k) {
@@ -133,9 +134,35 @@ void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>
       const int row = ly * TILE_SIZE;
       blend_row(s, j, x_centre0, T(v.y0 + ly) + T(0.5), s.bx0, s.bx1, tr + row,
                           alive + row, last + row, w);
-      row_fn(j, ly, s.bx0, s.bx1, w);
+      row_fn(j, ly, w);
     }
+    if (s.by1 > s.by0) splat_end(j);
   }
+}
+
+// Adds one row of blending weights to a splat's per-lane sums: C weighted sums, hit count, max.
+template <typename T>
+inline void accumulate_row(int C, const T* __restrict w, const T* __restrict wmap, T* __restrict sums,
+                           T* __restrict hits, T* __restrict mx) {
+  for (int ch = 0; ch < C; ++ch)
+    for (int lx = 0; lx < TILE_SIZE; ++lx)
+      sums[ch * TILE_SIZE + lx] += wmap[ch * kTilePixels + lx] * w[lx];
+  for (int lx = 0; lx < TILE_SIZE; ++lx) hits[lx] += w[lx] > T(0) ? T(1) : T(0);
+  for (int lx = 0; lx < TILE_SIZE; ++lx) mx[lx] = mx[lx] < w[lx] ? w[lx] : mx[lx];
+}
+
+// Reduces a splat's per-lane sums into its record r[C + 2] and clears them.
+template <typename T>
+inline void flush_lanes(int C, T* __restrict lanes, T* __restrict r) {
+  for (int k = 0; k <= C; ++k) {  // C sums and the hit count
+    T acc = T(0);
+    for (int lx = 0; lx < TILE_SIZE; ++lx) acc += lanes[k * TILE_SIZE + lx];
+    r[k] += acc;
+  }
+  T m = r[C + 1];
+  for (int lx = 0; lx < TILE_SIZE; ++lx) m = m < lanes[(C + 1) * TILE_SIZE + lx] ? lanes[(C + 1) * TILE_SIZE + lx] : m;
+  r[C + 1] = m;
+  for (int k = 0; k < (C + 2) * TILE_SIZE; ++k) lanes[k] = T(0);
 }
 
 }  // namespace
@@ -152,7 +179,7 @@ void rasterize_forward(const RasterParams<T>& p) {
     int32_t last[kTilePixels];
     for (int k = 0; k < kTilePixels; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
     const PackedSplat<T>* sp = splats.data();  // no TLS lookup in the lambda
-    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int, int, const T* w) {
+    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, const T* w) {
       const PackedSplat<T>& s = sp[j];
       T* c0 = col[0] + ly * TILE_SIZE;
       T* c1 = col[1] + ly * TILE_SIZE;
@@ -164,7 +191,7 @@ void rasterize_forward(const RasterParams<T>& p) {
         c2[lx] += w[lx] * s.color[2];
         d[lx] += w[lx] * s.depth;
       }
-    });
+    }, [](int) {});
     for (int py = v.y0; py < v.y1; ++py) {
       for (int px = v.x0; px < v.x1; ++px) {
         const int k = (py - v.y0) * TILE_SIZE + (px - v.x0);
@@ -316,45 +343,20 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
         for (int ch = 0; ch < C; ++ch)
           wts[size_t(ch) * kTilePixels + (py - v.y0) * TILE_SIZE + (px - v.x0)] =
               c.weights[ch * P + int64_t(py) * p.width + px];
-    // Per-lane partial sums of the current splat, [C + 2][TILE_SIZE], flushed when it changes.
-    // (Plain pointers: thread_local access inside the hot lambda would cost a TLS lookup.)
+    // Per-lane partial sums of the current splat, [C + 2][TILE_SIZE], flushed after its last row.
+    // (Plain pointers: thread_local access inside the hot lambdas would cost a TLS lookup.)
     lanes.assign(size_t(S) * TILE_SIZE, T(0));
-    T* lane_sum = lanes.data();
-    T* lane_hits = lane_sum + size_t(C) * TILE_SIZE;
-    T* lane_max = lane_hits + TILE_SIZE;
+    T* lane = lanes.data();
     const T* wmap = wts.data();
-    int current = -1;
-    auto flush = [&]() {
-      if (current < 0) return;
-      T* r = out + int64_t(S) * current;
-      for (int k = 0; k <= C; ++k) {  // sums and hit count
-        T acc = T(0);
-        for (int lx = 0; lx < TILE_SIZE; ++lx) acc += lane_sum[k * TILE_SIZE + lx];
-        r[k] += acc;
-      }
-      T mx = r[C + 1];
-      for (int lx = 0; lx < TILE_SIZE; ++lx) mx = std::max(mx, lane_max[lx]);
-      r[C + 1] = mx;
-      std::fill(lane_sum, lane_sum + size_t(S) * TILE_SIZE, T(0));
-    };
     T tr[kTilePixels];
     int32_t last[kTilePixels];
-    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int, int, const T* w) {
-      if (j != current) {
-        flush();
-        current = j;
-      }
-      for (int ch = 0; ch < C; ++ch) {
-        const T* wc = wmap + size_t(ch) * kTilePixels + ly * TILE_SIZE;
-        T* lane = lane_sum + size_t(ch) * TILE_SIZE;
-        for (int lx = 0; lx < TILE_SIZE; ++lx) lane[lx] += wc[lx] * w[lx];
-      }
-      for (int lx = 0; lx < TILE_SIZE; ++lx) {
-        lane_hits[lx] += w[lx] > T(0) ? T(1) : T(0);
-        lane_max[lx] = std::max(lane_max[lx], w[lx]);
-      }
-    });
-    flush();
+    traverse_front_to_back(
+        v, splats, tr, last,
+        [&](int, int ly, const T* w) {
+          accumulate_row(C, w, wmap + ly * TILE_SIZE, lane, lane + C * TILE_SIZE,
+                         lane + (C + 1) * TILE_SIZE);
+        },
+        [&](int j) { flush_lanes(C, lane, out + int64_t(S) * j); });
   });
   // Hit counts are exact in T (a record counts at most TILE_SIZE^2 pixels).
   parallel_items(p.N, [&](int64_t i) {
