@@ -82,12 +82,13 @@ void gather_splats(const RasterParams<T>& p, const TileView& v, std::vector<Pack
 }
 
 // One tile row for one splat, front to back, over all TILE_SIZE lanes (fixed trip count, so the
-// loop becomes straight-line SIMD); lanes outside the splat's box [lo, hi) are masked. Per
-// pixel: w = blending weight (0 when masked, skipped, finished or terminating here), and updates
-// of the transmittance, liveness and last-contributor arrays (indexed by the tile-local x).
-template <typename T>
+// loop becomes straight-line SIMD together with `pixel_fn`); lanes outside the splat's box
+// [lo, hi) are masked. Per pixel: w = blending weight (0 when masked, skipped, finished or
+// terminating here), passed to pixel_fn(lx, w) in the same loop, and updates of the
+// transmittance, liveness and last-contributor arrays (indexed by the tile-local x).
+template <typename T, typename F>
 inline void blend_row(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo, int hi, T* tr,
-                      int32_t* alive, int32_t* last, T* w) {
+                      int32_t* alive, int32_t* last, F&& pixel_fn) {
   for (int lx = 0; lx < TILE_SIZE; ++lx) {
     const T power = gaussian_power(s.conic, s.mx, s.my, x_centre0 + T(lx), pyc);
     const T alpha0 = splat_alpha(s.opacity, power);
@@ -96,7 +97,7 @@ inline void blend_row(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo
     const bool term = (alpha > T(0)) & blend_terminates(tr[lx], alpha);
     alive[lx] = term ? 0 : alive[lx];
     const T a = term ? T(0) : alpha;
-    w[lx] = a * tr[lx];
+    pixel_fn(lx, a * tr[lx]);
     tr[lx] *= T(1) - a;
     last[lx] = a > T(0) ? j + 1 : last[lx];
   }
@@ -106,13 +107,12 @@ inline void blend_row(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo
 constexpr int kAliveCheckInterval = 16;
 
 // Front-to-back traversal of one tile, splat-major over each splat's box: identical decisions
-// to a per-pixel loop. Calls row_fn(j, ly, w) after each row with the weights (0 outside the
-// box) and splat_end(j) after the last row of splat j.
+// to a per-pixel loop. Calls pixel_fn(j, ly, lx, w) for every lane of every row of splat j's box
+// (w = 0 outside it) and splat_end(j) after the last row of splat j.
 template <typename T, typename F, typename G>
 void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, T* tr,
-                            int32_t* last, F&& row_fn, G&& splat_end) {
+                            int32_t* last, F&& pixel_fn, G&& splat_end) {
   int32_t alive[kTilePixels];
-  T w[TILE_SIZE];
   for (int k = 0; k < kTilePixels; ++k) {
     tr[k] = T(1);
     last[k] = 0;
@@ -132,37 +132,54 @@ void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>
     const PackedSplat<T>& s = splats[j];
     for (int ly = s.by0; ly < s.by1; ++ly) {
       const int row = ly * TILE_SIZE;
-      blend_row(s, j, x_centre0, T(v.y0 + ly) + T(0.5), s.bx0, s.bx1, tr + row,
-                          alive + row, last + row, w);
-      row_fn(j, ly, w);
+      blend_row(s, j, x_centre0, T(v.y0 + ly) + T(0.5), s.bx0, s.bx1, tr + row, alive + row,
+                last + row, [&](int lx, T w) { pixel_fn(j, ly, lx, w); });
     }
     if (s.by1 > s.by0) splat_end(j);
   }
 }
 
-// Adds one row of blending weights to a splat's per-lane sums: C weighted sums, hit count, max.
+// Reduces a splat's per-lane sums (`k_sums` rows, then one row of maxima) into its record and
+// clears them.
 template <typename T>
-inline void accumulate_row(int C, const T* __restrict w, const T* __restrict wmap, T* __restrict sums,
-                           T* __restrict hits, T* __restrict mx) {
-  for (int ch = 0; ch < C; ++ch)
-    for (int lx = 0; lx < TILE_SIZE; ++lx)
-      sums[ch * TILE_SIZE + lx] += wmap[ch * kTilePixels + lx] * w[lx];
-  for (int lx = 0; lx < TILE_SIZE; ++lx) hits[lx] += w[lx] > T(0) ? T(1) : T(0);
-  for (int lx = 0; lx < TILE_SIZE; ++lx) mx[lx] = mx[lx] < w[lx] ? w[lx] : mx[lx];
-}
-
-// Reduces a splat's per-lane sums into its record r[C + 2] and clears them.
-template <typename T>
-inline void flush_lanes(int C, T* __restrict lanes, T* __restrict r) {
-  for (int k = 0; k <= C; ++k) {  // C sums and the hit count
+inline void flush_lanes(int k_sums, T* __restrict lanes, T* __restrict r) {
+  for (int k = 0; k < k_sums; ++k) {
     T acc = T(0);
     for (int lx = 0; lx < TILE_SIZE; ++lx) acc += lanes[k * TILE_SIZE + lx];
     r[k] += acc;
   }
-  T m = r[C + 1];
-  for (int lx = 0; lx < TILE_SIZE; ++lx) m = m < lanes[(C + 1) * TILE_SIZE + lx] ? lanes[(C + 1) * TILE_SIZE + lx] : m;
-  r[C + 1] = m;
-  for (int k = 0; k < (C + 2) * TILE_SIZE; ++k) lanes[k] = T(0);
+  T m = r[k_sums];
+  for (int lx = 0; lx < TILE_SIZE; ++lx) m = m < lanes[k_sums * TILE_SIZE + lx] ? lanes[k_sums * TILE_SIZE + lx] : m;
+  r[k_sums] = m;
+  for (int k = 0; k < (k_sums + 1) * TILE_SIZE; ++k) lanes[k] = T(0);
+}
+
+// Contribution traversal of one tile with CC weight channels (CC in 1..3 unrolled; CC = 0: C at
+// run time).
+template <typename T, int CC>
+void contribution_tile(const TileView& v, const std::vector<PackedSplat<T>>& splats, int C,
+                       const T* __restrict wmap, T* __restrict lane, T* out) {
+  const int nc = CC > 0 ? CC : C;
+  const int S = nc + 2;
+  T* __restrict hits = lane + nc * TILE_SIZE;
+  T* __restrict mx = hits + TILE_SIZE;
+  T tr[kTilePixels];
+  int32_t last[kTilePixels];
+  traverse_front_to_back(
+      v, splats, tr, last,
+      [&](int, int ly, int lx, T w) {
+        const int k = ly * TILE_SIZE + lx;
+        if constexpr (CC >= 1) lane[lx] += wmap[k] * w;  // unrolled: the loop stays vectorizable
+        if constexpr (CC >= 2) lane[TILE_SIZE + lx] += wmap[kTilePixels + k] * w;
+        if constexpr (CC >= 3) lane[2 * TILE_SIZE + lx] += wmap[2 * kTilePixels + k] * w;
+        if constexpr (CC == 0)
+          for (int ch = 0; ch < nc; ++ch) lane[ch * TILE_SIZE + lx] += wmap[ch * kTilePixels + k] * w;
+        // Select-free forms (selects here stop the vectorizer): w is in [0, 1], so ceil(w) is
+        // the hit indicator; max(a, b) = (a + b + |a - b|) / 2 (exact up to one rounding).
+        hits[lx] += ceil(w);
+        mx[lx] = T(0.5) * (mx[lx] + w + std::abs(mx[lx] - w));
+      },
+      [&](int j) { flush_lanes(nc + 1, lane, out + int64_t(S) * j); });
 }
 
 }  // namespace
@@ -179,18 +196,13 @@ void rasterize_forward(const RasterParams<T>& p) {
     int32_t last[kTilePixels];
     for (int k = 0; k < kTilePixels; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
     const PackedSplat<T>* sp = splats.data();  // no TLS lookup in the lambda
-    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, const T* w) {
+    traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int lx, T w) {
       const PackedSplat<T>& s = sp[j];
-      T* c0 = col[0] + ly * TILE_SIZE;
-      T* c1 = col[1] + ly * TILE_SIZE;
-      T* c2 = col[2] + ly * TILE_SIZE;
-      T* d = dep + ly * TILE_SIZE;
-      for (int lx = 0; lx < TILE_SIZE; ++lx) {  // w is 0 outside [lo, hi)
-        c0[lx] += w[lx] * s.color[0];
-        c1[lx] += w[lx] * s.color[1];
-        c2[lx] += w[lx] * s.color[2];
-        d[lx] += w[lx] * s.depth;
-      }
+      const int k = ly * TILE_SIZE + lx;
+      col[0][k] += w * s.color[0];
+      col[1][k] += w * s.color[1];
+      col[2][k] += w * s.color[2];
+      dep[k] += w * s.depth;
     }, [](int) {});
     for (int py = v.y0; py < v.y1; ++py) {
       for (int px = v.x0; px < v.x1; ++px) {
@@ -346,17 +358,12 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
     // Per-lane partial sums of the current splat, [C + 2][TILE_SIZE], flushed after its last row.
     // (Plain pointers: thread_local access inside the hot lambdas would cost a TLS lookup.)
     lanes.assign(size_t(S) * TILE_SIZE, T(0));
-    T* lane = lanes.data();
-    const T* wmap = wts.data();
-    T tr[kTilePixels];
-    int32_t last[kTilePixels];
-    traverse_front_to_back(
-        v, splats, tr, last,
-        [&](int, int ly, const T* w) {
-          accumulate_row(C, w, wmap + ly * TILE_SIZE, lane, lane + C * TILE_SIZE,
-                         lane + (C + 1) * TILE_SIZE);
-        },
-        [&](int j) { flush_lanes(C, lane, out + int64_t(S) * j); });
+    if (C == 1)
+      contribution_tile<T, 1>(v, splats, C, wts.data(), lanes.data(), out);
+    else if (C == 3)
+      contribution_tile<T, 3>(v, splats, C, wts.data(), lanes.data(), out);
+    else
+      contribution_tile<T, 0>(v, splats, C, wts.data(), lanes.data(), out);
   });
   // Hit counts are exact in T (a record counts at most TILE_SIZE^2 pixels).
   parallel_items(p.N, [&](int64_t i) {
