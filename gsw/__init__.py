@@ -15,6 +15,8 @@ import torch  # noqa: F401  (loads libtorch before the extension)
 
 from gsw import _C
 from gsw.camera import Camera, orbit_cameras
+from gsw.data import load_dataset, load_inria_model
+from gsw.embed import EmbedConfig, EmbedResult, Extraction, Verdict, embed, extract, verify
 from gsw.gaussians import Gaussians
 from gsw.io import load_gaussians, load_ply, load_splat, save_ply
 from gsw.rasterize import (
@@ -43,7 +45,8 @@ def build_info() -> dict[str, object]:
 
 
 __all__ = [
-    "Camera", "ContributionOutput", "Gaussians", "RenderOutput", "__version__", "build_info",
-    "contribution", "load_gaussians", "load_ply", "load_splat", "orbit_cameras", "rasterization",
-    "rasterize", "save_ply",
+    "Camera", "ContributionOutput", "EmbedConfig", "EmbedResult", "Extraction", "Gaussians",
+    "RenderOutput", "Verdict", "__version__", "build_info", "contribution", "embed", "extract",
+    "load_dataset", "load_gaussians", "load_inria_model", "load_ply", "load_splat",
+    "orbit_cameras", "rasterization", "rasterize", "save_ply", "verify",
 ]
