@@ -26,7 +26,7 @@ from gsw.losses import LossWeights, WatermarkLoss
 from gsw.messages import (MessageLike, as_message, binomial_p_value, fisher_combined_p_value,
                           message_to_hex)
 from gsw.rasterize import rasterize
-from gsw.train.progress import Progress
+from gsw.progress import Progress
 
 
 @dataclass

@@ -15,7 +15,7 @@ from gsw.rasterize import rasterize
 from gsw.scenes import default_scene
 from gsw.train.cli import add_train_parser, config_from_args
 from gsw.train.optim import GaussianAdam
-from gsw.train.progress import Progress
+from gsw.progress import Progress
 from gsw.train.trainer import TrainConfig, _State, init_box, random_init, train
 
 SIZE = 48

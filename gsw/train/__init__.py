@@ -9,7 +9,6 @@ Example:
 
 from __future__ import annotations
 
-from gsw.train.progress import Progress
 from gsw.train.trainer import TrainConfig, TrainResult, evaluate, init_box, points_init, random_init, train
 
-__all__ = ["Progress", "TrainConfig", "TrainResult", "evaluate", "init_box", "points_init", "random_init", "train"]
+__all__ = ["TrainConfig", "TrainResult", "evaluate", "init_box", "points_init", "random_init", "train"]

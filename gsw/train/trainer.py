@@ -48,7 +48,7 @@ from gsw.gaussians import Gaussians, sh_degree_to_num_coeffs
 from gsw.metrics import psnr, ssim
 from gsw.rasterize import rasterize
 from gsw.train.optim import GaussianAdam
-from gsw.train.progress import Progress
+from gsw.progress import Progress
 
 __all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "random_init", "points_init", "init_box"]
 

@@ -41,6 +41,7 @@ class Progress:
         self.n = 0
         self.start = time.perf_counter()
         self._last = -1e9
+        self._drawn_n = -1
         self.postfix: dict[str, Any] = {}
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
 
@@ -69,8 +70,9 @@ class Progress:
                 f"{self.n}/{self.total} {_fmt_time(elapsed)}<{_fmt_time(eta)} {fields}")
         if self._tty:
             self.stream.write("\r\033[K" + line + ("\n" if final else ""))
-        else:  # a log file: one line per redraw
+        elif not (final and self._drawn_n == self.n):  # a log file: one line per new state
             self.stream.write(line + "\n")
+        self._drawn_n = self.n
         self.stream.flush()
 
     def close(self) -> None:
