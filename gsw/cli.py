@@ -1,4 +1,4 @@
-"""The `gsw` command line: demo, embed, extract, verify, train, render, info.
+"""The `gsw` command line: demo, embed, extract, verify, eval, train, render, info.
 
 Run `gsw <command> --help` for the options of each command.
 """
@@ -260,6 +260,35 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 0 if detected else 1
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    """Invisibility + robustness report of a watermarked INRIA folder against its original."""
+    from gsw.data import load_inria_model
+    from gsw.evaluate import evaluate_watermark
+
+    message = _message_arg(args)
+    if message is None:
+        raise ValueError("pass --message HEX or --key SECRET")
+    marked = load_inria_model(args.watermarked)
+    original = load_inria_model(args.original)
+    cams = marked.cameras if args.views is None else marked.cameras[: args.views]
+    report = evaluate_watermark(marked.gaussians, original.gaussians, cams, message,
+                                num_bits=args.bits, official=args.official,
+                                background=(1.0, 1.0, 1.0) if args.white else (0.0, 0.0, 0.0),
+                                lpips_net=None if args.lpips == "none" else args.lpips)
+    text = report.to_markdown()
+    if args.output:
+        from gsw._atomic import atomic_write
+
+        with atomic_write(args.output, "w") as f:
+            f.write(text)
+    if args.json:
+        json.dump(report.to_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print(text, end="")
+    return 0
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     """Renders a PLY/.splat model from cameras.json or an orbit."""
     import gsw
@@ -352,6 +381,20 @@ def build_parser() -> argparse.ArgumentParser:
     ver.add_argument("--fpr", type=float, default=1e-6, help="false-positive rate of the decision")
     ver.add_argument("--json", action="store_true")
     ver.set_defaults(func=cmd_verify)
+
+    ev = sub.add_parser("eval", help="invisibility and robustness report of a watermarked model")
+    ev.add_argument("watermarked", help="watermarked INRIA model folder (its cameras are the views)")
+    ev.add_argument("--original", required=True, help="the INRIA model folder before embedding")
+    ev.add_argument("--message", help="hex message")
+    ev.add_argument("--key", help="secret key the message was derived from")
+    ev.add_argument("--bits", type=_positive_int, default=32, choices=[32, 48, 64])
+    ev.add_argument("--views", type=_positive_int, default=None, help="use the first N cameras")
+    ev.add_argument("--official", action="store_true", help="also the official code's attack variants")
+    ev.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
+    ev.add_argument("--white", action="store_true", help="white background")
+    ev.add_argument("--output", help="also write the markdown report to this file")
+    ev.add_argument("--json", action="store_true")
+    ev.set_defaults(func=cmd_eval)
 
     from gsw.train.cli import add_train_parser, run_train
 
