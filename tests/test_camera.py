@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import SHARED_DATA, require
 import torch
 
 from gsw.camera import (
@@ -20,15 +19,7 @@ from gsw.camera import (
     stack_viewmats,
 )
 
-DATA = Path(__file__).parents[2] / "shared" / "data"
-
-
-def require(path: Path) -> Path:
-    if not path.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"missing test data: {path}")
-        pytest.skip(f"missing test data: {path}")
-    return path
+DATA = SHARED_DATA
 
 
 def random_rotation(seed: int) -> torch.Tensor:

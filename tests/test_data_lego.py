@@ -2,23 +2,20 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
+from helpers import SHARED_DATA, require
 import torch
 
 from gsw.data.loaders import detect_format, holdout_indices, load_dataset, load_nerf_synthetic
 
-LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lego"
+LEGO = SHARED_DATA / "lego"
 
 
 @pytest.fixture(scope="module")
 def lego_root() -> Path:
-    if not (LEGO / "transforms_train.json").is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"shared data missing: {LEGO}")
-        pytest.skip(f"shared data missing: {LEGO}")
+    require(LEGO / "transforms_train.json", "shared data")
     return LEGO
 
 

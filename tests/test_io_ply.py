@@ -2,26 +2,18 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import SHARED_DATA, require
 import torch
 
 from gsw.gaussians import Gaussians
 from gsw.io import PlyError, load_gaussians, load_ply, ply_property_names, save_ply
 
-DATA = Path(__file__).parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 FIXTURE = DATA / "ply" / "sh3_fixture" / "point_cloud.ply"
-
-
-def require(path: Path) -> Path:
-    if not path.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"missing test data: {path}")
-        pytest.skip(f"missing test data: {path}")
-    return path
 
 
 def make(n: int, degree: int, seed: int = 0) -> Gaussians:

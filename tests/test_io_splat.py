@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import SHARED_DATA, require
 import torch
 
 from gsw.constants import SH_C0
@@ -14,16 +13,8 @@ from gsw.gaussians import Gaussians
 from gsw.io import SplatError, load_gaussians, load_ply, load_splat, save_gaussians, save_splat
 from gsw.io.splat import SPLAT_DTYPE, splat_sort_order
 
-DATA = Path(__file__).parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 FIXTURE_DIR = DATA / "ply" / "sh3_fixture"
-
-
-def require(path: Path) -> Path:
-    if not path.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"missing test data: {path}")
-        pytest.skip(f"missing test data: {path}")
-    return path
 
 
 def make(n: int, degree: int = 0, seed: int = 0) -> Gaussians:

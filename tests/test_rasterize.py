@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import pytest
+from helpers import SHARED_DATA, require
 import torch
 
 import gsw
@@ -15,7 +14,7 @@ from gsw.rasterize import bin_gaussians, blend, contribution, project, rasteriza
 from gsw.reference import reference_contribution, reference_rasterize
 from gsw.scenes import frustum_scene, random_gaussians
 
-FIXTURE = Path(__file__).resolve().parents[2] / "shared" / "data" / "ply" / "sh3_fixture" / "point_cloud.ply"
+FIXTURE = SHARED_DATA / "ply" / "sh3_fixture" / "point_cloud.ply"
 
 
 def make_camera(width: int = 40, height: int = 30, *, distance: float = 3.0, dtype=torch.float32,
@@ -136,11 +135,7 @@ def test_degenerate_flat_and_huge_gaussians_and_zero_opacity() -> None:
 
 
 def test_sh_fixture_renders_without_nan() -> None:
-    if not FIXTURE.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"shared data missing: {FIXTURE}")
-        pytest.skip("shared data not present")
-    g = gsw.load_ply(FIXTURE)
+    g = gsw.load_ply(require(FIXTURE, "shared data"))
     center = g.means.median(dim=0).values
     cams = gsw.orbit_cameras(center.tolist(), 3.0, 3, width=96, height=80)
     for cam in cams:

@@ -1,17 +1,16 @@
 """Shipped decoder weights: loading, integrity checks, user weights, unbiasedness on val photos."""
 
 import json
-import os
 import shutil
-from pathlib import Path
 
 import pytest
+from helpers import SHARED_DATA, require
 import torch
 
 from gsw.watermark import AVAILABLE_BITS, HiddenDecoder, WeightsError, WhiteningLayer, load_decoder, save_decoder
 from gsw.watermark.zoo import WEIGHTS_DIR, sha256_file
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = SHARED_DATA
 
 
 @pytest.mark.parametrize("bits", AVAILABLE_BITS)
@@ -81,11 +80,7 @@ def test_manifest_matches_files():
 
 
 def test_unmarked_val_photos_decode_to_chance():
-    val = DATA / "bsds500" / "val"
-    if not val.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"missing test data {val}")
-        pytest.skip(f"missing test data {val}")
+    val = require(DATA / "bsds500" / "val")
     from gsw.watermark.evaluation import unbiasedness
     from gsw.watermark.training import load_images
 
