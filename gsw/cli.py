@@ -234,7 +234,6 @@ def cmd_verify(args: argparse.Namespace) -> int:
     if message is None:
         raise ValueError("pass --message HEX or --key SECRET")
     if args.model:
-        args.input, args.images_dir = args.model, None
         from gsw.data import load_inria_model
 
         model = load_inria_model(args.model)
