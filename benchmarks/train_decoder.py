@@ -112,6 +112,9 @@ def main() -> None:
     ap.add_argument("--clean-frac", type=float, default=0.3)
     ap.add_argument("--enc-down", type=int, default=2, help="encoder resolution divisor (training aid)")
     ap.add_argument("--channels", type=int, default=64)
+    ap.add_argument("--dec-norm", default="standardize", choices=["none", "center", "standardize"],
+                    help="decoder input normalisation (HiddenDecoder input_norm)")
+    ap.add_argument("--templates", type=int, default=0, help="> 0: on/off template encoder aid of this side")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--log-every", type=int, default=200)
     ap.add_argument("--val-every-s", type=float, default=60.0)
@@ -139,7 +142,7 @@ def main() -> None:
                         lr=args.lr, psnr_start=args.psnr_start, psnr_target=args.psnr, clean_frac=args.clean_frac,
                         steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
                         channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
-                        enc_down=args.enc_down)
+                        enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates)
     st = T.train_multi(cfg, bank, val_fn=make_val_fn(val_bank, cfg), val_every_s=args.val_every_s, tag="train ")
     encs, decs = st["encoders"], st["decoders"]
     log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")

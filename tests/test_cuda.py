@@ -247,11 +247,22 @@ def test_colour_override_gradients_match_cpu(dtype: torch.dtype) -> None:
     g64, cam, bg, _ = _scene_random(2, 5)
     g = g64.to(dtype=dtype)
     colors = torch.rand(len(g), 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(dtype)
-    w = _weights(cam, dtype)
+    # In float32 this scene has a knife-edge pixel: one splat's alpha lies within rounding of
+    # ALPHA_MIN, and the CPU's vectorised exp and the GPU's __expf round it to opposite sides (the
+    # pure-PyTorch reference sides with the CPU). Such decisions are implementation-defined, so
+    # pixels whose forward alpha differs are counted (at most 1 in 500, none in float64) and left
+    # out of the loss; everywhere else the gradients must agree to GRAD_RTOL.
+    a_cpu = rasterize(g, cam, colors=colors).alpha
+    a_gpu = rasterize(g.to("cuda"), cam, colors=colors.cuda()).alpha.cpu()
+    split = (a_cpu - a_gpu).abs() > 1e-5
+    assert int(split.sum()) <= (0 if dtype == torch.float64 else max(1, split.numel() // 500)), int(split.sum())
+    keep = (~split).to(dtype)
+    w = tuple(x * keep for x in _weights(cam, dtype))
     cpu = _grads(g, cam, bg, -1, w, colors=colors)
     gpu = _grads(g.to("cuda"), cam, bg, -1, w, colors=colors.cuda())
     for key, ref in cpu.items():
-        assert _rel(gpu[key], ref) <= GRAD_RTOL, key
+        rel = _rel(gpu[key], ref)
+        assert rel <= GRAD_RTOL, f"{key}: relative error {rel:.2e}"
 
 
 def test_empty_scene_backward() -> None:

@@ -1,5 +1,6 @@
 """HiDDeN encoder/decoder: shapes, sizes, determinism, and a tiny training run that reduces the loss."""
 
+import pytest
 import torch
 
 from gsw.watermark import HiddenDecoder, HiddenEncoder, bit_accuracy, bits_from_logits, ll_subband
@@ -31,6 +32,21 @@ def test_determinism_and_batch_independence_in_eval():
         a, b = d1(ll), d2(ll)
         assert torch.equal(a, b)
         assert torch.allclose(d1(ll[:1]), a[:1], atol=1e-5)
+
+
+def test_input_norm_invariances():
+    ll = ll_subband(torch.rand(3, 3, 64, 64))
+    gain, offset = 0.7, torch.tensor([0.3, -0.2, 0.5]).view(1, 3, 1, 1)
+    with torch.no_grad():
+        for norm, changed in (("center", ll + offset), ("standardize", ll * gain + offset)):
+            torch.manual_seed(0)
+            dec = HiddenDecoder(8, num_blocks=2, channels=8, input_norm=norm).eval()
+            assert torch.allclose(dec(changed), dec(ll), atol=1e-4), norm
+        torch.manual_seed(0)
+        raw = HiddenDecoder(8, num_blocks=2, channels=8, input_norm="none").eval()
+        assert not torch.allclose(raw(ll + offset), raw(ll), atol=1e-4)
+    with pytest.raises(ValueError, match="input_norm"):
+        HiddenDecoder(8, input_norm="whiten")
 
 
 def test_bit_helpers():

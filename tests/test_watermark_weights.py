@@ -54,11 +54,13 @@ def test_missing_file_and_manifest(tmp_path):
 
 def test_user_weights_roundtrip_and_checks(tmp_path):
     torch.manual_seed(0)
-    dec, wl = HiddenDecoder(16).eval(), WhiteningLayer(16).fit(torch.randn(200, 16))
+    dec, wl = HiddenDecoder(16, num_blocks=3, channels=24, input_norm="center").eval(), WhiteningLayer(16).fit(
+        torch.randn(200, 16))
     path = tmp_path / "mine.pt"
     sha = save_decoder(dec, wl, path)
     assert sha == sha256_file(path)
     model = load_decoder(16, path, sha256=sha)
+    assert model.decoder.input_norm == "center" and len(model.decoder.layers) == 4  # architecture kept
     ll = torch.rand(2, 3, 8, 8)
     with torch.no_grad():
         assert torch.allclose(model(ll), wl(dec(ll)), atol=1e-5)

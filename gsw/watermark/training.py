@@ -51,6 +51,7 @@ class TrainConfig:
     channels: int = 64  # network width (64 for the shipped decoders; smaller only for tests)
     enc_blocks: int = 4
     dec_blocks: int = 8
+    dec_norm: str = "standardize"  # HiddenDecoder input_norm
     crop: int = 128  # training crop side (LL2 is crop/4)
     batch_size: int = 128  # split evenly over the noise layers
     lr: float = 1e-3
@@ -387,6 +388,7 @@ class MultiConfig:
     channels: int = 64
     enc_blocks: int = 4
     dec_blocks: int = 8
+    dec_norm: str = "standardize"  # HiddenDecoder input_norm
     crop: int = 128
     batch_size: int = 64  # per bit length; split into ``noise_chunks`` chunks, one random attack each
     noise_chunks: int = 2
@@ -410,26 +412,32 @@ class MultiConfig:
 
 
 class TemplateEncoder(torch.nn.Module):
-    """A :class:`HiddenEncoder` plus learned per-bit templates (a training aid for the decoder).
+    """A :class:`HiddenEncoder` plus learned per-bit on/off templates (a training aid for the decoder).
 
-    residual = HiDDeN residual + sum_j (2 m_j - 1) P_j, where each P_j [3, t, t] is a periodic tile at the
-    decoder's LL2 resolution, tiled over the image and upsampled x4 (bilinear).  The templates give the
-    decoder an image-independent code to lock onto at once; the HiDDeN part adds an image-adaptive one.
+    residual = HiDDeN residual + sum_j (m_j P1_j + (1 - m_j) P0_j), where each P_j [3, t, t] is a periodic
+    tile at the decoder's LL2 resolution, tiled over the image and upsampled x4 (bilinear).  The decoder
+    averages over space, which makes it (nearly) translation invariant: it cannot tell a zero-mean pattern
+    from its negative when that is a shift of it, so a bit is keyed as *which* of two patterns is present
+    (an energy it can detect at any position), not as a pattern's sign.
     """
 
-    def __init__(self, hidden: HiddenEncoder, side: int = 16, scale: float = 1.0) -> None:
+    def __init__(self, hidden: HiddenEncoder, side: int = 8, scale: float = 1.0) -> None:
         super().__init__()
         self.hidden = hidden
         self.num_bits = hidden.num_bits
-        self.templates = torch.nn.Parameter(torch.randn(hidden.num_bits, 3, side, side) * scale)
+        self.templates = torch.nn.Parameter(torch.randn(2, hidden.num_bits, 3, side, side) * scale)
 
     def forward(self, imgs: torch.Tensor, msgs: torch.Tensor) -> torch.Tensor:
         h, w = imgs.shape[-2:]
         hs, ws = -(-h // 4), -(-w // 4)
         t = self.templates.shape[-1]
-        pat = torch.einsum("bk,kchw->bchw", msgs.to(self.templates.dtype) * 2.0 - 1.0, self.templates)
+        m = msgs.to(self.templates.dtype)
+        pat = torch.einsum("bk,kchw->bchw", m, self.templates[1]) + torch.einsum("bk,kchw->bchw", 1.0 - m,
+                                                                                   self.templates[0])
         pat = pat / math.sqrt(self.num_bits)
         pat = pat.repeat(1, 1, -(-hs // t), -(-ws // t))[..., :hs, :ws]
+        shift = [int(v) for v in torch.randint(0, t, (2,))] if self.training else [0, 0]
+        pat = torch.roll(pat, shift, dims=(-2, -1))  # random phase while training: nothing to learn from it
         pat = F.interpolate(pat, size=(hs * 4, ws * 4), mode="bilinear", align_corners=False)[..., :h, :w]
         return self.hidden(imgs, msgs) + pat.to(imgs.dtype if not torch.is_autocast_enabled() else pat.dtype)
 
@@ -578,7 +586,11 @@ def _sched(cfg: MultiConfig, p: float) -> tuple[float, float, float]:
 
 
 def _to_cl(m: torch.nn.Module, on: bool) -> torch.nn.Module:
-    return m.to(memory_format=torch.channels_last) if on else m
+    if on:
+        for mod in m.modules():  # only the convolutions (a TemplateEncoder's templates are 5-D)
+            if isinstance(mod, torch.nn.Conv2d):
+                mod.to(memory_format=torch.channels_last)
+    return m
 
 
 def train_multi(
@@ -610,7 +622,7 @@ def train_multi(
         if cfg.templates > 0:
             encoders = [TemplateEncoder(e, cfg.templates) for e in encoders]
     if decoders is None:
-        decoders = [HiddenDecoder(k, cfg.dec_blocks, cfg.channels) for k in cfg.bits]
+        decoders = [HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm) for k in cfg.bits]
     encoders = [_to_cl(e.to(dev), cfg.channels_last) for e in encoders]
     decoders = [_to_cl(d.to(dev), cfg.channels_last) for d in decoders]
     if finetune_encoders:

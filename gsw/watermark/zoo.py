@@ -55,10 +55,10 @@ class WatermarkDecoder(nn.Module):
     images [B,3,H,W] in [0,1] and computes the subband with the project's DWT.
     """
 
-    def __init__(self, num_bits: int, num_blocks: int = 8, channels: int = 64) -> None:
+    def __init__(self, num_bits: int, num_blocks: int = 8, channels: int = 64, input_norm: str = "none") -> None:
         super().__init__()
         self.num_bits = num_bits
-        self.decoder = HiddenDecoder(num_bits, num_blocks, channels)
+        self.decoder = HiddenDecoder(num_bits, num_blocks, channels, input_norm)
         self.whitening = WhiteningLayer(num_bits)
 
     def forward(self, ll: torch.Tensor) -> torch.Tensor:
@@ -146,7 +146,11 @@ def load_decoder(
     if int(blob["num_bits"]) != num_bits:
         raise WeightsError(f"{path} holds a {blob['num_bits']}-bit decoder, {num_bits} bits were asked for")
     arch = blob.get("arch", {})
-    model = WatermarkDecoder(num_bits, arch.get("num_blocks", 8), arch.get("channels", 64))
+    try:
+        model = WatermarkDecoder(num_bits, int(arch.get("num_blocks", 8)), int(arch.get("channels", 64)),
+                                 str(arch.get("input_norm", "none")))  # files before input_norm fed LL2 raw
+    except ValueError as e:
+        raise WeightsError(f"{path} names an unknown decoder architecture {arch}: {e}") from e
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as e:
@@ -159,12 +163,14 @@ def save_decoder(
     decoder: HiddenDecoder, whitening: WhiteningLayer, path: str | Path, meta: dict[str, Any] | None = None
 ) -> str:
     """Write a decoder + whitening as a float32 state dict; returns its sha256."""
-    model = WatermarkDecoder(decoder.num_bits)
+    arch = {"num_blocks": len(decoder.layers) - 1, "channels": decoder.layers[0][0].out_channels,
+            "input_norm": decoder.input_norm}
+    model = WatermarkDecoder(decoder.num_bits, **arch)
     model.decoder.load_state_dict(decoder.state_dict())
     model.whitening.load_state_dict(whitening.state_dict())
     sd = {k: v.detach().float().cpu().contiguous() if v.is_floating_point() else v.cpu()
           for k, v in model.state_dict().items()}
-    blob = {"num_bits": decoder.num_bits, "arch": {"num_blocks": 8, "channels": 64}, "state_dict": sd,
+    blob = {"num_bits": decoder.num_bits, "arch": arch, "state_dict": sd,
             "meta": json.dumps(meta or {})}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
