@@ -6,8 +6,9 @@
 // CPU backend's per-pixel decisions (splat_alpha, blend_terminates from core/math.h), a warp
 // leaves a batch as soon as all its pixels have terminated and the block stops at the first batch
 // where all of them have. The traversal hands each splat's blending weight w (0 if not blended)
-// to a visitor: the forward accumulates colour/depth, the contribution reduces w over the warp
-// and adds it to the splat's outputs with one atomic per warp.
+// to a visitor: the forward accumulates colour/depth, the contribution reduces w over the warp,
+// adds that to the splat's shared-memory slot and, after each batch, adds the block's totals to
+// the splat's outputs with one atomic per value.
 //
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
 // batches from the tile's largest n_contrib down, recovering T_i = T_{i+1} / (1 - alpha_i) as the
@@ -81,7 +82,8 @@ __device__ __forceinline__ PixelCtx pixel_ctx(const RasterParams<T>& p) {
 // Front-to-back traversal of this thread's tile (see the file comment). The visitor provides
 //   load(slot, g):       stage extra per-splat data of Gaussian g in shared slot `slot`;
 //   blend(slot, g, w):   called by every thread of a warp for each splat the warp visits, with
-//                        this pixel's weight w = alpha T (0 when not blended).
+//                        this pixel's weight w = alpha T (0 when not blended);
+//   end_batch(n):        called by every thread of the block after the n splats of a batch.
 // On return `tr` is the final transmittance and `last` 1 + the tile-list index of the last
 // blended splat (0 if none).
 template <typename T, typename Visitor>
@@ -124,6 +126,7 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
       }
       vis.blend(k, s_id[k], w);
     }
+    vis.end_batch(n);
   }
 }
 
@@ -138,6 +141,7 @@ struct ForwardVisitor {
     s_col[slot] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2],
                    p.depths[gid]};
   }
+  __device__ __forceinline__ void end_batch(int) {}
   __device__ __forceinline__ void blend(int slot, int32_t, T w) {
     if (w > T(0)) {
       const SplatColor<T> c = s_col[slot];
@@ -170,36 +174,77 @@ __global__ void __launch_bounds__(kBlock) forward_kernel(const RasterParams<T> p
 
 // ------------------------------------------------------------------ contribution
 
-// CT > 0: C = CT channels held in registers; CT = 0: any C, read from global memory.
+// Per-batch block accumulators of the contribution (CT > 0): each warp adds its warp-reduced sums
+// to the splat's shared slot, and after the batch one thread per slot adds the block's totals to
+// global memory, so a splat costs one set of global atomics per tile rather than per warp.
+template <typename T, int CT>
+struct ContributionShared {
+  T sum[CT][kBatch];
+  T max_w[kBatch];
+  int32_t hits[kBatch];
+  int32_t gid[kBatch];
+};
+
+// CT > 0: C = CT channels, this pixel's weights in registers, block accumulation in shared
+// memory; CT = 0: any C, weights read from global memory, one atomic per warp and channel.
 template <typename T, int CT>
 struct ContributionVisitor {
   const ContributionParams<T>& cp;
   int64_t P, pix;
+  ContributionShared<T, (CT > 0 ? CT : 1)>* sh;
   T wreg[CT > 0 ? CT : 1];
-  __device__ void load(int, int32_t) {}
-  __device__ __forceinline__ void blend(int, int32_t gid, T w) {
+  __device__ void load(int slot, int32_t gid) {
+    if constexpr (CT > 0) {
+#pragma unroll
+      for (int ch = 0; ch < CT; ++ch) sh->sum[ch][slot] = T(0);
+      sh->max_w[slot] = T(0);
+      sh->hits[slot] = 0;
+      sh->gid[slot] = gid;
+    }
+  }
+  __device__ __forceinline__ void blend(int slot, int32_t gid, T w) {
     const bool hit = w > T(0);
     const unsigned ballot = __ballot_sync(kFullMask, hit);
     if (ballot == 0) return;  // warp-uniform
     const int lane = threadIdx.x & 31;
-    const int C = CT > 0 ? CT : cp.C;
-    T* out = cp.contribution + int64_t(C) * gid;
     if constexpr (CT > 0) {
 #pragma unroll
       for (int ch = 0; ch < CT; ++ch) {
         const T v = warp_sum(w * wreg[ch]);
-        if (lane == 0 && v != T(0)) atomicAdd(out + ch, v);
+        if (lane == 0) atomicAdd(&sh->sum[ch][slot], v);
+      }
+      const T m = warp_max(w);
+      if (lane == 0) {
+        atomicAdd(&sh->hits[slot], __popc(ballot));
+        atomic_max_nonneg(&sh->max_w[slot], m);
       }
     } else {
+      const int C = cp.C;
+      T* out = cp.contribution + int64_t(C) * gid;
       for (int ch = 0; ch < C; ++ch) {
         const T v = warp_sum(hit ? w * cp.weights[ch * P + pix] : T(0));
         if (lane == 0 && v != T(0)) atomicAdd(out + ch, v);
       }
+      const T m = warp_max(w);
+      if (lane == 0) {
+        atomicAdd(cp.hits + gid, __popc(ballot));
+        atomic_max_nonneg(cp.max_weight + gid, m);
+      }
     }
-    const T m = warp_max(w);
-    if (lane == 0) {
-      atomicAdd(cp.hits + gid, __popc(ballot));
-      atomic_max_nonneg(cp.max_weight + gid, m);
+  }
+  __device__ __forceinline__ void end_batch(int n) {
+    if constexpr (CT > 0) {
+      __syncthreads();  // every warp has finished the batch
+      const int slot = threadIdx.x;
+      if (slot < n && sh->hits[slot] > 0) {
+        const int32_t gid = sh->gid[slot];
+        T* out = cp.contribution + int64_t(CT) * gid;
+#pragma unroll
+        for (int ch = 0; ch < CT; ++ch)
+          if (sh->sum[ch][slot] != T(0)) atomicAdd(out + ch, sh->sum[ch][slot]);
+        atomicAdd(cp.hits + gid, sh->hits[slot]);
+        atomic_max_nonneg(cp.max_weight + gid, sh->max_w[slot]);
+      }
     }
   }
 };
@@ -207,9 +252,10 @@ struct ContributionVisitor {
 template <typename T, int CT>
 __global__ void __launch_bounds__(kBlock)
     contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp) {
+  __shared__ ContributionShared<T, (CT > 0 ? CT : 1)> sh;
   const PixelCtx c = pixel_ctx(p);
   const int64_t P = int64_t(p.width) * p.height;
-  ContributionVisitor<T, CT> vis{cp, P, c.pix};
+  ContributionVisitor<T, CT> vis{cp, P, c.pix, &sh};
   if constexpr (CT > 0) {
 #pragma unroll
     for (int ch = 0; ch < CT; ++ch) vis.wreg[ch] = c.inside ? cp.weights[ch * P + c.pix] : T(0);
