@@ -6,8 +6,9 @@
 // CPU backend's per-pixel decisions (splat_alpha, blend_terminates from core/math.h), a warp
 // leaves a batch as soon as all its pixels have terminated and the block stops at the first batch
 // where all of them have. The traversal hands each splat's blending weight w (0 if not blended)
-// to a visitor: the forward accumulates colour/depth, the contribution reduces w over the warp,
-// adds that to the splat's shared-memory slot and, after each batch, adds the block's totals to
+// to a visitor: the forward accumulates colour/depth, the contribution reduces the weighted w
+// and max w over the warp (one transposed butterfly for all values), adds them to the splat's
+// shared-memory slot and, after each batch, adds the block's totals to
 // the splat's outputs with one atomic per value.
 //
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
@@ -207,7 +208,25 @@ struct ContributionVisitor {
     const unsigned ballot = __ballot_sync(kFullMask, hit);
     if (ballot == 0) return;  // warp-uniform
     const int lane = threadIdx.x & 31;
-    if constexpr (CT > 0) {
+    if constexpr (CT == 3) {
+      const T x = warp_sum3_max(w * wreg[0], w * wreg[1], w * wreg[2], w);
+      if ((lane & 7) == 0) {
+        const int q = lane >> 3;  // lanes 0, 8, 16: channel sums; lane 24: max
+        if (q < 3)
+          atomicAdd(&sh->sum[q][slot], x);
+        else
+          atomic_max_nonneg(&sh->max_w[slot], x);
+      }
+      if (lane == 0) atomicAdd(&sh->hits[slot], __popc(ballot));
+    } else if constexpr (CT == 1) {
+      const T x = warp_sum1_max(w * wreg[0], w);
+      if (lane == 0) {
+        atomicAdd(&sh->sum[0][slot], x);
+        atomicAdd(&sh->hits[slot], __popc(ballot));
+      } else if (lane == 16) {
+        atomic_max_nonneg(&sh->max_w[slot], x);
+      }
+    } else if constexpr (CT > 0) {
 #pragma unroll
       for (int ch = 0; ch < CT; ++ch) {
         const T v = warp_sum(w * wreg[ch]);
