@@ -190,6 +190,7 @@ struct ContributionShared {
 // memory; CT = 0: any C, weights read from global memory, one atomic per warp and channel.
 template <typename T, int CT>
 struct ContributionVisitor {
+  static_assert(CT == 0 || CT == 1 || CT == 3, "dispatched for C = 1, 3 or any (0)");
   const ContributionParams<T>& cp;
   int64_t P, pix;
   ContributionShared<T, (CT > 0 ? CT : 1)>* sh;
@@ -225,17 +226,6 @@ struct ContributionVisitor {
         atomicAdd(&sh->hits[slot], __popc(ballot));
       } else if (lane == 16) {
         atomic_max_nonneg(&sh->max_w[slot], x);
-      }
-    } else if constexpr (CT > 0) {
-#pragma unroll
-      for (int ch = 0; ch < CT; ++ch) {
-        const T v = warp_sum(w * wreg[ch]);
-        if (lane == 0) atomicAdd(&sh->sum[ch][slot], v);
-      }
-      const T m = warp_max(w);
-      if (lane == 0) {
-        atomicAdd(&sh->hits[slot], __popc(ballot));
-        atomic_max_nonneg(&sh->max_w[slot], m);
       }
     } else {
       const int C = cp.C;
