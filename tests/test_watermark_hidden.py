@@ -83,3 +83,21 @@ def test_tiny_training_run_reduces_loss(tmp_path):
     cfg.steps = 21
     state2 = T.train(cfg, images, "cpu", ckpt_path=ckpt, verbose=False)
     assert state2["step"] == 21
+
+
+def test_template_encoder_keys_bits_by_pattern():
+    torch.manual_seed(0)
+    enc = T.TemplateEncoder(HiddenEncoder(4, num_blocks=1, channels=8), side=4).eval()
+    x = torch.rand(1, 3, 32, 32)
+    m0 = torch.tensor([[0.0, 1.0, 0.0, 1.0]])
+    m1 = m0.clone()
+    m1[0, 0] = 1.0
+    with torch.no_grad():
+        r0, r0b, r1 = enc(x, m0), enc(x, m0), enc(x, m1)
+        hidden_delta = enc.hidden(x, m1) - enc.hidden(x, m0)
+    assert r0.shape == x.shape and torch.equal(r0, r0b)  # eval: no random phase
+    # flipping bit 0 swaps its template (P0 -> P1) on top of the HiDDeN residual's own change
+    tpl = (r1 - r0) - hidden_delta
+    assert tpl.abs().max() > 1e-3
+    # periodic with 4 LL2 px = 16 px (away from the borders, where the bilinear upsampling clamps)
+    assert torch.allclose(tpl[..., 2:14, 2:14], tpl[..., 18:30, 18:30], atol=1e-5)
