@@ -40,7 +40,6 @@ import hashlib
 import importlib.util
 import os
 import pickle
-import tempfile
 import threading
 import warnings
 from pathlib import Path
@@ -49,7 +48,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .zoo import WeightsError
+from .zoo import WeightsError, atomic_torch_save
 
 __all__ = [
     "LPIPS",
@@ -315,28 +314,6 @@ def _read_cache(path: Path, source_sha: str) -> dict[str, torch.Tensor] | None:
     return sd
 
 
-def _atomic_torch_save(obj, path: Path) -> None:
-    """torch.save to a temp file in the same directory, then os.replace (readers never see a partial file).
-
-    (Local helper: this subpackage imports nothing from the rest of ``gsw``.)
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 _LOAD_LOCK = threading.Lock()
 
 
@@ -389,7 +366,7 @@ def load_lpips_state_dict(net: str = "vgg", *, cache: bool = True) -> dict[str, 
                 "state_dict": sd,
             }
             try:
-                _atomic_torch_save(blob, cache_path)
+                atomic_torch_save(blob, cache_path)
             except OSError as e:
                 warnings.warn(f"could not write the LPIPS weight cache {cache_path}: {e}", stacklevel=2)
         return sd

@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -33,6 +32,7 @@ from .dwt import ll_subband
 from .hidden import HiddenDecoder, HiddenEncoder, bit_accuracy
 from .noise import NoiseLayer, clamp_st, training_noise_layers
 from .whitening import WhiteningLayer
+from .zoo import atomic_torch_save
 
 __all__ = [
     "TrainConfig",
@@ -174,12 +174,6 @@ def _decode_chunks(
     return torch.stack(losses).mean(), dict(zip(accs, vals))
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def train(
     cfg: TrainConfig,
     train_images: list[torch.Tensor],
@@ -224,7 +218,7 @@ def train(
     def save() -> None:
         if ckpt_path is not None:
             state.update(encoder=enc.state_dict(), decoder=dec.state_dict(), optimizer=opt.state_dict())
-            _atomic_save(state, ckpt_path)
+            atomic_torch_save(state, ckpt_path)
 
     t_last, t_ckpt, t_val = time.perf_counter(), time.perf_counter(), time.perf_counter()
     window: dict[str, list[float]] = {n: [] for n in layers}

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -159,6 +161,28 @@ def load_decoder(
     return model.to(device)
 
 
+def atomic_torch_save(obj: Any, path: str | Path) -> None:
+    """``torch.save`` to a temporary file in the same directory, then ``os.replace``: readers never see a
+    partial file and a failed write leaves ``path`` untouched.  (This subpackage imports nothing from
+    the rest of ``gsw``, so it does not use ``gsw._atomic``.)"""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
 def save_decoder(
     decoder: HiddenDecoder, whitening: WhiteningLayer, path: str | Path, meta: dict[str, Any] | None = None
 ) -> str:
@@ -172,7 +196,5 @@ def save_decoder(
           for k, v in model.state_dict().items()}
     blob = {"num_bits": decoder.num_bits, "arch": arch, "state_dict": sd,
             "meta": json.dumps(meta or {})}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(blob, path)
+    atomic_torch_save(blob, path)
     return sha256_file(path)
