@@ -36,6 +36,7 @@ def main() -> int:
     from gsw.fgd import fgd_prune
     from gsw.losses import LossWeights
     from gsw.metrics import psnr, ssim
+    from gsw.train import resolve_device
     from gsw.watermark.lpips import lpips
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -44,18 +45,28 @@ def main() -> int:
     parser.add_argument("--bits", type=int, nargs="+", default=[32, 48, 64])
     parser.add_argument("--epochs", type=int, default=8)
     parser.add_argument("--lpips", default="alex", choices=["alex", "vgg", "none"])
+    parser.add_argument("--metric-lpips", default="vgg", choices=["alex", "vgg"], help="LPIPS network of the report")
     parser.add_argument("--mask", default="exp", choices=["exp", "stega", "none"])
     parser.add_argument("--attacks", type=float, default=0.0)
-    parser.add_argument("--tag", default="embed_lego")
+    parser.add_argument("--tag", default=None, help="results name (default embed_lego, embed_lego_cuda on a GPU)")
+    parser.add_argument("--device", default="auto", help="cpu, cuda[:N] or auto")
     args = parser.parse_args()
 
+    dev = resolve_device(args.device)
+    args.tag = args.tag or ("embed_lego_cuda" if dev.type == "cuda" else "embed_lego")
     model = load_inria_model(args.model)
-    g, size = model.gaussians, model.cameras[0].width
+    g, size = model.gaussians.to(dev), model.cameras[0].width
     downscale = 800 / size
     train = load_nerf_synthetic(args.data, "train", downscale=downscale)
     test = load_nerf_synthetic(args.data, "test", downscale=downscale)
+    train_images = [im.to(dev) for im in train.images]
+    test_images = [im.to(dev) for im in test.images]
     bg = (1.0, 1.0, 1.0)
     lp = None if args.lpips == "none" else args.lpips
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
 
     def quality(a_model, b_model, cams, gt=None):
         rows = []
@@ -64,7 +75,7 @@ def main() -> int:
                 a = gsw.rasterize(a_model, cam, background=bg).image.clamp(0, 1)
                 b = gsw.rasterize(b_model, cam, background=bg).image.clamp(0, 1)
                 r = dict(psnr=float(psnr(b, a)), ssim=float(ssim(b, a)),
-                         lpips_vgg=float(lpips(b[None], a[None], net="vgg")))
+                         lpips=float(lpips(b[None], a[None], net=args.metric_lpips)))
                 if gt is not None:
                     r["psnr_gt"] = float(psnr(b, gt[i]))
                     r["psnr_gt_original"] = float(psnr(a, gt[i]))
@@ -74,16 +85,18 @@ def main() -> int:
     def fps(m, cams, repeats=3):
         with torch.no_grad():
             gsw.rasterize(m, cams[0], background=bg)
+            sync()
             start = time.perf_counter()
             for _ in range(repeats):
                 for cam in cams:
                     gsw.rasterize(m, cam, background=bg, validate=False)
+            sync()
             return repeats * len(cams) / (time.perf_counter() - start)
 
     results = dict(model=str(args.model), gaussians=len(g), size=size, train_views=len(train.cameras),
                    test_views=len(test.cameras), settings=vars(args))
     # FGD phase 1 alone: how much it removes and what it costs in quality.
-    pruned, prune = fgd_prune(g, train.cameras, list(train.images), background=bg)
+    pruned, prune = fgd_prune(g, train.cameras, train_images, background=bg)
     q_pruned = quality(g, pruned, test.cameras)
     results["fgd_prune"] = dict(removed=prune.num_removed, fraction=prune.fraction_removed,
                                 psnr_vs_original=_mean(r["psnr"] for r in q_pruned))
@@ -96,35 +109,37 @@ def main() -> int:
     for k in args.bits:
         cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, mask=args.mask,
                           attacks=args.attacks, weights=LossWeights() if lp else LossWeights(lpips=0.0))
-        res = embed(g, train.cameras, num_bits=k, images=list(train.images), config=cfg, progress=True)
+        res = embed(g, train.cameras, num_bits=k, images=train_images, config=cfg, progress=True)
         v = verify((res.gaussians, test.cameras), res.message, background=bg)
         v0 = verify((g, test.cameras), res.message, background=bg)
-        q = quality(g, res.gaussians, test.cameras, gt=test.images)
+        q = quality(g, res.gaussians, test.cameras, gt=test_images)
         results["bits"][k] = dict(
             message=res.message_hex, bit_accuracy=_mean(v.bit_accuracy),
             bit_accuracy_min=min(v.bit_accuracy),
             views_p_le_1e6=sum(p <= 1e-6 for p in v.p_values) / len(v.p_values),
             combined_p=v.p_value, unmarked_bit_accuracy=_mean(v0.bit_accuracy),
             psnr=_mean(r["psnr"] for r in q), ssim=_mean(r["ssim"] for r in q),
-            lpips_vgg=_mean(r["lpips_vgg"] for r in q), psnr_gt=_mean(r["psnr_gt"] for r in q),
+            lpips=_mean(r["lpips"] for r in q), psnr_gt=_mean(r["psnr_gt"] for r in q),
             psnr_gt_original=_mean(r["psnr_gt_original"] for r in q),
             gaussians_after=len(res.gaussians), pruned=res.prune.num_removed, split=res.split.num_split,
             fps_after=fps(res.gaussians, test.cameras), timings=res.timings,
             train_bit_accuracy=_mean(res.bit_accuracy))
         print(json.dumps(results["bits"][k], indent=1), flush=True)
 
-    results["machine"] = dict(cpu=platform.processor(), threads=torch.get_num_threads(),
+    results["machine"] = dict(cpu=platform.processor(), threads=torch.get_num_threads(), device=str(dev),
+                              gpu=torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
                               torch=torch.__version__, python=platform.python_version(),
                               gsw=gsw.__version__, build=gsw.build_info(),
                               date=time.strftime("%Y-%m-%d %H:%M:%S"))
     out = ROOT / "benchmarks" / "results"
     (out / f"{args.tag}.json").write_text(json.dumps(results, indent=2) + "\n")
-    lines = [f"# 3D-GSW on lego ({size}x{size}, CPU)", "",
+    where = results["machine"]["gpu"] or "CPU"
+    lines = [f"# 3D-GSW on lego ({size}x{size}, {where})", "",
              f"Model: {len(g):,} Gaussians from `benchmarks/train_lego.py`; {len(train.cameras)} training "
              f"views for embedding, {len(test.cameras)} held-out views (every 8th) for evaluation. "
              f"Settings: {args.epochs} epochs, LPIPS term {args.lpips}, mask {args.mask}, train-time "
              f"attacks {args.attacks}. Metrics vs renders of the original model (paper protocol); "
-             f"LPIPS is VGG. torch {torch.__version__}, {torch.get_num_threads()} threads, "
+             f"LPIPS network: {args.metric_lpips}. torch {torch.__version__}, {torch.get_num_threads()} threads, "
              f"{results['machine']['date']}.", "",
              "| bits | bit acc (held-out) | min view | views p<=1e-6 | unmarked acc | PSNR | SSIM | "
              "LPIPS | PSNR vs GT (orig.) | Gaussians after | time |",
@@ -132,13 +147,13 @@ def main() -> int:
     for k, r in results["bits"].items():
         lines.append(f"| {k} | {100 * r['bit_accuracy']:.2f} % | {100 * r['bit_accuracy_min']:.1f} % | "
                      f"{100 * r['views_p_le_1e6']:.0f} % | {100 * r['unmarked_bit_accuracy']:.1f} % | "
-                     f"{r['psnr']:.2f} | {r['ssim']:.4f} | {r['lpips_vgg']:.4f} | {r['psnr_gt']:.2f} "
+                     f"{r['psnr']:.2f} | {r['ssim']:.4f} | {r['lpips']:.4f} | {r['psnr_gt']:.2f} "
                      f"({r['psnr_gt_original']:.2f}) | {r['gaussians_after']:,} | "
                      f"{r['timings']['total']:.0f} s |")
     fp, sp = results["fgd_prune"], results["speed"]
     lines += ["", f"FGD phase 1 on the trained model: removed {fp['removed']:,} of {len(g):,} "
               f"({100 * fp['fraction']:.1f} %); pruned model vs original renders {fp['psnr_vs_original']:.2f} dB; "
-              f"CPU render speed {sp['fps_original']:.1f} -> {sp['fps_pruned']:.1f} FPS; PLY size "
+              f"{where} render speed {sp['fps_original']:.1f} -> {sp['fps_pruned']:.1f} FPS; PLY size "
               f"{sp['ply_mb_original']:.1f} -> {sp['ply_mb_pruned']:.1f} MB."]
     (out / f"{args.tag}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -68,7 +68,7 @@ def main() -> None:
         sha = save_decoder(dec, wl, path, meta=prov)
         manifest["files"][path.name] = {"num_bits": k, "sha256": sha, "bytes": path.stat().st_size, **prov}
         report["runs"][str(k)] = {x: meta[x] for x in ("steps", "steps_per_s", "train_elapsed_s", "wall_s", "device", "torch",
-                                                       "python", "config", "results", "whitening_fit_samples",
+                                                       "python", "config", "args", "results", "whitening_fit_samples",
                                                        "val_log", "train_log") if x in meta}
     (WEIGHTS_DIR / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     for k in args.bits:  # the exported files, through the public loader, on the CPU
@@ -90,8 +90,12 @@ def _pct(v: float) -> str:
 def markdown(rep: dict, bits: list[int]) -> str:
     r0 = rep["runs"][str(bits[0])]
     cfg = r0["config"]
+    a0 = r0.get("args", {})
+    wmode, wcenter = a0.get("whiten_mode", "pca").upper(), a0.get("whiten_center", "mean")
+    cont = (f" The run continued an earlier one (`--init`: warm restart with a new optimizer and schedule, lr "
+            f"{cfg['lr']}, no curriculum); steps and time are the totals of both." if a0.get("init") else "")
     lines = [
-        "## Watermark decoders (HiDDeN pre-training, PCA whitening)",
+        f"## Watermark decoders (HiDDeN pre-training, {wmode} whitening)",
         "",
         f"Trained on {r0['device']} (torch {r0['torch']}, Python {r0['python']}), the bit lengths "
         f"{', '.join(map(str, bits))} together in one process (`train_multi`: one encoder/decoder pair each, same "
@@ -102,8 +106,10 @@ def markdown(rep: dict, bits: list[int]) -> str:
         f"run without attacks at PSNR {cfg['psnr_start']:.0f} dB, then attack strength ramped to 1 by "
         f"{cfg.get('noise_ramp_end', 0):.0%} and PSNR to {cfg['psnr_target']:.0f} dB by {cfg.get('psnr_ramp_end', 0):.0%}; "
         f"{cfg.get('noise_chunks', 1)} random training attacks per batch (device-only, kornia differentiable JPEG); "
-        f"encoder run at 1/{cfg.get('enc_down', 1)} resolution (training aid). "
-        f"Whitening fitted on the decoder outputs of the 200 train photos + 4,000 random crops. "
+        f"encoder run at 1/{cfg.get('enc_down', 1)} resolution (training aid); on/off template encoder aid "
+        f"of side {cfg.get('templates', 0)} (0 = off).{cont} "
+        f"{wmode} whitening, {wcenter}-centred, fitted on the decoder outputs of the train photos, their "
+        f"mirror images and {a0.get('whiten_crops', 4000):,} random crops. "
         f"All numbers below on bsds500/val (100 photos, full size, real JPEG), from the same GPU run; "
         "`benchmarks/train_decoder.py`, `benchmarks/export_decoders.py`.",
         "",

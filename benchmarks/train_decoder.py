@@ -5,7 +5,8 @@
    attacks (kornia's differentiable JPEG); curriculum: no attacks and a strong watermark (``--psnr-start``)
    for the first ``--clean-frac`` of the run, then the attacks ramp in and the PSNR tightens to ``--psnr``.
    Budgeted by wall time (``--train-s``).
-2. PCA whitening of each decoder on unmarked photos (the training photos + random crops).
+2. Whitening of each decoder on unmarked photos (the training photos, mirrored, + random crops); ZCA with
+   median centring by default (``--whiten-mode``, ``--whiten-center``).
 3. Evaluation on ``--val`` photos at full size (real JPEG): encoder + raw decoder under every training
    noise layer and the paper's attacks; unbiasedness and false positives of the whitened and raw
    decoders (val photos x 1,000 messages); then the encoders alone are fine-tuned for ``--ft-s`` against
@@ -13,7 +14,9 @@
 4. ``k{k}.pt`` (encoder, decoder, whitening) and ``k{k}.json`` (config, logs, results) in ``--out``,
    written as soon as each stage ends; ``--deadline-s`` shortens the later stages to end in time.
 
-``benchmarks/export_decoders.py`` then writes the package weights, the manifest and the report.
+``--init DIR`` continues from the ``k{k}.pt`` of an earlier run (its encoder and decoder; a warm restart with
+a new optimizer and learning-rate schedule, so pass ``--clean-frac 0 --psnr-start`` = ``--psnr`` to skip the
+curriculum).  ``benchmarks/export_decoders.py`` then writes the package weights, the manifest and the report.
 Runs without the compiled extension: ``gsw/watermark`` is imported as a top-level package.
 
     python benchmarks/train_decoder.py --bits 32 48 64 --train-s 330 --ft-s 25 --out out/decoders
@@ -95,6 +98,21 @@ def eval_chunked(args, emb, dec, images, attacks, k, seed, device, frac_of_left=
             "psnr": sum(p["psnr"] * p["n"] for p in parts) / n, "n": n, "num_images": n // args.msgs_per_image}
 
 
+def load_init(run: Path, cfg: T.MultiConfig) -> tuple[list, list]:
+    """Encoders and decoders of an earlier run (``k{k}.pt`` per bit length), built for ``cfg``."""
+    encs, decs = [], []
+    for k in cfg.bits:
+        blob = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
+        enc = T.HiddenEncoder(k, cfg.enc_blocks, cfg.channels)
+        enc = T.TemplateEncoder(enc, cfg.templates) if cfg.templates > 0 else enc
+        dec = T.HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm)
+        enc.load_state_dict(blob["encoder"])
+        dec.load_state_dict(blob["decoder"])
+        encs.append(enc)
+        decs.append(dec)
+    return encs, decs
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bits", type=int, nargs="+", default=[32, 48, 64])
@@ -115,6 +133,9 @@ def main() -> None:
     ap.add_argument("--dec-norm", default="standardize", choices=["none", "center", "standardize"],
                     help="decoder input normalisation (HiddenDecoder input_norm)")
     ap.add_argument("--templates", type=int, default=0, help="> 0: on/off template encoder aid of this side")
+    ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run")
+    ap.add_argument("--whiten-mode", default="zca", choices=["pca", "zca"])
+    ap.add_argument("--whiten-center", default="median", choices=["mean", "median"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--log-every", type=int, default=200)
     ap.add_argument("--val-every-s", type=float, default=60.0)
@@ -143,11 +164,18 @@ def main() -> None:
                         steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
                         channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
                         enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates)
-    st = T.train_multi(cfg, bank, val_fn=make_val_fn(val_bank, cfg), val_every_s=args.val_every_s, tag="train ")
+    encs0, decs0 = load_init(Path(args.init), cfg) if args.init else (None, None)
+    st = T.train_multi(cfg, bank, encoders=encs0, decoders=decs0, val_fn=make_val_fn(val_bank, cfg),
+                       val_every_s=args.val_every_s, tag="train ")
+    if args.init:
+        prev = {k: json.loads((Path(args.init) / f"k{k}.json").read_text()) for k in cfg.bits}
+        st["step"] += prev[cfg.bits[0]]["steps"]
+        st["elapsed"] += prev[cfg.bits[0]]["train_elapsed_s"]
     encs, decs = st["encoders"], st["decoders"]
     log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")
     torch.backends.cudnn.benchmark = False  # evaluation sees many image sizes
-    whitens, nfit = T.fit_whitening_multi(decs, train_images, bank, num_crops=args.whiten_crops)
+    whitens, nfit = T.fit_whitening_multi(decs, train_images, bank, num_crops=args.whiten_crops,
+                                          mode=args.whiten_mode, center=args.whiten_center)
     whitens = [w.to(device) for w in whitens]
     log(f"whitening fitted on {nfit} samples")
     dev_name = torch.cuda.get_device_name(0) if device.type == "cuda" else (platform.processor() or "cpu")

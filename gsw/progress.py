@@ -45,6 +45,12 @@ class Progress:
         self.postfix: dict[str, Any] = {}
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
 
+    @property
+    def due(self) -> bool:
+        """Whether the next :meth:`update` of one step redraws the bar: callers can skip computing (or, on a GPU,
+        reading back) key/values that would not be shown."""
+        return self.enabled and (time.perf_counter() - self._last >= self.min_interval or self.n + 1 >= self.total)
+
     def update(self, steps: int = 1, /, **postfix: Any) -> None:
         """Advance by ``steps`` and set the displayed key/values."""
         self.n += steps

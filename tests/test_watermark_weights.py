@@ -90,3 +90,11 @@ def test_unmarked_val_photos_decode_to_chance():
     res = unbiasedness(load_decoder(32), images, 32, num_messages=200, seed=0)
     assert abs(res["mean_bit_acc"] - 0.5) < 0.02
     assert res["false_positives"] == 0
+
+
+def test_false_positive_threshold():
+    from gsw.watermark.evaluation import binomial_tail, false_positive_threshold
+
+    assert [false_positive_threshold(k) for k in (32, 48, 64)] == [30, 41, 51]  # the thresholds
+    assert binomial_tail(32, 30) <= 1e-6 < binomial_tail(32, 29)
+    assert false_positive_threshold(8) == 9  # no count of 8 bits reaches 1e-6

@@ -30,6 +30,21 @@ def test_zca_is_symmetric_and_pca_is_rotation_of_it():
     assert torch.allclose(r @ r.T, torch.eye(8, dtype=torch.float64), atol=1e-6)
 
 
+def test_median_centering_splits_every_bit_in_half_on_heavy_tails():
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(1001, 6, generator=g, dtype=torch.float64).exp() ** 3  # heavy right tail
+    mean_c = WhiteningLayer(6).double().fit(x, "zca")
+    med_c = WhiteningLayer(6).double().fit(x, "zca", center="median")
+    p1_mean = (mean_c(x) > 0).double().mean(0)
+    p1_med = (med_c(x) > 0).double().mean(0)
+    assert (p1_mean - 0.5).abs().max() > 0.2  # the mean leaves most samples below zero
+    assert (p1_med - 0.5).abs().max() <= 1 / 1001  # the median: half above, half below
+    assert torch.allclose(med_c.weight, mean_c.weight)  # same decorrelating map, only the offset moves
+    y = med_c(x)
+    cov = (y - y.mean(0)).T @ (y - y.mean(0)) / 1000
+    assert torch.allclose(cov, torch.eye(6, dtype=torch.float64), atol=1e-6)
+
+
 def test_fit_whitening_from_decoder():
     torch.manual_seed(0)
     dec = HiddenDecoder(8, num_blocks=2, channels=8)
@@ -49,3 +64,5 @@ def test_errors():
         WhiteningLayer(8).fit(torch.randn(50, 4))
     with pytest.raises(ValueError):
         WhiteningLayer(4).fit(torch.randn(50, 4), mode="nope")
+    with pytest.raises(ValueError, match="center"):
+        WhiteningLayer(4).fit(torch.randn(50, 4), center="mode")

@@ -1,5 +1,7 @@
 """3D Gaussian Splatting training (the INRIA recipe) on gsw's rasterizer.
 
+Training runs on the CPU by default; ``TrainConfig(device="cuda")`` trains on a GPU (``"auto"``: on one when usable).
+
 Example:
     >>> from gsw.train import TrainConfig, train  # doctest: +SKIP
     >>> from gsw.data.loaders import load_nerf_synthetic  # doctest: +SKIP
@@ -9,6 +11,16 @@ Example:
 
 from __future__ import annotations
 
-from gsw.train.trainer import TrainConfig, TrainResult, evaluate, init_box, points_init, random_init, train
+from gsw.train.trainer import (
+    TrainConfig,
+    TrainResult,
+    evaluate,
+    init_box,
+    points_init,
+    random_init,
+    resolve_device,
+    train,
+)
 
-__all__ = ["TrainConfig", "TrainResult", "evaluate", "init_box", "points_init", "random_init", "train"]
+__all__ = ["TrainConfig", "TrainResult", "evaluate", "init_box", "points_init", "random_init", "resolve_device",
+           "train"]

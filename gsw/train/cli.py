@@ -57,6 +57,12 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--images", default=None, help="image folder for an INRIA model folder used as DATA")
     p.add_argument("--save-iterations", type=int, nargs="*", default=[], help="extra checkpoint iterations")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto",
+                   help="'auto' (CUDA when gsw was built with it and a GPU is visible, else CPU; default), 'cpu', "
+                        "'cuda' or 'cuda:N'")
+    p.add_argument("--time-budget-s", type=float, default=None,
+                   help="stop training after this many seconds of optimisation (the model reached is still saved "
+                        "and evaluated)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--scene-size", type=int, default=128, help="image size of the built-in scene ('default')")
     p.set_defaults(func=run_train)
@@ -64,11 +70,18 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
 
 
 def config_from_args(args: argparse.Namespace):
-    """The :class:`~gsw.train.TrainConfig` described by parsed arguments."""
-    from gsw.train.trainer import TrainConfig  # noqa: PLC0415
+    """The :class:`~gsw.train.TrainConfig` described by parsed arguments (``--device`` resolved to a concrete
+    device).
+
+    Raises:
+        ValueError: a bad ``--device`` or ``--time-budget-s``.
+        RuntimeError: ``--device`` names a CUDA device that is not usable.
+    """
+    from gsw.train.trainer import TrainConfig, resolve_device  # noqa: PLC0415
 
     overrides = dict(sh_degree=args.sh_degree, init_points=args.init_points, max_gaussians=args.max_gaussians,
-                     seed=args.seed, save_iterations=tuple(args.save_iterations))
+                     seed=args.seed, save_iterations=tuple(args.save_iterations),
+                     max_train_time_s=args.time_budget_s, device=str(resolve_device(args.device)))
     if args.no_scale_schedule:
         return TrainConfig(iterations=args.iterations, **overrides)
     return TrainConfig.scaled(args.iterations, **overrides)
@@ -95,8 +108,8 @@ def run_train(args: argparse.Namespace) -> int:
     from gsw.train.trainer import train  # noqa: PLC0415
 
     background = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
-    cfg = config_from_args(args)
     try:
+        cfg = config_from_args(args)
         if args.data == "default":
             full = _default_scene_views(args.scene_size, background)
             if args.holdout_every >= 2:
@@ -114,7 +127,7 @@ def run_train(args: argparse.Namespace) -> int:
             split_views = args.holdout_every >= 2 or has_test_file
             train_set = load_dataset(args.data, "train" if split_views or fmt == "nerf_synthetic" else "all", **kw)
             test_set = load_dataset(args.data, "test", **kw) if split_views and not args.no_eval else None
-    except (DatasetError, FileNotFoundError, ValueError) as exc:
+    except (DatasetError, FileNotFoundError, ValueError, RuntimeError) as exc:  # RuntimeError: unusable --device
         print(f"gsw train: error: {exc}", file=sys.stderr)
         return 2
     if args.no_eval:
@@ -126,8 +139,8 @@ def run_train(args: argparse.Namespace) -> int:
         init = load_gaussians(init)
     result = train(train_set, config=cfg, init=init, output_dir=args.output, progress=not args.no_progress,
                    test_set=test_set, source=str(args.data))
-    summary = {"output": str(args.output), "num_gaussians": result.gaussians.num_gaussians,
-               "train_time_s": round(result.train_time_s, 2)}
+    summary = {"output": str(args.output), "device": str(result.device), "iterations": result.iterations,
+               "num_gaussians": result.gaussians.num_gaussians, "train_time_s": round(result.train_time_s, 2)}
     if result.test_metrics is not None:
         summary.update(test_psnr=round(result.test_metrics["psnr"], 3), test_ssim=round(result.test_metrics["ssim"], 4))
     print(json.dumps(summary))

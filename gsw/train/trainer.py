@@ -24,7 +24,15 @@ fires; here the criterion uses the radii accumulated since the last densificatio
 restores INRIA's effective behaviour).
 
 **Shorter schedules.** :meth:`TrainConfig.scaled` compresses every iteration-based field proportionally, for
-CPU runs of a few thousand iterations.
+CPU runs of a few thousand iterations; ``max_train_time_s`` stops the loop at a wall-clock budget instead.
+
+**Devices.** ``TrainConfig.device`` (``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"``, see :func:`resolve_device`)
+is where the Gaussians, images, densification statistics, Adam state and background live and where the loss, SSIM
+and the test evaluation run. Random initial points, the view order and the split samples come from seeded CPU
+generators (and are moved to the device), so a seed gives the same random choices on every device. Outside the rasterizer, the loop
+waits for the device only at log iterations, progress-bar redraws, densification steps and checkpoints; on CUDA the
+parameters are checked for NaN/Inf at log iterations only (on the CPU at every iteration). Checkpoints are written
+from CPU float32 copies.
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+import gsw
 from gsw.camera import Camera
 from gsw.constants import SH_C0, SH_COLOR_OFFSET
 from gsw.data.loaders import Dataset, save_inria_model, scene_extent
@@ -50,7 +59,8 @@ from gsw.rasterize import rasterize
 from gsw.train.optim import GaussianAdam
 from gsw.progress import Progress
 
-__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "random_init", "points_init", "init_box"]
+__all__ = ["TrainConfig", "TrainResult", "train", "evaluate", "random_init", "points_init", "init_box",
+           "resolve_device"]
 
 _INRIA_ITERATIONS = 30_000
 _SCALED_FIELDS = ("densify_from_iter", "densify_until_iter", "densification_interval", "opacity_reset_interval",
@@ -97,6 +107,11 @@ class TrainConfig:
         log_interval: iterations between history records.
         save_iterations: iterations at which checkpoints are written (the last one always is).
         scene_extent: override the camera-derived extent.
+        max_train_time_s: stop the optimisation loop once it has run this many seconds (``None``: no limit);
+            the last iteration reached is logged, checkpointed and evaluated like the final one. The stopping
+            iteration depends on the machine, so a budget makes runs irreproducible.
+        device: where training runs: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"`` (see
+            :func:`resolve_device`, which :func:`train` applies).
     """
 
     iterations: int = 30_000
@@ -132,6 +147,8 @@ class TrainConfig:
     log_interval: int = 50
     save_iterations: tuple[int, ...] = ()
     scene_extent: float | None = None
+    max_train_time_s: float | None = None
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -141,6 +158,11 @@ class TrainConfig:
             raise ValueError("densification_interval and sh_increase_interval must be >= 1")
         if not 0 <= self.lambda_dssim <= 1:
             raise ValueError(f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}")
+        if self.max_train_time_s is not None and self.max_train_time_s <= 0:
+            raise ValueError(f"max_train_time_s must be > 0, got {self.max_train_time_s}")
+        self.device = str(self.device)
+        if self.device != "auto":
+            _parse_device(self.device)
 
     @classmethod
     def scaled(cls, iterations: int, **overrides: Any) -> "TrainConfig":
@@ -175,7 +197,7 @@ class TrainResult:
     """What :func:`train` returns.
 
     Attributes:
-        gaussians: the trained model (detached, CPU).
+        gaussians: the trained model (detached, float32, on ``device``).
         history: one record per ``log_interval``: iteration, loss, psnr (of that view), num_gaussians, time_s.
         test_metrics: ``{"psnr", "ssim", "per_view": [...]}`` on the test set, or ``None``.
         train_time_s: wall time of the optimisation loop (excludes the final evaluation).
@@ -183,6 +205,9 @@ class TrainResult:
         config: the configuration used.
         output_dir: where checkpoints were written, or ``None``.
         scene_extent: extent used for learning rates and densification.
+        iterations: optimisation steps run (below ``config.iterations`` when ``max_train_time_s`` stopped the
+            loop).
+        device: the device training ran on.
     """
 
     gaussians: Gaussians
@@ -193,6 +218,67 @@ class TrainResult:
     config: TrainConfig
     output_dir: Path | None
     scene_extent: float
+    iterations: int
+    device: torch.device
+
+
+# ------------------------------------------------------------------------------------------- device
+
+
+_DEVICE_HELP = "device must be 'auto', 'cpu', 'cuda' or 'cuda:N'"
+
+
+def _parse_device(device: str | torch.device) -> torch.device:
+    """``device`` as a CPU or CUDA :class:`torch.device`, without checking that it is usable.
+
+    Raises:
+        ValueError: not a CPU or CUDA device.
+    """
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"{_DEVICE_HELP}, got {device!r}") from exc
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"{_DEVICE_HELP} (gsw's rasterizer has CPU and CUDA backends), got {device!r}")
+    return dev
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """The device to train on, checked to be usable.
+
+    Args:
+        device: ``"auto"`` (the current CUDA device when gsw was built with CUDA and torch sees a GPU, else the
+            CPU), ``"cpu"``, ``"cuda"`` (the current CUDA device), ``"cuda:N"`` or a :class:`torch.device`.
+
+    Returns:
+        ``cpu`` or ``cuda:N`` (always with an index).
+
+    Raises:
+        ValueError: ``device`` is not a CPU or CUDA device.
+        RuntimeError: a CUDA device was requested but gsw was built without CUDA (``gsw.build_info()["cuda"]``
+            is false), torch sees no usable GPU, or the index is out of range.
+
+    Example:
+        >>> from gsw.train import resolve_device
+        >>> resolve_device("cpu")
+        device(type='cpu')
+    """
+    if str(device) == "auto":
+        return resolve_device("cuda" if gsw.build_info()["cuda_available"] else "cpu")
+    dev = _parse_device(device)
+    if dev.type == "cpu":
+        return dev
+    if not gsw.build_info()["cuda"]:
+        raise RuntimeError(f"device {str(device)!r} requested but gsw was built without CUDA "
+                           "(gsw.build_info()['cuda'] is False); rebuild gsw with CUDA or use device='cpu'")
+    if not torch.cuda.is_available():
+        raise RuntimeError(f"device {str(device)!r} requested but torch.cuda.is_available() is False (torch "
+                           f"{torch.__version__}, CUDA runtime {torch.version.cuda}); use device='cpu'")
+    index = torch.cuda.current_device() if dev.index is None else dev.index
+    if index >= torch.cuda.device_count():
+        raise RuntimeError(f"device {str(device)!r} requested but torch sees {torch.cuda.device_count()} "
+                           "CUDA device(s)")
+    return torch.device("cuda", index)
 
 
 # ------------------------------------------------------------------------------------------- init
@@ -203,15 +289,18 @@ def _rgb_to_sh_dc(rgb: Tensor) -> Tensor:
 
 
 def _knn_mean_sq_dist(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
-    """Mean squared distance to the ``k`` nearest other points (INRIA's ``distCUDA2``), chunked cdist."""
+    """Mean squared distance to the ``k`` nearest other points (INRIA's ``distCUDA2``), chunked cdist, on the
+    points' device."""
     n = points.shape[0]
+    kw = {"dtype": points.dtype, "device": points.device}
     if n <= 1:
-        return torch.ones(n, dtype=points.dtype)
+        return torch.ones(n, **kw)
     k = min(k, n - 1)
-    out = torch.empty(n, dtype=points.dtype)
+    out = torch.empty(n, **kw)
     for s in range(0, n, chunk):
         d = torch.cdist(points[s:s + chunk], points).pow_(2)
-        d[torch.arange(d.shape[0]), torch.arange(s, s + d.shape[0])] = float("inf")
+        rows = torch.arange(d.shape[0], device=points.device)
+        d[rows, rows + s] = float("inf")
         out[s:s + chunk] = d.topk(k, dim=1, largest=False).values.mean(1)
     return out
 
@@ -233,35 +322,40 @@ def init_box(cameras: Sequence[Camera], box_scale: float = 0.33) -> tuple[Tensor
     return target - half, target + half
 
 
-def _make_gaussians(means: Tensor, rgb: Tensor, sh_degree: int, opacity: float) -> Gaussians:
+def _make_gaussians(means: Tensor, rgb: Tensor, sh_degree: int, opacity: float,
+                    device: str | torch.device) -> Gaussians:
     n = means.shape[0]
-    means = means.float()
+    kw = {"dtype": torch.float32, "device": device}
+    means = means.to(**kw)
     dist2 = _knn_mean_sq_dist(means).clamp_min(1e-7)
     log_scales = torch.log(dist2.sqrt())[:, None].repeat(1, 3)
-    quats = torch.zeros(n, 4)
+    quats = torch.zeros(n, 4, **kw)
     quats[:, 0] = 1.0
-    sh = torch.zeros(n, sh_degree_to_num_coeffs(sh_degree), 3)
-    sh[:, 0] = _rgb_to_sh_dc(rgb.float())
-    op = torch.full((n,), float(torch.logit(torch.tensor(opacity))))
+    sh = torch.zeros(n, sh_degree_to_num_coeffs(sh_degree), 3, **kw)
+    sh[:, 0] = _rgb_to_sh_dc(rgb.to(**kw))
+    op = torch.full((n,), float(torch.logit(torch.tensor(opacity))), **kw)
     return Gaussians(means, log_scales, quats, op, sh)
 
 
 def random_init(n: int, lo: Tensor, hi: Tensor, *, sh_degree: int = 3, opacity: float = 0.1,
-                seed: int = 0) -> Gaussians:
+                seed: int = 0, device: str | torch.device = "cpu") -> Gaussians:
     """INRIA's random initialisation: ``n`` uniform points in the box, near-black colours (``rand / 255``),
-    isotropic scales from the 3-nearest-neighbour distance, identity rotations."""
+    isotropic scales from the 3-nearest-neighbour distance, identity rotations.
+
+    The points are drawn on the CPU (the same for every device) and the Gaussians built on ``device``.
+    """
     gen = torch.Generator().manual_seed(seed)
-    lo, hi = lo.double(), hi.double()
+    lo, hi = lo.detach().cpu().double(), hi.detach().cpu().double()
     means = lo + (hi - lo) * torch.rand(n, 3, generator=gen, dtype=torch.float64)
     rgb = torch.rand(n, 3, generator=gen) / 255.0
-    return _make_gaussians(means, rgb, sh_degree, opacity)
+    return _make_gaussians(means, rgb, sh_degree, opacity, device)
 
 
 def points_init(points: Tensor, colors: Tensor | None = None, *, sh_degree: int = 3,
-                opacity: float = 0.1) -> Gaussians:
-    """Initialisation from a point cloud (colours default to grey)."""
+                opacity: float = 0.1, device: str | torch.device = "cpu") -> Gaussians:
+    """Initialisation from a point cloud (colours default to grey), built on ``device``."""
     rgb = colors if colors is not None else torch.full_like(points, 0.5)
-    return _make_gaussians(points.detach().cpu(), rgb.detach().cpu(), sh_degree, opacity)
+    return _make_gaussians(points.detach(), rgb.detach(), sh_degree, opacity, device)
 
 
 # ------------------------------------------------------------------------------------------- helpers
@@ -300,10 +394,11 @@ def evaluate(gaussians: Gaussians, cameras: Sequence[Camera], images: Tensor, *,
              names: Sequence[str] | None = None) -> dict[str, Any]:
     """PSNR / SSIM of renders against images (mean over views, plus ``per_view``).
 
-    Renders are clamped to ``[0, 1]`` before scoring.
+    Renders are clamped to ``[0, 1]`` before scoring. Rendering and scoring run on the Gaussians' device (the
+    images are moved there one view at a time).
     """
     per_view = []
-    bg = torch.as_tensor(background, dtype=gaussians.dtype)
+    bg = torch.as_tensor(background, dtype=gaussians.dtype, device=gaussians.device)
     for i, cam in enumerate(cameras):
         img = rasterize(gaussians, cam, sh_degree=sh_degree, background=bg).image.clamp(0, 1)
         ref = images[i].to(img)
@@ -329,12 +424,11 @@ def _position_lr(step: int, cfg: TrainConfig, extent: float) -> float:
     return delay * math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
 
 
-def _write_cfg_args(folder: Path, cfg: TrainConfig, background: Tensor, source: str) -> None:
+def _write_cfg_args(folder: Path, cfg: TrainConfig, white: bool, device: torch.device, source: str) -> None:
     """INRIA's ``cfg_args`` (a ``Namespace`` repr read by SIBR and the INRIA render script)."""
     from gsw._atomic import atomic_write  # noqa: PLC0415
 
-    white = bool(torch.allclose(background.float(), torch.ones(3)))
-    text = (f"Namespace(data_device='cpu', eval=True, images='images', model_path={str(folder)!r}, "
+    text = (f"Namespace(data_device={device.type!r}, eval=True, images='images', model_path={str(folder)!r}, "
             f"resolution=-1, sh_degree={cfg.sh_degree}, source_path={source!r}, white_background={white})")
     with atomic_write(folder / "cfg_args", "w") as f:
         f.write(text)
@@ -344,12 +438,13 @@ def _write_cfg_args(folder: Path, cfg: TrainConfig, background: Tensor, source: 
 
 
 class _State:
-    """Parameters, optimiser and densification statistics."""
+    """Parameters, optimiser and densification statistics, all on ``device``."""
 
     NAMES = ("means", "sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")
 
-    def __init__(self, g: Gaussians, cfg: TrainConfig, extent: float) -> None:
-        g = g.detach().to(device="cpu", dtype=torch.float32).with_sh_degree(cfg.sh_degree)
+    def __init__(self, g: Gaussians, cfg: TrainConfig, extent: float, device: str | torch.device = "cpu") -> None:
+        self.device = torch.device(device)
+        g = g.detach().to(device=self.device, dtype=torch.float32).with_sh_degree(cfg.sh_degree)
         params = {"means": g.means, "sh_dc": g.sh[:, :1], "sh_rest": g.sh[:, 1:],
                   "opacity_logits": g.opacity_logits, "log_scales": g.log_scales, "quats": g.quats}
         lrs = {"means": _position_lr(0, cfg, extent), "sh_dc": cfg.feature_lr,
@@ -369,22 +464,24 @@ class _State:
                          torch.cat([p["sh_dc"], p["sh_rest"]], dim=1))
 
     def reset_stats(self) -> None:
-        self.grad_accum = torch.zeros(self.n)
-        self.denom = torch.zeros(self.n)
-        self.max_radii = torch.zeros(self.n)
+        self.grad_accum = torch.zeros(self.n, device=self.device)
+        self.denom = torch.zeros(self.n, device=self.device)
+        self.max_radii = torch.zeros(self.n, device=self.device)
 
     @torch.no_grad()
     def accumulate(self, means2d: Tensor, radii: Tensor, width: int, height: int) -> None:
+        """Add one view's screen-space statistics (masked arithmetic: no host sync on CUDA)."""
         vis = radii > 0
-        self.max_radii[vis] = torch.maximum(self.max_radii[vis], radii[vis].float())
+        torch.maximum(self.max_radii, radii.float(), out=self.max_radii)  # culled radii are 0
         if means2d.grad is None:
             return
-        g = means2d.grad[vis] * means2d.new_tensor([width / 2.0, height / 2.0])  # pixels -> NDC
-        self.grad_accum[vis] += g.norm(dim=-1)
-        self.denom[vis] += 1
+        g = means2d.grad * means2d.new_tensor([width / 2.0, height / 2.0])  # pixels -> NDC
+        self.grad_accum += torch.where(vis, g.norm(dim=-1), 0.0)
+        self.denom += vis
 
     @torch.no_grad()
     def densify_and_prune(self, gen: torch.Generator, prune_big: bool) -> dict[str, int]:
+        """Clone / split / prune (see the module docstring); ``gen`` is a CPU generator for the split samples."""
         cfg, p = self.cfg, self.opt.params
         grads = self.grad_accum / self.denom
         grads[~torch.isfinite(grads)] = 0.0
@@ -405,11 +502,12 @@ class _State:
         n0 = self.n
         # clone: exact copies
         extra = {k: v.detach()[clone] for k, v in p.items()}
-        # split: 2 children sampled from the parent, scales / (0.8 * 2)
+        # split: 2 children sampled from the parent, scales / (0.8 * 2); samples drawn with the CPU generator
         n_split = int(split.sum())
         if n_split:
             stds = scales[split].repeat(2, 1)
-            samples = torch.normal(torch.zeros_like(stds), stds, generator=gen)
+            stds_cpu = stds.cpu()
+            samples = torch.normal(torch.zeros_like(stds_cpu), stds_cpu, generator=gen).to(self.device)
             rots = _quat_to_rotmat(p["quats"].detach()[split]).repeat(2, 1, 1)
             child_means = (rots @ samples[:, :, None])[:, :, 0] + p["means"].detach()[split].repeat(2, 1)
             child = {k: v.detach()[split].repeat(2, *([1] * (v.dim() - 1))) for k, v in p.items()}
@@ -418,13 +516,13 @@ class _State:
             extra = {k: torch.cat([extra[k], child[k]]) for k in extra}
         self.opt.append(extra)
         n1 = self.n
-        prune = torch.zeros(n1, dtype=torch.bool)
+        prune = torch.zeros(n1, dtype=torch.bool, device=self.device)
         prune[:n0] = split
         opac = torch.sigmoid(self.opt.params["opacity_logits"].detach())
         low_opacity = opac < cfg.min_opacity
         prune |= low_opacity
         if prune_big:
-            radii = torch.cat([self.max_radii, torch.zeros(n1 - n0)])
+            radii = torch.cat([self.max_radii, torch.zeros(n1 - n0, device=self.device)])
             if cfg.max_screen_size is not None:
                 prune |= radii > cfg.max_screen_size
             big = self.opt.params["log_scales"].detach().exp().max(dim=1).values > cfg.max_world_size * self.extent
@@ -438,7 +536,7 @@ class _State:
     @torch.no_grad()
     def reset_opacity(self) -> None:
         o = self.opt.params["opacity_logits"].detach()
-        new = torch.minimum(o, torch.logit(torch.tensor(self.cfg.opacity_reset_value)))
+        new = torch.minimum(o, torch.logit(torch.tensor(self.cfg.opacity_reset_value)).to(o.device))
         self.opt.replace("opacity_logits", new)
 
 
@@ -464,6 +562,9 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
     Returns:
         A :class:`TrainResult`.
 
+    Raises:
+        RuntimeError: ``config.device`` names a CUDA device that is not usable (see :func:`resolve_device`).
+
     Example:
         >>> from gsw.scenes import default_scene
         >>> from gsw.train import TrainConfig, train
@@ -477,6 +578,7 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
     """
     t_start = time.perf_counter()
     cfg = config or TrainConfig()
+    device = resolve_device(cfg.device)
     cams, images, ds_bg, ds = _as_views(data, "data")
     if background is not None:
         bg = torch.as_tensor(background, dtype=torch.float32).flatten()
@@ -486,35 +588,40 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
         bg = torch.ones(3)
     if bg.shape != (3,):
         raise ValueError(f"background must be 3 numbers, got {background!r}")
+    white = bool(torch.allclose(bg.cpu(), torch.ones(3)))
+    bg, images = bg.to(device), images.to(device)
     test = _as_views(test_set, "test_set") if test_set is not None else None
     extent = cfg.scene_extent if cfg.scene_extent is not None else scene_extent(cams)[1]
-    gen = torch.Generator().manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)  # CPU: view order and split samples, the same on every device
 
     if isinstance(init, Gaussians):
         g0 = init
     elif init == "random":
         lo, hi = init_box(cams, cfg.init_box_scale)
-        g0 = random_init(cfg.init_points, lo, hi, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity, seed=cfg.seed)
+        g0 = random_init(cfg.init_points, lo, hi, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity, seed=cfg.seed,
+                         device=device)
     elif init == "points":
         if ds is None or ds.points is None:
             raise ValueError("init='points' needs a Dataset with a point cloud (points)")
-        g0 = points_init(ds.points, ds.point_colors, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity)
+        g0 = points_init(ds.points, ds.point_colors, sh_degree=cfg.sh_degree, opacity=cfg.init_opacity,
+                         device=device)
     else:
         raise ValueError(f"init must be 'random', 'points' or a Gaussians, got {init!r}")
-    state = _State(g0, cfg, extent)
+    state = _State(g0, cfg, extent, device)
 
     out_dir = Path(output_dir) if output_dir is not None else None
     all_cams = cams + (list(test[0]) if test is not None else [])
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-        _write_cfg_args(out_dir, cfg, bg, source)
-    saves = set(int(i) for i in cfg.save_iterations) | {cfg.iterations}
+        _write_cfg_args(out_dir, cfg, white, device, source)
+    saves = set(int(i) for i in cfg.save_iterations)
 
     history: list[dict[str, float]] = []
     active_sh = 0 if not isinstance(init, Gaussians) else min(cfg.sh_degree, init.sh_degree)
     order: list[int] = []
-    ema_loss, ema_psnr = None, None
-    white = bool(torch.allclose(bg, torch.ones(3)))
+    # running means as float64 device tensors: read back only when logged or drawn (no per-step sync on CUDA)
+    ema_loss: Tensor | None = None
+    ema_psnr: Tensor | None = None
     bar = Progress(cfg.iterations, "train", enabled=progress)
     t_loop = time.perf_counter()
     for it in range(1, cfg.iterations + 1):
@@ -526,7 +633,8 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
         vi = order.pop()
         cam, gt = cams[vi], images[vi]
         g = state.gaussians()
-        out = rasterize(g, cam, sh_degree=active_sh, background=bg)
+        out = rasterize(g, cam, sh_degree=active_sh, background=bg,
+                        validate=device.type == "cpu" or it % cfg.log_interval == 0)
         out.means2d.retain_grad()
         img = out.image
         l1 = (img - gt).abs().mean()
@@ -545,19 +653,26 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
                 if (cfg.opacity_reset_interval > 0 and it % cfg.opacity_reset_interval == 0) or (
                         white and it == cfg.densify_from_iter):
                     state.reset_opacity()
-            lv = float(loss)
-            pv = float(psnr(img.detach().clamp(0, 1), gt))
+            lv = loss.detach().double()
+            pv = psnr(img.detach().clamp(0, 1), gt).double()
             ema_loss = lv if ema_loss is None else 0.6 * ema_loss + 0.4 * lv
             ema_psnr = pv if ema_psnr is None else 0.6 * ema_psnr + 0.4 * pv
-            if it % cfg.log_interval == 0 or it == 1 or it == cfg.iterations:
-                history.append({"iteration": it, "loss": lv, "loss_ema": ema_loss, "psnr": pv, "psnr_ema": ema_psnr,
-                                "num_gaussians": state.n, "sh_degree": active_sh,
+            last = it == cfg.iterations or (
+                cfg.max_train_time_s is not None and time.perf_counter() - t_loop >= cfg.max_train_time_s)
+            if it % cfg.log_interval == 0 or it == 1 or last:
+                history.append({"iteration": it, "loss": float(lv), "loss_ema": float(ema_loss), "psnr": float(pv),
+                                "psnr_ema": float(ema_psnr), "num_gaussians": state.n, "sh_degree": active_sh,
                                 "time_s": time.perf_counter() - t_loop})
-            bar.update(1, loss=round(ema_loss, 4), psnr=round(ema_psnr, 2), n=state.n)
-            if out_dir is not None and it in saves:
+            if bar.due:
+                bar.update(1, loss=round(float(ema_loss), 4), psnr=round(float(ema_psnr), 2), n=state.n)
+            else:
+                bar.update(1)
+            if out_dir is not None and (it in saves or last):
                 save_inria_model(out_dir, state.gaussians().detach(), all_cams, it)
+            if last:
+                break
     bar.close()
-    train_time = time.perf_counter() - t_loop
+    train_time = time.perf_counter() - t_loop  # the last step's history record synchronised the device
     final = state.gaussians().detach().clone()
     test_metrics = None
     if test is not None:
@@ -568,13 +683,13 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
                   f"({test_metrics['num_views']} views, {final.num_gaussians} Gaussians, {train_time:.0f} s)",
                   file=__import__("sys").stderr)
     result = TrainResult(final, history, test_metrics, train_time, time.perf_counter() - t_start, cfg, out_dir,
-                         extent)
+                         extent, iterations=it, device=device)
     if out_dir is not None:
         from gsw._atomic import atomic_write  # noqa: PLC0415
 
-        summary = {"iterations": cfg.iterations, "num_gaussians": final.num_gaussians, "train_time_s": train_time,
-                   "total_time_s": result.total_time_s, "scene_extent": extent, "test": test_metrics,
-                   "config": cfg.to_dict(), "history": history}
+        summary = {"iterations": it, "device": str(device), "num_gaussians": final.num_gaussians,
+                   "train_time_s": train_time, "total_time_s": result.total_time_s, "scene_extent": extent,
+                   "test": test_metrics, "config": cfg.to_dict(), "history": history}
         with atomic_write(out_dir / "train_result.json", "w") as f:
             json.dump(summary, f, indent=1)
     return result

@@ -26,8 +26,11 @@ def binomial_tail(k: int, m: int) -> float:
 
 
 def false_positive_threshold(k: int, fpr: float = 1e-6) -> int:
-    """Smallest number of matching bits m with P(X >= m) <= fpr for an unmarked image (X ~ Bin(k, 1/2))."""
-    return next(m for m in range(k + 1) if binomial_tail(k, m) <= fpr)
+    """Smallest number of matching bits m with P(X >= m) <= fpr for an unmarked image (X ~ Bin(k, 1/2)).
+
+    Returns ``k + 1`` (never reached) when even k of k matching bits is more likely than ``fpr``
+    (k < 20 for 1e-6): such a message length cannot prove anything at that rate."""
+    return next((m for m in range(k + 1) if binomial_tail(k, m) <= fpr), k + 1)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -752,20 +752,23 @@ def fit_whitening_multi(
     images: list[torch.Tensor],
     bank: torch.Tensor,
     num_crops: int = 4000,
-    crop_sizes: tuple[int, ...] = (96, 128, 192, 256),
+    crop_sizes: tuple[int, ...] = (128, 192, 256, 320),
     seed: int = 1,
-    mode: str = "pca",
+    mode: str = "zca",
+    center: str = "median",
 ) -> tuple[list[WhiteningLayer], int]:
-    """PCA whitening of each (eval-mode) decoder on the same unmarked inputs: every full photo of
-    ``images`` plus ``num_crops`` random crops (+ flips) of ``bank`` in ``crop_sizes``.
-    Returns the layers (on the CPU) and the number of samples."""
+    """Whitening of each (eval-mode) decoder on the same unmarked inputs: every full photo of ``images``
+    and its mirror image, plus ``num_crops`` random crops (+ flips) of ``bank`` in ``crop_sizes``.
+    ``mode`` / ``center`` as in :meth:`WhiteningLayer.fit`.  Returns the layers (on the CPU) and the
+    number of samples."""
     dev = bank.device
     for d in decoders:
         d.eval()
     gen = torch.Generator(device=dev).manual_seed(seed)
     outs: list[list[torch.Tensor]] = [[] for _ in decoders]
     for img in images:
-        ll = ll_subband(img[None].to(dev).float() / 255.0)
+        x = img[None].to(dev).float() / 255.0
+        ll = ll_subband(torch.cat([x, x.flip(-1)]))
         for i, d in enumerate(decoders):
             outs[i].append(d(ll).float().cpu())
     per = num_crops // len(crop_sizes)
@@ -774,5 +777,6 @@ def fit_whitening_multi(
             ll = ll_subband(bank_crops(bank, min(250, per - i0), s, gen))
             for i, d in enumerate(decoders):
                 outs[i].append(d(ll).float().cpu())
-    layers = [WhiteningLayer(d.num_bits).fit(torch.cat(o), mode=mode) for d, o in zip(decoders, outs)]
+    layers = [WhiteningLayer(d.num_bits).fit(torch.cat(o), mode=mode, center=center)
+              for d, o in zip(decoders, outs)]
     return layers, int(torch.cat(outs[0]).shape[0])

@@ -10,6 +10,12 @@ eigendecomposition ``S = V diag(lam) V^T`` and builds the fixed affine map
 so that on the fitting set the whitened outputs have zero mean and identity covariance: each bit
 (``y > 0``) is centred and the bits are decorrelated.  The layer is frozen (buffers, no parameters).
 
+ZCA is the whitening closest to the identity: it decorrelates while keeping every output on its own bit
+axis, so a decoder trained with a message encoder still reads that encoder's bits after whitening (PCA
+rotates the axes and a PCA-whitened bit is a mix of all raw bits).  ``center="median"`` shifts the
+whitened outputs so that each bit is 1 on exactly half of the fitting set; the mean of heavy-tailed
+outputs leaves most images on one side of zero.
+
 Example:
     >>> import torch
     >>> x = torch.randn(500, 8) @ torch.randn(8, 8) + 3.0
@@ -50,14 +56,18 @@ class WhiteningLayer(nn.Module):
         return torch.nn.functional.linear(x, self.weight.to(x.dtype), self.bias.to(x.dtype))
 
     @torch.no_grad()
-    def fit(self, outputs: torch.Tensor, mode: str = "pca", eps: float = 1e-12) -> "WhiteningLayer":
+    def fit(self, outputs: torch.Tensor, mode: str = "pca", eps: float = 1e-12,
+            center: str = "mean") -> "WhiteningLayer":
         """Fit to decoder outputs [N, k] of unmarked images (float64 internally).
 
         Args:
             outputs: raw decoder outputs, N > k rows.
             mode: ``"pca"`` (``W = lam^-1/2 V^T``, Stable Signature) or ``"zca"`` (``V lam^-1/2 V^T``).
             eps: added to the eigenvalues (relative to the largest) before the inverse square root.
+            center: ``"mean"`` (whitened outputs have zero mean) or ``"median"`` (zero median per bit).
         """
+        if center not in ("mean", "median"):
+            raise ValueError(f"center must be 'mean' or 'median', got {center!r}")
         if outputs.dim() != 2 or outputs.shape[1] != self.num_bits:
             raise ValueError(f"outputs must be [N, {self.num_bits}], got {tuple(outputs.shape)}")
         n = outputs.shape[0]
@@ -74,14 +84,17 @@ class WhiteningLayer(nn.Module):
             w = v @ w
         elif mode != "pca":
             raise ValueError(f"mode must be 'pca' or 'zca', got {mode!r}")
+        bias = -(w @ mu)
+        if center == "median":
+            bias = bias - (xc @ w.T).median(dim=0).values
         self.weight.copy_(w.to(self.weight.dtype))
-        self.bias.copy_((-(w @ mu)).to(self.bias.dtype))
+        self.bias.copy_(bias.to(self.bias.dtype))
         return self
 
     @classmethod
-    def from_outputs(cls, outputs: torch.Tensor, mode: str = "pca") -> "WhiteningLayer":
+    def from_outputs(cls, outputs: torch.Tensor, mode: str = "pca", center: str = "mean") -> "WhiteningLayer":
         """Build and fit a layer from decoder outputs [N, k]."""
-        return cls(outputs.shape[1]).fit(outputs, mode=mode)
+        return cls(outputs.shape[1]).fit(outputs, mode=mode, center=center)
 
 
 @torch.no_grad()
@@ -90,6 +103,7 @@ def fit_whitening(
     batches: Iterable[torch.Tensor],
     num_bits: int,
     mode: str = "pca",
+    center: str = "mean",
 ) -> tuple[WhiteningLayer, torch.Tensor]:
     """Run ``decoder`` (in eval mode) over batches of decoder inputs (LL2 subbands of unmarked images).
 
@@ -103,4 +117,4 @@ def fit_whitening(
     if was_training and hasattr(decoder, "train"):
         decoder.train()
     raw = torch.cat(outs)
-    return WhiteningLayer(num_bits).fit(raw, mode=mode), raw
+    return WhiteningLayer(num_bits).fit(raw, mode=mode, center=center), raw
