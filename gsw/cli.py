@@ -1,4 +1,4 @@
-"""The `gsw` command line: demo, embed, extract, verify, eval, train, render, info.
+"""The `gsw` command line: demo, embed, extract, verify, eval, eval-grid, train, render, info.
 
 Run `gsw <command> --help` for the options of each command.
 """
@@ -288,6 +288,52 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _grid_scene(args: argparse.Namespace):
+    """The scene of `gsw eval-grid`: the built-in one or an INRIA model folder (+ its dataset)."""
+    from gsw.grid import default_grid_scene, load_grid_scene
+
+    if args.scene == "default":
+        misplaced = [flag for flag, value in (("--data", args.data), ("--downscale", args.downscale),
+                                              ("--white", args.white)) if value]
+        if misplaced:
+            raise ValueError(f"{', '.join(misplaced)} apply to an INRIA model folder, not the built-in scene")
+        return default_grid_scene(size=args.size or 64, views=args.train_views or 24, eval_views=args.eval_views)
+    if args.size:
+        raise ValueError("--size applies to the built-in scene; an INRIA model's views come from its cameras/data")
+    return load_grid_scene(args.scene, args.data, downscale=args.downscale or 1.0, white=args.white,
+                           train_views=args.train_views, eval_views=args.eval_views)
+
+
+def cmd_eval_grid(args: argparse.Namespace) -> int:
+    """Runs (or resumes) an evaluation grid: methods x bit lengths x seeds on one scene."""
+    from gsw.grid import GridSpec, lpips_loss_overrides, run_grid
+
+    if args.plots:
+        from gsw.plots import require_matplotlib
+
+        require_matplotlib()  # fail before hours of computing, not after
+    spec = GridSpec(methods=tuple(args.methods), bits=tuple(args.bits), seeds=tuple(args.seeds),
+                    epochs=args.epochs, image_attacks=tuple(args.image_attacks),
+                    model_attacks=tuple(args.model_attacks), sweeps=tuple(args.sweeps),
+                    embed=lpips_loss_overrides(None if args.lpips == "none" else args.lpips), fpr=args.fpr,
+                    lpips_net=None if args.metric_lpips == "none" else args.metric_lpips)
+    summary = run_grid(spec, _grid_scene(args), args.output, resume=args.resume, force=args.force,
+                       progress=not args.no_progress)
+    plots = []
+    if args.plots:
+        from gsw.plots import plot_grid
+
+        plots = plot_grid(args.output)
+    if args.json:
+        json.dump(summary.to_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print(summary.to_markdown())
+        print(f"{summary.computed} cells computed, {summary.reused} reused; results in {args.output}/ "
+              f"(summary.md, summary.json, cells/){''.join(f', {p}' for p in plots)}")
+    return 0
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     """Renders a PLY/.splat model from cameras.json or an orbit."""
     import gsw
@@ -324,6 +370,50 @@ def cmd_info(args: argparse.Namespace) -> int:
     json.dump(gsw.build_info(), sys.stdout, indent=2)
     print()
     return 0
+
+
+def _add_eval_grid_parser(sub) -> None:
+    from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS
+    from gsw.grid import METHODS, PAPER_MODEL_ATTACKS, GridSpec
+
+    default = GridSpec()
+    grid = sub.add_parser("eval-grid", help="methods x bit lengths x seeds: resumable results and paper tables",
+                          description="Embeds every (method, bits, seed) cell, evaluates it on held-out views and "
+                          "writes one JSON per cell, summary.json and summary.md (the paper's tables) into "
+                          "--output; a rerun skips finished cells.")
+    grid.add_argument("scene", help='INRIA model folder, or "default" for the built-in scene')
+    grid.add_argument("--output", required=True, help="grid folder (created; reused to resume)")
+    grid.add_argument("--data", help="the model's dataset (NeRF-synthetic / instant-ngp): train split to embed, "
+                      "test split to evaluate (default: hold out every 8th of the model's cameras)")
+    grid.add_argument("--downscale", type=float, help="image/camera size divisor of an INRIA model (default 1)")
+    grid.add_argument("--white", action="store_true", help="white background (INRIA model; the built-in is white)")
+    grid.add_argument("--size", type=_positive_int, help="render size of the built-in scene (default 64)")
+    grid.add_argument("--train-views", type=_positive_int,
+                      help="embedding views (built-in scene: orbit size, default 24; INRIA: evenly spaced subset)")
+    grid.add_argument("--eval-views", type=_positive_int, help="use the first N evaluation views")
+    grid.add_argument("--methods", nargs="*", default=list(default.methods), metavar="METHOD",
+                      help=f"of {', '.join(METHODS)} (default: all)")
+    grid.add_argument("--bits", nargs="*", type=_positive_int, choices=[32, 48, 64], default=list(default.bits))
+    grid.add_argument("--seeds", nargs="*", type=int, default=list(default.seeds))
+    grid.add_argument("--epochs", type=_positive_int, default=default.epochs)
+    grid.add_argument("--image-attacks", nargs="*", default=list(default.image_attacks), metavar="ATTACK",
+                      help=f"of {', '.join(IMAGE_ATTACKS)} (default: all)")
+    grid.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks), metavar="ATTACK",
+                      help=f"of {', '.join(MODEL_ATTACKS)} (default: the paper's {', '.join(PAPER_MODEL_ATTACKS)})")
+    grid.add_argument("--sweeps", nargs="*", default=list(default.sweeps), metavar="ATTACK",
+                      help=f"robustness curves, of {', '.join(SWEEPS)} (default: all)")
+    grid.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg",
+                      help="LPIPS term of the embedding loss")
+    grid.add_argument("--metric-lpips", choices=["vgg", "alex", "none"], default="vgg",
+                      help="LPIPS network of the invisibility metric")
+    grid.add_argument("--fpr", type=float, default=default.fpr, help="false-positive rate of a detection")
+    grid.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
+                      help="keep finished cells of an earlier run (default); --no-resume recomputes them")
+    grid.add_argument("--force", action="store_true", help="replace the settings of a folder holding another grid")
+    grid.add_argument("--plots", action="store_true", help="also draw plots/*.png (needs matplotlib)")
+    grid.add_argument("--no-progress", action="store_true")
+    grid.add_argument("--json", action="store_true", help="print the summary as JSON instead of tables")
+    grid.set_defaults(func=cmd_eval_grid)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -395,6 +485,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_eval)
 
+    _add_eval_grid_parser(sub)
+
     from gsw.train.cli import add_train_parser, run_train
 
     add_train_parser(sub).set_defaults(func=run_train)
@@ -421,7 +513,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, RuntimeError) as err:
+    except (ValueError, FileNotFoundError, RuntimeError, ImportError) as err:
         print(f"gsw {args.command}: error: {err}", file=sys.stderr)
         return 2
 

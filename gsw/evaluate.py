@@ -8,7 +8,11 @@ For a watermarked model, its original and the embedded message, over a set of (h
 * image attacks (:data:`gsw.attacks.IMAGE_ATTACKS`, and optionally the official code's variants)
   applied to the watermarked renders;
 * model attacks (:data:`gsw.attacks.MODEL_ATTACKS`) applied to the watermarked model before
-  rendering.
+  rendering;
+* optionally the same attacks on the original model's renders (the false positives under attack).
+
+Every :class:`Detection` keeps its per-view p-values, so rates at other false-positive rates can be
+computed afterwards (:mod:`gsw.grid`).
 """
 
 from __future__ import annotations
@@ -33,10 +37,17 @@ DETECTION_FPR = 1e-6
 
 @dataclass
 class Detection:
-    """Bit accuracy (mean over views) and share of views detected at :data:`DETECTION_FPR`."""
+    """Bit accuracy (mean over views), share of views detected at :data:`DETECTION_FPR`, per-view p-values.
+
+    Attributes:
+        bit_accuracy: mean over the views of the fraction of matching bits.
+        detected_views: share of the views with p-value <= :data:`DETECTION_FPR`.
+        p_values: per view, the binomial p-value of its matching bits (:func:`gsw.embed.verify`).
+    """
 
     bit_accuracy: float
     detected_views: float
+    p_values: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -50,6 +61,8 @@ class EvaluationReport:
     unmarked: Detection
     image_attacks: dict[str, Detection] = field(default_factory=dict)
     model_attacks: dict[str, Detection] = field(default_factory=dict)
+    unmarked_image_attacks: dict[str, Detection] = field(default_factory=dict)
+    unmarked_model_attacks: dict[str, Detection] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -65,17 +78,25 @@ class EvaluationReport:
                  f"| views at p <= {DETECTION_FPR:g}, watermarked | {100 * self.clean.detected_views:.0f} % |",
                  f"| bit accuracy, original (unmarked) | {100 * self.unmarked.bit_accuracy:.2f} % |",
                  f"| views at p <= {DETECTION_FPR:g}, original | {100 * self.unmarked.detected_views:.0f} % |",
-                 "", "| attack | kind | bit accuracy | views at p <= 1e-6 |", "|---|---|---|---|"]
+                 ""]
+        unmarked = {"image": self.unmarked_image_attacks, "model": self.unmarked_model_attacks}
+        extra = any(unmarked.values())
+        lines += ["| attack | kind | bit accuracy | views at p <= 1e-6 |" + (" original: views at p <= 1e-6 |"
+                                                                          if extra else ""),
+                  "|---|---|---|---|" + ("---|" if extra else "")]
         for kind, table in (("image", self.image_attacks), ("model", self.model_attacks)):
             for name, d in table.items():
-                lines.append(f"| {name} | {kind} | {100 * d.bit_accuracy:.2f} % | {100 * d.detected_views:.0f} % |")
+                row = f"| {name} | {kind} | {100 * d.bit_accuracy:.2f} % | {100 * d.detected_views:.0f} % |"
+                if extra:
+                    row += f" {100 * unmarked[kind][name].detected_views:.0f} % |"
+                lines.append(row)
         return "\n".join(lines) + "\n"
 
 
 def _detection(images: Sequence[Tensor], message: Tensor, decoder) -> Detection:
     v = verify(list(images), message, decoder=decoder)
     n = len(v.p_values)
-    return Detection(sum(v.bit_accuracy) / n, sum(p <= DETECTION_FPR for p in v.p_values) / n)
+    return Detection(sum(v.bit_accuracy) / n, sum(p <= DETECTION_FPR for p in v.p_values) / n, list(v.p_values))
 
 
 @torch.no_grad()
@@ -85,7 +106,8 @@ def evaluate_watermark(watermarked: Gaussians, original: Gaussians, cameras: Seq
                        image_attacks: Mapping[str, Callable[[Tensor], Tensor]] | None = None,
                        model_attacks: Mapping[str, Callable[[Gaussians], Gaussians]] | None = None,
                        official: bool = False, lpips_net: str | None = "vgg",
-                       decoder: torch.nn.Module | None = None) -> EvaluationReport:
+                       decoder: torch.nn.Module | None = None,
+                       attack_unmarked: bool = False) -> EvaluationReport:
     """Invisibility and robustness of a watermark over a set of views.
 
     Args:
@@ -100,6 +122,9 @@ def evaluate_watermark(watermarked: Gaussians, original: Gaussians, cameras: Seq
         official: also run the official code's image-attack variants (prefixed `official_`).
         lpips_net: LPIPS network for the invisibility metrics, or None to skip LPIPS.
         decoder: a custom decoder (default: the shipped one).
+        attack_unmarked: also run every attack on the original model (its renders, or the model
+            itself for model attacks) and test the result for the message: the false positives
+            under attack (`unmarked_image_attacks`, `unmarked_model_attacks`).
 
     Returns:
         An :class:`EvaluationReport`.
@@ -132,8 +157,12 @@ def evaluate_watermark(watermarked: Gaussians, original: Gaussians, cameras: Seq
         clean=_detection(marked, bits, decoder),
         unmarked=_detection(plain, bits, decoder),
     )
-    for name, attack in image_attacks.items():
-        report.image_attacks[name] = _detection([attack(img) for img in marked], bits, decoder)
-    for name, attack in model_attacks.items():
-        report.model_attacks[name] = _detection(renders(attack(watermarked)), bits, decoder)
+    sources = [(watermarked, marked, report.image_attacks, report.model_attacks)]
+    if attack_unmarked:
+        sources.append((original, plain, report.unmarked_image_attacks, report.unmarked_model_attacks))
+    for model, images, image_table, model_table in sources:
+        for name, attack in image_attacks.items():
+            image_table[name] = _detection([attack(img) for img in images], bits, decoder)
+        for name, attack in model_attacks.items():
+            model_table[name] = _detection(renders(attack(model)), bits, decoder)
     return report

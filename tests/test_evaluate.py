@@ -10,7 +10,9 @@ import pytest
 from gsw.attacks import gaussian_noise, jpeg, remove_random
 from gsw.cli import main
 from gsw.data import save_inria_model
-from gsw.evaluate import evaluate_watermark
+from gsw.embed import verify
+from gsw.evaluate import DETECTION_FPR, evaluate_watermark
+from gsw.rasterize import rasterize
 from gsw.scenes import default_scene
 
 
@@ -44,6 +46,25 @@ def test_report_sees_a_changed_model(scene) -> None:
     assert {k for k in rep.image_attacks} == {"official_noise", "official_blur", "official_crop", "official_jpeg"}
     with pytest.raises(ValueError, match="camera"):
         evaluate_watermark(g, g, [], "0x12345678")
+
+
+def test_report_keeps_p_values_and_can_attack_the_original(scene) -> None:
+    g = scene.gaussians
+    changed = g.clone()
+    changed.sh[:, 0] += 0.05
+    rep = evaluate_watermark(changed, g, scene.cameras, "0x12345678", lpips_net=None, image_attacks={"jpeg": jpeg},
+                             model_attacks={"remove": remove_random}, attack_unmarked=True)
+    for d in (rep.clean, rep.unmarked, rep.image_attacks["jpeg"], rep.unmarked_model_attacks["remove"]):
+        assert len(d.p_values) == 3 and all(0.0 < p <= 1.0 for p in d.p_values)
+        assert d.detected_views == sum(p <= DETECTION_FPR for p in d.p_values) / 3
+    # the unmarked tables are the attacks on the original model's renders / on the original model
+    plain = [rasterize(g, c).image.clamp(0, 1) for c in scene.cameras]
+    assert rep.unmarked_image_attacks["jpeg"].p_values == verify([jpeg(x) for x in plain], "0x12345678").p_values
+    assert rep.unmarked_model_attacks["remove"].p_values == verify((remove_random(g), scene.cameras),
+                                                                   "0x12345678").p_values
+    assert "| jpeg | image |" in rep.to_markdown() and "original: views at p <= 1e-6 |" in rep.to_markdown()
+    assert not evaluate_watermark(changed, g, scene.cameras, "0x12345678", lpips_net=None, image_attacks={},
+                                  model_attacks={}).unmarked_image_attacks
 
 
 def test_cli_eval(scene, tmp_path, capsys) -> None:
