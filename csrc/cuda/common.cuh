@@ -52,46 +52,31 @@ __device__ __forceinline__ U warp_max(U v) {
   return v;
 }
 
-// atomicMax for non-negative floating-point values (their bit patterns order like integers).
-// Transposed butterfly reductions: several quantities reduced over the warp with fewer shuffles
-// than one reduction each (each step keeps half of the quantities and trades the other half).
-// warp_sum3_max: 6 shuffles; afterwards lanes 0-7 hold sum(s0), 8-15 sum(s1), 16-23 sum(s2) and
-// 24-31 max(m).
+// Transposed butterfly: three sums over the warp in 6 shuffles instead of 15 (each step keeps
+// half of the quantities and trades the other half). Afterwards lanes 0-7 hold sum(s0), 8-15
+// sum(s1) and 16-23 sum(s2) (24-31: sum(s1) again).
 template <typename U>
-__device__ __forceinline__ U warp_sum3_max(U s0, U s1, U s2, U m) {
+__device__ __forceinline__ U warp_sum3(U s0, U s1, U s2) {
   const int lane = threadIdx.x & 31;
   const bool h16 = lane & 16, h8 = lane & 8;
-  U a = h16 ? s2 : s0, b = h16 ? m : s1;
-  const U ra = __shfl_xor_sync(kFullMask, h16 ? s0 : s2, 16);
-  const U rb = __shfl_xor_sync(kFullMask, h16 ? s1 : m, 16);
-  a += ra;
-  b = h16 ? (rb > b ? rb : b) : b + rb;
-  const bool is_max = h16 && h8;
-  U x = h8 ? b : a;
-  U r = __shfl_xor_sync(kFullMask, h8 ? a : b, 8);
-  x = is_max ? (r > x ? r : x) : x + r;
+  // Lanes 0-15 keep s0 and s1, lanes 16-31 s2 (and s1).
+  const U a = (h16 ? s2 : s0) + __shfl_xor_sync(kFullMask, h16 ? s0 : s2, 16);
+  const U b = s1 + __shfl_xor_sync(kFullMask, s1, 16);
+  // Lanes 0-7 and 16-23 keep a, 8-15 and 24-31 b.
+  U x = (h8 ? b : a) + __shfl_xor_sync(kFullMask, h8 ? a : b, 8);
 #pragma unroll
-  for (int o = 4; o > 0; o >>= 1) {
-    r = __shfl_xor_sync(kFullMask, x, o);
-    x = is_max ? (r > x ? r : x) : x + r;
-  }
-  return x;
-}
-// warp_sum1_max: 5 shuffles; afterwards lanes 0-15 hold sum(s0) and 16-31 max(m).
-template <typename U>
-__device__ __forceinline__ U warp_sum1_max(U s0, U m) {
-  const bool is_max = threadIdx.x & 16;
-  U x = is_max ? m : s0;
-  U r = __shfl_xor_sync(kFullMask, is_max ? s0 : m, 16);
-  x = is_max ? (r > x ? r : x) : x + r;
-#pragma unroll
-  for (int o = 8; o > 0; o >>= 1) {
-    r = __shfl_xor_sync(kFullMask, x, o);
-    x = is_max ? (r > x ? r : x) : x + r;
-  }
+  for (int o = 4; o > 0; o >>= 1) x += __shfl_xor_sync(kFullMask, x, o);
   return x;
 }
 
+// Max over the warp of non-negative values, valid in lane 0. The bit patterns of non-negative
+// floats order like unsigned integers: one integer reduction for float (sm_80+); double: shuffles.
+__device__ __forceinline__ float warp_max_nonneg(float v) {
+  return __uint_as_float(__reduce_max_sync(kFullMask, __float_as_uint(v)));
+}
+__device__ __forceinline__ double warp_max_nonneg(double v) { return warp_max(v); }
+
+// atomicMax for non-negative floating-point values (same bit-pattern order).
 __device__ __forceinline__ void atomic_max_nonneg(float* addr, float v) {
   atomicMax(reinterpret_cast<int*>(addr), __float_as_int(v));
 }

@@ -1,15 +1,27 @@
-// CUDA blending stage: forward, backward and per-Gaussian contribution, one 16x16 thread block
-// per tile, one thread per pixel.
+// CUDA blending stage: forward, backward and per-Gaussian contribution, one thread block per
+// 16x16 tile. Forward and backward run one thread per pixel, the contribution one thread per
+// kContribPixels pixels (see below).
 //
 // Forward and contribution share one front-to-back traversal (traverse_tile): the tile's splats
-// are staged in shared memory in batches of 256, every thread walks the batch in order with the
-// CPU backend's per-pixel decisions (splat_alpha, blend_terminates from core/math.h), a warp
-// leaves a batch as soon as all its pixels have terminated and the block stops at the first batch
-// where all of them have. The traversal hands each splat's blending weight w (0 if not blended)
-// to a visitor: the forward accumulates colour/depth, the contribution reduces the weighted w
-// and max w over the warp (one transposed butterfly for all values), adds them to the splat's
-// shared-memory slot and, after each batch, adds the block's totals to
-// the splat's outputs with one atomic per value.
+// are staged in shared memory in batches of one splat per thread, every thread walks the batch in
+// order with the CPU backend's per-pixel decisions (splat_alpha, blend_terminates from
+// core/math.h) for each of its pixels, a warp leaves a batch as soon as all its pixels have
+// terminated and the block stops at the first batch where all of them have. The traversal hands
+// the blending weights w (0 where not blended) of the thread's pixels for each splat to a visitor;
+// the forward accumulates colour/depth.
+//
+// The contribution's cost is its per-splat reduction over the warp (the weighted w per channel,
+// hits and max w), not the blending: with one pixel per thread that reduction cost as much as the
+// whole forward. So each of its threads owns kContribPixels vertically adjacent pixels and first
+// reduces over them in registers: one warp reduction per splat (a transposed butterfly for the
+// channel sums, integer reductions for the hits and, in float32, for the max: non-negative floats
+// order like their bit patterns) then covers 32 * kContribPixels pixels, and a warp skips it when
+// none of them blended the splat. The pixels of a thread share their column, so the splat is read
+// from shared memory once for all of them and the compiler shares the x terms of the Gaussian's
+// exponent. Each warp stores its results for a splat in its own shared-memory slot (plain stores:
+// shared-memory float atomics are compare-and-swap loops); after each batch, one thread per splat
+// adds up the warps' slots and adds the block's totals to the splat's outputs with one atomic per
+// value.
 //
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
 // batches from the tile's largest n_contrib down, recovering T_i = T_{i+1} / (1 - alpha_i) as the
@@ -22,9 +34,16 @@ namespace gsw::cuda {
 
 namespace {
 
-constexpr int kBlock = TILE_SIZE * TILE_SIZE;  // threads per tile = pixels per tile
-constexpr int kBatch = kBlock;                 // splats staged per batch
-static_assert(kBlock % 32 == 0, "a tile must hold whole warps");
+constexpr int kTilePixels = TILE_SIZE * TILE_SIZE;
+constexpr int kBlock = kTilePixels;  // forward and backward: one thread per pixel
+constexpr int kBatch = kBlock;       // splats staged per batch (one per thread)
+// Contribution: pixels per thread (a warp covers 32 / TILE_SIZE * kContribPixels whole rows of
+// the tile) and threads per tile.
+constexpr int kContribPixels = 4;
+constexpr int kContribBlock = kTilePixels / kContribPixels;
+constexpr int kContribWarps = kContribBlock / 32;
+static_assert(kTilePixels % kContribPixels == 0, "a thread's pixels lie in one tile column");
+static_assert(kBlock % 32 == 0 && kContribBlock % 32 == 0, "a tile must hold whole warps");
 constexpr int kVoteEvery = 8;  // splats between two "is the whole warp done?" votes
 
 // Shared-memory records, padded and aligned so that a thread reads one with 128-bit loads.
@@ -57,75 +76,89 @@ __device__ __forceinline__ T alpha_at(const SplatGeo<T>& s, T pxc, T pyc) {
   return splat_alpha(s.opacity, gaussian_power(Sym2<T>{s.ca, s.cb, s.cc}, s.mx, s.my, pxc, pyc));
 }
 
-// The pixel of this thread.
+// The PX pixels of this thread: (px, py + i) for i < PX. Thread t of the tile's block has column
+// t % TILE_SIZE and first row PX * (t / TILE_SIZE).
+template <int PX>
 struct PixelCtx {
   int tile;
   int px, py;
-  bool inside;
-  int64_t pix;
+  int rows;            // (px, py + i) is inside the image for i < rows
+  int64_t pix;         // index of (px, py); (px, py + i) is pix + i * width
   int32_t start, end;  // the tile's range in the intersection list
+  __device__ __forceinline__ bool inside(int i = 0) const { return i < rows; }
 };
 
-template <typename T>
-__device__ __forceinline__ PixelCtx pixel_ctx(const RasterParams<T>& p) {
-  PixelCtx c;
+template <int PX, typename T>
+__device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p) {
+  PixelCtx<PX> c;
   c.tile = blockIdx.x;
   const int tx = c.tile % p.bins.tiles_x, ty = c.tile / p.bins.tiles_x;
-  c.px = tx * TILE_SIZE + static_cast<int>(threadIdx.x) % TILE_SIZE;
-  c.py = ty * TILE_SIZE + static_cast<int>(threadIdx.x) / TILE_SIZE;
-  c.inside = c.px < p.width && c.py < p.height;
+  const int t = static_cast<int>(threadIdx.x);
+  c.px = tx * TILE_SIZE + t % TILE_SIZE;
+  c.py = ty * TILE_SIZE + t / TILE_SIZE * PX;
+  c.rows = c.px < p.width ? max(0, min(PX, p.height - c.py)) : 0;
   c.pix = int64_t(c.py) * p.width + c.px;
   c.start = p.bins.tile_offsets[c.tile];
   c.end = p.bins.tile_offsets[c.tile + 1];
   return c;
 }
 
-// Front-to-back traversal of this thread's tile (see the file comment). The visitor provides
-//   load(slot, g):       stage extra per-splat data of Gaussian g in shared slot `slot`;
-//   blend(slot, g, w):   called by every thread of a warp for each splat the warp visits, with
-//                        this pixel's weight w = alpha T (0 when not blended);
+// Front-to-back traversal of this thread's pixels of its tile (see the file comment), with a
+// block of kTilePixels / PX threads. The visitor provides
+//   load(slot, g):       stage per-splat data of Gaussian g in shared slot `slot`;
+//   blend(slot, w):      called by every thread of a warp for each splat the warp visits, with
+//                        the weights w[i] = alpha T of this thread's pixels (0 when not blended);
 //   end_batch(n):        called by every thread of the block after the n splats of a batch.
-// On return `tr` is the final transmittance and `last` 1 + the tile-list index of the last
+// On return `tr` holds the final transmittances and `last` 1 + the tile-list index of the last
 // blended splat (0 if none).
-template <typename T, typename Visitor>
-__device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const PixelCtx& c,
-                                              Visitor& vis, T& tr, int32_t& last) {
-  __shared__ SplatGeo<T> s_geo[kBatch];
-  __shared__ int32_t s_id[kBatch];
-  const T pxc = T(c.px) + T(0.5), pyc = T(c.py) + T(0.5);
-  bool done = !c.inside;
-  tr = T(1);
-  last = 0;
-  for (int32_t b = c.start; b < c.end; b += kBatch) {
+template <int PX, typename T, typename Visitor>
+__device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const PixelCtx<PX>& c,
+                                              Visitor& vis, T (&tr)[PX], int32_t (&last)[PX]) {
+  constexpr int kSplats = kTilePixels / PX;  // per batch: one per thread
+  __shared__ SplatGeo<T> s_geo[kSplats];
+  const T pxc = T(c.px) + T(0.5);
+  T pyc[PX];
+#pragma unroll
+  for (int i = 0; i < PX; ++i) {
+    pyc[i] = T(c.py + i) + T(0.5);
+    tr[i] = T(1);
+    last[i] = 0;
+  }
+  unsigned live = (1u << c.rows) - 1;  // bit i: pixel i still blends (pixels outside never do)
+  for (int32_t b = c.start; b < c.end; b += kSplats) {
     // Also the barrier before the shared batch is overwritten.
-    if (__syncthreads_count(done) == kBlock) break;
+    if (!__syncthreads_or(live != 0)) break;
     const int32_t idx = b + static_cast<int32_t>(threadIdx.x);
     if (idx < c.end) {
       const int32_t g = p.bins.gauss_ids[idx];
-      s_id[threadIdx.x] = g;
       s_geo[threadIdx.x] = load_geo(p, g);
       vis.load(threadIdx.x, g);
     }
     __syncthreads();
-    const int n = min(kBatch, c.end - b);
+    const int n = min(kSplats, c.end - b);
     // A warp leaves the batch once all its pixels are done (checked every kVoteEvery splats;
     // done pixels blend nothing, so when it is checked changes no result).
     for (int k = 0; k < n; ++k) {
-      if ((k % kVoteEvery) == 0 && __all_sync(kFullMask, done)) break;
-      T w = T(0);
-      if (!done) {
-        const T alpha = alpha_at(s_geo[k], pxc, pyc);
-        if (alpha > T(0)) {
-          if (blend_terminates(tr, alpha)) {
-            done = true;  // this splat is not blended (INRIA)
+      if ((k % kVoteEvery) == 0 && !__any_sync(kFullMask, live != 0)) break;
+      const SplatGeo<T> s = s_geo[k];
+      T w[PX];
+#pragma unroll
+      for (int i = 0; i < PX; ++i) {
+        // alpha of done pixels too: no branch per pixel, and the compiler can share the terms of
+        // the pixels' common column.
+        const T alpha = alpha_at(s, pxc, pyc[i]);
+        w[i] = T(0);
+        if ((live >> i & 1u) && alpha > T(0)) {
+          if (blend_terminates(tr[i], alpha)) {
+            live &= ~(1u << i);  // this splat is not blended (INRIA)
           } else {
-            w = alpha * tr;
-            tr *= T(1) - alpha;
-            last = b - c.start + k + 1;
+            w[i] = alpha * tr[i];
+            tr[i] *= T(1) - alpha;
+            last[i] = b - c.start + k + 1;
           }
         }
       }
-      vis.blend(k, s_id[k], w);
+      vis.blend(k, w);
     }
     vis.end_batch(n);
   }
@@ -143,13 +176,13 @@ struct ForwardVisitor {
                    p.depths[gid]};
   }
   __device__ __forceinline__ void end_batch(int) {}
-  __device__ __forceinline__ void blend(int slot, int32_t, T w) {
-    if (w > T(0)) {
+  __device__ __forceinline__ void blend(int slot, const T (&w)[1]) {
+    if (w[0] > T(0)) {
       const SplatColor<T> c = s_col[slot];
-      r += w * c.r;
-      g += w * c.g;
-      b += w * c.b;
-      d += w * c.depth;
+      r += w[0] * c.r;
+      g += w[0] * c.g;
+      b += w[0] * c.b;
+      d += w[0] * c.depth;
     }
   }
 };
@@ -157,120 +190,137 @@ struct ForwardVisitor {
 template <typename T>
 __global__ void __launch_bounds__(kBlock) forward_kernel(const RasterParams<T> p) {
   __shared__ SplatColor<T> s_col[kBatch];
-  const PixelCtx c = pixel_ctx(p);
+  const PixelCtx<1> c = pixel_ctx<1>(p);
   ForwardVisitor<T> vis{p, s_col};
-  T tr;
-  int32_t last;
+  T tr[1];
+  int32_t last[1];
   traverse_tile(p, c, vis, tr, last);
-  if (!c.inside) return;
+  if (!c.inside()) return;
   const int64_t P = int64_t(p.width) * p.height;
-  p.image[c.pix] = vis.r + tr * p.background[0];
-  p.image[P + c.pix] = vis.g + tr * p.background[1];
-  p.image[2 * P + c.pix] = vis.b + tr * p.background[2];
-  p.alpha[c.pix] = T(1) - tr;
+  p.image[c.pix] = vis.r + tr[0] * p.background[0];
+  p.image[P + c.pix] = vis.g + tr[0] * p.background[1];
+  p.image[2 * P + c.pix] = vis.b + tr[0] * p.background[2];
+  p.alpha[c.pix] = T(1) - tr[0];
   p.depth[c.pix] = vis.d;
-  p.final_T[c.pix] = tr;
-  p.n_contrib[c.pix] = last;
+  p.final_T[c.pix] = tr[0];
+  p.n_contrib[c.pix] = last[0];
 }
 
 // ------------------------------------------------------------------ contribution
 
-// Per-batch block accumulators of the contribution (CT > 0): each warp adds its warp-reduced sums
-// to the splat's shared slot, and after the batch one thread per slot adds the block's totals to
-// global memory, so a splat costs one set of global atomics per tile rather than per warp.
+// Per-batch shared results of the contribution: for each warp and staged splat, the warp's
+// totals (part: the CT channel sums, then max w; hits), written by the warp only when it hit the
+// splat (hits stays 0 otherwise), summed over the warps after the batch by one thread per slot.
 template <typename T, int CT>
 struct ContributionShared {
-  T sum[CT][kBatch];
-  T max_w[kBatch];
-  int32_t hits[kBatch];
-  int32_t gid[kBatch];
+  T part[kContribWarps][CT + 1][kContribBlock];
+  int32_t hits[kContribWarps][kContribBlock];
+  int32_t gid[kContribBlock];
 };
 
-// CT > 0: C = CT channels, this pixel's weights in registers, block accumulation in shared
-// memory; CT = 0: any C, weights read from global memory, one atomic per warp and channel.
+// CT > 0: C = CT channels, this thread's weights in registers, channel sums accumulated in shared
+// memory; CT = 0: any C, weights read from global memory, channel sums added with one atomic per
+// warp and channel (hits and max w through shared memory in both cases).
 template <typename T, int CT>
 struct ContributionVisitor {
   static_assert(CT == 0 || CT == 1 || CT == 3, "dispatched for C = 1, 3 or any (0)");
+  static constexpr int PX = kContribPixels;
   const ContributionParams<T>& cp;
-  int64_t P, pix;
-  ContributionShared<T, (CT > 0 ? CT : 1)>* sh;
-  T wreg[CT > 0 ? CT : 1];
+  int64_t P, pix;  // pixel i of this thread is pix + i * width
+  int width;
+  ContributionShared<T, CT>* sh;
+  T wreg[PX][CT > 0 ? CT : 1];
   __device__ void load(int slot, int32_t gid) {
-    if constexpr (CT > 0) {
+    sh->gid[slot] = gid;
 #pragma unroll
-      for (int ch = 0; ch < CT; ++ch) sh->sum[ch][slot] = T(0);
-      sh->max_w[slot] = T(0);
-      sh->hits[slot] = 0;
-      sh->gid[slot] = gid;
-    }
+    for (int wp = 0; wp < kContribWarps; ++wp) sh->hits[wp][slot] = 0;
   }
-  __device__ __forceinline__ void blend(int slot, int32_t gid, T w) {
-    const bool hit = w > T(0);
-    const unsigned ballot = __ballot_sync(kFullMask, hit);
-    if (ballot == 0) return;  // warp-uniform
-    const int lane = threadIdx.x & 31;
+  __device__ __forceinline__ void blend(int slot, const T (&w)[PX]) {
+    // This thread's share: its pixels' sums, hits and max (w = 0 adds nothing).
+    T sum[CT > 0 ? CT : 1];
+    T m = T(0);
+    int n = 0;
+#pragma unroll
+    for (int ch = 0; ch < CT; ++ch) sum[ch] = T(0);
+#pragma unroll
+    for (int i = 0; i < PX; ++i) {
+      n += w[i] > T(0);
+      m = max(m, w[i]);
+#pragma unroll
+      for (int ch = 0; ch < CT; ++ch) sum[ch] += w[i] * wreg[i][ch];
+    }
+    if (!__any_sync(kFullMask, n > 0)) return;  // warp-uniform: no pixel blended the splat
+    const int hits = __reduce_add_sync(kFullMask, n);
+    const T mw = warp_max_nonneg(m);
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
     if constexpr (CT == 3) {
-      const T x = warp_sum3_max(w * wreg[0], w * wreg[1], w * wreg[2], w);
-      if ((lane & 7) == 0) {
-        const int q = lane >> 3;  // lanes 0, 8, 16: channel sums; lane 24: max
-        if (q < 3)
-          atomicAdd(&sh->sum[q][slot], x);
-        else
-          atomic_max_nonneg(&sh->max_w[slot], x);
-      }
-      if (lane == 0) atomicAdd(&sh->hits[slot], __popc(ballot));
+      const T x = warp_sum3(sum[0], sum[1], sum[2]);
+      if ((lane & 7) == 0 && lane < 24) sh->part[warp][lane >> 3][slot] = x;  // lanes 0, 8, 16
     } else if constexpr (CT == 1) {
-      const T x = warp_sum1_max(w * wreg[0], w);
-      if (lane == 0) {
-        atomicAdd(&sh->sum[0][slot], x);
-        atomicAdd(&sh->hits[slot], __popc(ballot));
-      } else if (lane == 16) {
-        atomic_max_nonneg(&sh->max_w[slot], x);
-      }
+      const T x = warp_sum(sum[0]);
+      if (lane == 0) sh->part[warp][0][slot] = x;
     } else {
       const int C = cp.C;
-      T* out = cp.contribution + int64_t(C) * gid;
+      T* out = cp.contribution + int64_t(C) * sh->gid[slot];
       for (int ch = 0; ch < C; ++ch) {
-        const T v = warp_sum(hit ? w * cp.weights[ch * P + pix] : T(0));
+        T v = T(0);
+#pragma unroll
+        for (int i = 0; i < PX; ++i)
+          if (w[i] > T(0)) v += w[i] * cp.weights[ch * P + pix + int64_t(i) * width];
+        v = warp_sum(v);
         if (lane == 0 && v != T(0)) atomicAdd(out + ch, v);
       }
-      const T m = warp_max(w);
-      if (lane == 0) {
-        atomicAdd(cp.hits + gid, __popc(ballot));
-        atomic_max_nonneg(cp.max_weight + gid, m);
-      }
+    }
+    if (lane == 0) {
+      sh->part[warp][CT][slot] = mw;
+      sh->hits[warp][slot] = hits;
     }
   }
   __device__ __forceinline__ void end_batch(int n) {
-    if constexpr (CT > 0) {
-      __syncthreads();  // every warp has finished the batch
-      const int slot = threadIdx.x;
-      if (slot < n && sh->hits[slot] > 0) {
-        const int32_t gid = sh->gid[slot];
-        T* out = cp.contribution + int64_t(CT) * gid;
+    __syncthreads();  // every warp has finished the batch
+    const int slot = threadIdx.x;
+    if (slot >= n) return;
+    int32_t hits = 0;
+    T v[CT + 1];  // channel sums, then max w
 #pragma unroll
-        for (int ch = 0; ch < CT; ++ch)
-          if (sh->sum[ch][slot] != T(0)) atomicAdd(out + ch, sh->sum[ch][slot]);
-        atomicAdd(cp.hits + gid, sh->hits[slot]);
-        atomic_max_nonneg(cp.max_weight + gid, sh->max_w[slot]);
-      }
+    for (int q = 0; q <= CT; ++q) v[q] = T(0);
+#pragma unroll
+    for (int wp = 0; wp < kContribWarps; ++wp) {
+      const int32_t h = sh->hits[wp][slot];
+      if (h == 0) continue;  // this warp wrote nothing for the splat
+      hits += h;
+#pragma unroll
+      for (int ch = 0; ch < CT; ++ch) v[ch] += sh->part[wp][ch][slot];
+      v[CT] = max(v[CT], sh->part[wp][CT][slot]);
     }
+    if (hits == 0) return;
+    const int32_t gid = sh->gid[slot];
+    T* out = cp.contribution + int64_t(CT) * gid;
+#pragma unroll
+    for (int ch = 0; ch < CT; ++ch)
+      if (v[ch] != T(0)) atomicAdd(out + ch, v[ch]);
+    atomicAdd(cp.hits + gid, hits);
+    atomic_max_nonneg(cp.max_weight + gid, v[CT]);
   }
 };
 
 template <typename T, int CT>
-__global__ void __launch_bounds__(kBlock)
+__global__ void __launch_bounds__(kContribBlock)
     contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp) {
-  __shared__ ContributionShared<T, (CT > 0 ? CT : 1)> sh;
-  const PixelCtx c = pixel_ctx(p);
+  __shared__ ContributionShared<T, CT> sh;
+  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p);
   const int64_t P = int64_t(p.width) * p.height;
-  ContributionVisitor<T, CT> vis{cp, P, c.pix, &sh};
+  ContributionVisitor<T, CT> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
 #pragma unroll
-    for (int ch = 0; ch < CT; ++ch) vis.wreg[ch] = c.inside ? cp.weights[ch * P + c.pix] : T(0);
+    for (int i = 0; i < kContribPixels; ++i)
+#pragma unroll
+      for (int ch = 0; ch < CT; ++ch)
+        vis.wreg[i][ch] =
+            c.inside(i) ? cp.weights[ch * P + c.pix + int64_t(i) * p.width] : T(0);
   }
-  T tr;
-  int32_t last;
+  T tr[kContribPixels];
+  int32_t last[kContribPixels];
   traverse_tile(p, c, vis, tr, last);
 }
 
@@ -283,7 +333,7 @@ __global__ void __launch_bounds__(kBlock)
   __shared__ SplatColor<T> s_col[kBatch];
   __shared__ int32_t s_id[kBatch];
   __shared__ int s_max_n;
-  const PixelCtx c = pixel_ctx(p);
+  const PixelCtx<1> c = pixel_ctx<1>(p);
   const int64_t P = int64_t(p.width) * p.height;
   const T pxc = T(c.px) + T(0.5), pyc = T(c.py) + T(0.5);
   const int lane = threadIdx.x & 31;
@@ -291,7 +341,7 @@ __global__ void __launch_bounds__(kBlock)
   T tr = T(1), tf = T(1), vtf = T(0), vd = T(0);
   T vi[3] = {T(0), T(0), T(0)};
   int n_pix = 0;
-  if (c.inside) {
+  if (c.inside()) {
     n_pix = p.n_contrib[c.pix];
     tr = tf = p.final_T[c.pix];
     for (int ch = 0; ch < 3; ++ch) vi[ch] = g.v_image[ch * P + c.pix];
@@ -416,9 +466,9 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& cp) {
   if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   const unsigned grid = static_cast<unsigned>(tiles);
   switch (cp.C) {
-    case 1: contribution_kernel<T, 1><<<grid, kBlock, 0, stream>>>(p, cp); break;
-    case 3: contribution_kernel<T, 3><<<grid, kBlock, 0, stream>>>(p, cp); break;
-    default: contribution_kernel<T, 0><<<grid, kBlock, 0, stream>>>(p, cp); break;
+    case 1: contribution_kernel<T, 1><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
+    case 3: contribution_kernel<T, 3><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
+    default: contribution_kernel<T, 0><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
   }
   GSW_KERNEL_CHECK();
 }
