@@ -72,17 +72,22 @@ class _Blend(torch.autograd.Function):
         ctx.bins, ctx.width, ctx.height = bins, width, height
         ctx.save_for_backward(*ins, final_T, n_contrib)
         ctx.mark_non_differentiable(final_T, n_contrib)
+        # Unused outputs (usually alpha and depth) get no zero-filled [1, H, W] cotangents: the kernels
+        # treat a missing v_alpha / v_depth as zero.
+        ctx.set_materialize_grads(False)
         return image, alpha, depth, final_T, n_contrib
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_image, v_alpha, v_depth, _v_t, _v_n):  # type: ignore[override]
         means2d, conics, colors, opacities, depths, background, final_T, n_contrib = ctx.saved_tensors
+        if v_image is None:
+            v_image = torch.zeros((3, ctx.height, ctx.width), dtype=means2d.dtype, device=means2d.device)
         grads = _C.rasterize_backward(
             means2d, conics, colors, opacities, depths, background, bins=ctx.bins,
             width=ctx.width, height=ctx.height, final_T=final_T, n_contrib=n_contrib,
-            v_image=v_image.contiguous(), v_alpha=v_alpha.contiguous(),
-            v_depth=v_depth.contiguous())
+            v_image=v_image.contiguous(), v_alpha=None if v_alpha is None else v_alpha.contiguous(),
+            v_depth=None if v_depth is None else v_depth.contiguous())
         v_background = None
         if ctx.needs_input_grad[5]:
             v_background = (v_image * final_T.unsqueeze(0)).sum(dim=(1, 2))

@@ -221,6 +221,31 @@ def test_float32_gradients_match_reference_autograd(sh_degree: int) -> None:
         assert rel.item() <= 1e-4, f"{name}: relative error {rel.item():.2e}"
 
 
+@pytest.mark.parametrize("outputs", [("image",), ("alpha",), ("depth",), ("alpha", "depth")])
+def test_gradients_when_only_some_outputs_are_used(outputs: tuple[str, ...]) -> None:
+    # Unused outputs reach the backward as None (no zero-filled cotangents): it must treat them as zero.
+    W, H = 22, 17
+    cam = make_camera(W, H, dtype=torch.float64)
+    g = random_gaussians(12, sh_degree=1, seed=5, extent=0.5, scale_range=(0.05, 0.15), dtype=torch.float64)
+    gen = torch.Generator().manual_seed(3)
+    w = {name: torch.randn(c, H, W, generator=gen, dtype=torch.float64)
+         for name, c in (("image", 3), ("alpha", 1), ("depth", 1))}
+    bg = torch.tensor([0.2, 0.1, 0.4], dtype=torch.float64)
+    grads = []
+    for use_ref in (False, True):
+        inputs = [t.clone().requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+        if use_ref:
+            out = reference_rasterize(*inputs, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy, W, H, 1, bg)
+        else:
+            out = rasterize(Gaussians(inputs[0], inputs[2], inputs[1], inputs[3], inputs[4]), cam, sh_degree=1,
+                            background=bg)
+        sum((getattr(out, name) * w[name]).sum() for name in outputs).backward()
+        grads.append([torch.zeros_like(t) if t.grad is None else t.grad for t in inputs])  # unused -> None
+    for ours, ref in zip(*grads):
+        assert (ours - ref).norm() <= 1e-8 * ref.norm().clamp_min(1e-12), f"{outputs}: {ours} vs {ref}"
+    assert any(t.abs().sum() > 0 for t in grads[0])  # the loss does reach the Gaussians
+
+
 def test_screen_space_gradient_is_exposed() -> None:
     cam = make_camera()
     g = random_gaussians(50, sh_degree=0, seed=14, extent=0.6)
