@@ -1,4 +1,4 @@
-"""Watermark decoder: bior4.4 DWT, HiDDeN encoder/decoder, noise layers, PCA whitening, shipped weights.
+"""Watermark decoder: bior4.4 DWT, HiDDeN encoder/decoder, noise layers, whitening (PCA or ZCA), shipped weights.
 
 This subpackage imports nothing from the rest of ``gsw`` (no compiled extension), so it also runs where
 the extension is not built.
