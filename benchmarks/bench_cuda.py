@@ -213,7 +213,8 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
 def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int, warmup: int) -> str:
     b = env["gsw_build"]
     lines = [
-        "# gsw CUDA rasterizer vs gsplat 1.5.3",
+        "# gsw CUDA rasterizer " + ("vs gsplat 1.5.3" if any("gsplat_fwd_ms" in r for r in rows)
+                                     else "(gsplat not run: its columns are empty)"),
         "",
         f"GPU: {env['gpu']} (driver {env['driver']}); torch {env['torch']}, CUDA {env['cuda']}, "
         f"Python {env['python']}; gsw CUDA archs {b.get('cuda_archs')}; {env['date']}.",

@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 from typing import Sequence, Union
 
 import torch
 from torch import Tensor
+
+from gsw.watermark.evaluation import binomial_tail
 
 MessageLike = Union[None, str, Sequence[int], Tensor]
 
@@ -19,7 +22,7 @@ MessageLike = Union[None, str, Sequence[int], Tensor]
 def random_message(num_bits: int, *, seed: int | None = None) -> Tensor:
     """A uniformly random [num_bits] 0/1 message (from the OS entropy pool when seed is None)."""
     if seed is None:
-        seed = int.from_bytes(hashlib.sha256(__import__("os").urandom(32)).digest()[:8], "little")
+        seed = int.from_bytes(hashlib.sha256(os.urandom(32)).digest()[:8], "little")
     gen = torch.Generator().manual_seed(seed)
     return torch.randint(0, 2, (num_bits,), generator=gen).float()
 
@@ -84,7 +87,7 @@ def binomial_p_value(matches: int, num_bits: int) -> float:
     """P(X >= matches) for X ~ Binomial(num_bits, 1/2): the chance an unmarked image matches as well."""
     if not 0 <= matches <= num_bits:
         raise ValueError(f"matches={matches} outside 0..{num_bits}")
-    return sum(math.comb(num_bits, i) for i in range(matches, num_bits + 1)) / 2.0 ** num_bits
+    return binomial_tail(num_bits, matches)
 
 
 def fisher_combined_p_value(p_values: Sequence[float]) -> float:

@@ -6,6 +6,9 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
+
+from gsw.gaussians import Gaussians
 
 #: ../shared/data beside the project root (also present in CI).
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -19,3 +22,15 @@ def require(path: Path, what: str = "test data") -> Path:
             pytest.fail(message)
         pytest.skip(message)
     return Path(path)
+
+
+def random_model(n: int, degree: int = 3, seed: int = 0) -> Gaussians:
+    """n seeded random Gaussians (unnormalised quaternions, small scales, SH coefficients in [-1, 1))."""
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians(
+        means=torch.randn(n, 3, generator=g),
+        log_scales=torch.randn(n, 3, generator=g) - 3,
+        quats=torch.randn(n, 4, generator=g),
+        opacity_logits=torch.randn(n, generator=g) * 2,
+        sh=torch.rand(n, (degree + 1) ** 2, 3, generator=g) * 2 - 1,
+    )

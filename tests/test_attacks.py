@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import random_model
 import torch
 from PIL import Image
 
@@ -23,18 +24,6 @@ def smooth_image(h: int = H, w: int = W, batch: int | None = None, seed: int = 0
     img = torch.nn.functional.interpolate(low, size=(h, w), mode="bilinear", align_corners=False)
     img = (0.8 * img + 0.2 * torch.rand(b, 3, h, w, generator=g)).clamp(0, 1)
     return img[0] if batch is None else img
-
-
-def make_gaussians(n: int = 1000, degree: int = 3, seed: int = 0) -> Gaussians:
-    g = torch.Generator().manual_seed(seed)
-    k = (degree + 1) ** 2
-    return Gaussians(
-        means=torch.randn(n, 3, generator=g),
-        log_scales=torch.randn(n, 3, generator=g) - 3,
-        quats=torch.randn(n, 4, generator=g),
-        opacity_logits=torch.randn(n, generator=g) * 2,
-        sh=torch.randn(n, k, 3, generator=g),
-    )
 
 
 def snapshot(g: Gaussians) -> dict[str, torch.Tensor]:
@@ -239,7 +228,7 @@ def test_sweeps():
 
 
 def test_parameter_noise():
-    g = make_gaussians(5000)
+    g = random_model(5000)
     snap = snapshot(g)
     out = A.parameter_noise(g, sigma=0.1, seed=0)
     assert_untouched(g, snap)
@@ -257,7 +246,7 @@ def test_parameter_noise():
 
 @pytest.mark.parametrize("n", [1000, 7, 0])
 def test_remove_random(n):
-    g = make_gaussians(n)
+    g = random_model(n)
     snap = snapshot(g)
     out = A.remove_random(g, 0.2, seed=0)
     assert len(out) == n - math.floor(0.2 * n + 0.5)
@@ -270,7 +259,7 @@ def test_remove_random(n):
 
 
 def test_clone_random():
-    g = make_gaussians(1000)
+    g = random_model(1000)
     snap = snapshot(g)
     out = A.clone_random(g, 0.2, seed=0)
     assert len(out) == 1200
@@ -287,7 +276,7 @@ def test_clone_random():
 
 
 def test_reduce_sh():
-    g = make_gaussians(100, degree=3)
+    g = random_model(100, degree=3)
     snap = snapshot(g)
     out = A.reduce_sh(g, 0)
     assert out.sh.shape == (100, 1, 3) and out.sh_degree == 0
@@ -301,7 +290,7 @@ def test_reduce_sh():
 
 
 def test_prune_by_opacity():
-    g = make_gaussians(1001)
+    g = random_model(1001)
     snap = snapshot(g)
     out = A.prune_by_opacity(g, 0.5)
     assert_untouched(g, snap)
@@ -312,7 +301,7 @@ def test_prune_by_opacity():
 
 
 def test_quantize():
-    g = make_gaussians(2000)
+    g = random_model(2000)
     snap = snapshot(g)
     out = A.quantize(g, bits=8)
     assert_untouched(g, snap)

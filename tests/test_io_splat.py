@@ -5,28 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import SHARED_DATA, require
+from helpers import SHARED_DATA, random_model, require
 import torch
 
 from gsw.constants import SH_C0
-from gsw.gaussians import Gaussians
 from gsw.io import SplatError, load_gaussians, load_ply, load_splat, save_gaussians, save_splat
 from gsw.io.splat import SPLAT_DTYPE, splat_sort_order
 
 DATA = SHARED_DATA
 FIXTURE_DIR = DATA / "ply" / "sh3_fixture"
-
-
-def make(n: int, degree: int = 0, seed: int = 0) -> Gaussians:
-    g = torch.Generator().manual_seed(seed)
-    k = (degree + 1) ** 2
-    return Gaussians(
-        means=torch.randn(n, 3, generator=g),
-        log_scales=torch.randn(n, 3, generator=g) - 3,
-        quats=torch.randn(n, 4, generator=g),
-        opacity_logits=torch.randn(n, generator=g) * 2,
-        sh=torch.rand(n, k, 3, generator=g) * 2 - 1,
-    )
 
 
 def same_rotation_error(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -60,7 +47,7 @@ def test_decoding(tmp_path):
 
 
 def test_round_trip(tmp_path):
-    g = make(500, degree=2)
+    g = random_model(500, degree=2)
     save_splat(g, tmp_path / "m.splat")
     assert (tmp_path / "m.splat").stat().st_size == 500 * 32
     h = load_splat(tmp_path / "m.splat")
@@ -81,7 +68,7 @@ def test_round_trip(tmp_path):
 
 
 def test_sorted_like_antimatter15(tmp_path):
-    g = make(200)
+    g = random_model(200, degree=0)
     save_splat(g, tmp_path / "s.splat", sort=True)
     h = load_splat(tmp_path / "s.splat")
     order = splat_sort_order(g)
@@ -102,7 +89,7 @@ def test_bad_size(tmp_path):
 
 
 def test_dispatch_by_extension(tmp_path):
-    g = make(10)
+    g = random_model(10, degree=0)
     save_gaussians(g, tmp_path / "m.splat")
     save_gaussians(g, tmp_path / "m.ply")
     assert load_gaussians(tmp_path / "m.splat").sh_degree == 0

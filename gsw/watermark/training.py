@@ -8,9 +8,9 @@ The pipeline (``benchmarks/train_decoder.py`` is the command-line entry point):
    noise layer; the decoder reads the LL2 subband (:func:`gsw.watermark.dwt.ll_subband`) of each attacked
    chunk; the loss is the mean BCE-with-logits over chunks. Attack strengths ramp up over ``noise_ramp``
    of the run. Time- or step-budgeted, checkpointed, resumable; logs bit accuracy per noise layer.
-2. :func:`fit_decoder_whitening` - PCA whitening of the frozen decoder on unmarked training photos.
-3. :func:`finetune_encoder` - optional: a short encoder-only fine-tune against the frozen whitened
-   decoder (the situation of the 3DGS embedding), so the shipped decoder is shown to carry messages.
+2. :func:`train_multi` - the GPU-resident trainer that produced the shipped weights: every bit length at
+   once on crops of a device-side image bank, device-only attacks; also the encoder-only fine-tune against
+   frozen whitened decoders. :func:`fit_whitening_multi` then fits their whitening (ZCA, median-centred).
 
 Only this subpackage is imported (no compiled extension), so it runs wherever torch does.
 """
@@ -40,8 +40,6 @@ __all__ = [
     "random_crops",
     "embed",
     "train",
-    "fit_decoder_whitening",
-    "finetune_encoder",
 ]
 
 
@@ -276,87 +274,6 @@ def train(
     state.update(encoder=enc.state_dict(), decoder=dec.state_dict(), optimizer=opt.state_dict())
     state["modules"] = (enc, dec)
     return state
-
-
-@torch.no_grad()
-def fit_decoder_whitening(
-    decoder: HiddenDecoder,
-    images: list[torch.Tensor],
-    device: torch.device | str,
-    num_crops: int = 4000,
-    crop_sizes: tuple[int, ...] = (96, 128, 192, 256),
-    seed: int = 1,
-    mode: str = "pca",
-) -> tuple[WhiteningLayer, torch.Tensor]:
-    """Fit PCA whitening on the decoder outputs of unmarked photos: every full image plus ``num_crops``
-    random crops (sizes from ``crop_sizes``, random flips). Returns the layer and the raw outputs."""
-    decoder.eval()
-    gen = torch.Generator().manual_seed(seed)
-    outs = [decoder(ll_subband(img[None].to(device).float() / 255.0)).float().cpu() for img in images]
-    per = num_crops // len(crop_sizes)
-    for s in crop_sizes:
-        for i in range(0, per, 256):
-            x = random_crops(images, min(256, per - i), s, gen, device)
-            outs.append(decoder(ll_subband(x)).float().cpu())
-    raw = torch.cat(outs)
-    return WhiteningLayer(decoder.num_bits).fit(raw, mode=mode), raw
-
-
-def finetune_encoder(
-    encoder: HiddenEncoder,
-    decoder: HiddenDecoder,
-    whiten: WhiteningLayer,
-    cfg: TrainConfig,
-    train_images: list[torch.Tensor],
-    device: torch.device | str,
-    steps: int | None = None,
-    time_budget_s: float | None = None,
-    lr: float = 3e-4,
-    verbose: bool = True,
-) -> list[dict[str, float]]:
-    """Train only the encoder against the frozen (eval-mode) decoder + whitening, at the target PSNR
-    and full attack strength. Returns the log."""
-    device = torch.device(device)
-    decoder.eval()
-    whiten.to(device)
-    for p_ in decoder.parameters():
-        p_.requires_grad_(False)
-    encoder.train()
-    opt = torch.optim.Adam(encoder.parameters(), lr=lr)
-    layers = _layers(cfg)
-    gen = torch.Generator().manual_seed(cfg.seed + 777)
-    log, t0, step = [], time.perf_counter(), 0
-    window: dict[str, list[float]] = {}
-    while True:
-        el = time.perf_counter() - t0
-        prog = (step / steps) if steps is not None else el / (time_budget_s or 1.0)
-        if prog >= 1.0:
-            break
-        for g in opt.param_groups:
-            g["lr"] = lr * 0.5 * (1 + math.cos(math.pi * prog))
-        imgs = random_crops(train_images, cfg.batch_size, cfg.crop, gen, device)
-        msgs = torch.randint(0, 2, (cfg.batch_size, cfg.num_bits), generator=gen).float().to(device)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp):
-            x_w = embed(encoder, imgs, msgs, cfg.psnr_target)
-        loss, accs = _decode_chunks(decoder, whiten, x_w, msgs, layers, gen, cfg.amp)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        step += 1
-        for n, a in accs.items():
-            window.setdefault(n, []).append(a)
-        window.setdefault("loss", []).append(loss.item())
-        if step % cfg.log_every == 0:
-            e = {"step": step, "elapsed": round(el, 1)}
-            e.update({f"acc_{n}" if n != "loss" else n: float(np.mean(v)) for n, v in window.items()})
-            log.append(e)
-            window = {}
-            if verbose:
-                print(f"[k={cfg.num_bits} ft] " + json.dumps({k: round(v, 4) for k, v in e.items()}), flush=True)
-    encoder.eval()
-    for p_ in decoder.parameters():
-        p_.requires_grad_(True)
-    return log
 
 
 # ================================================================= fast trainer (GPU-resident, multi-k)
