@@ -48,10 +48,15 @@ def main() -> int:
     parser.add_argument("--metric-lpips", default="vgg", choices=["alex", "vgg"], help="LPIPS network of the report")
     parser.add_argument("--mask", default="exp", choices=["exp", "stega", "none"])
     parser.add_argument("--attacks", type=float, default=0.0)
+    parser.add_argument("--message-weight", type=float, default=LossWeights.message, help="weight of the BCE term")
+    parser.add_argument("--lr-f-dc", type=float, default=None, help="default: EmbedConfig's")
+    parser.add_argument("--lr-f-rest", type=float, default=None, help="default: EmbedConfig's")
     parser.add_argument("--tag", default=None, help="results name (default embed_lego, embed_lego_cuda on a GPU)")
     parser.add_argument("--device", default="auto", help="cpu, cuda[:N] or auto")
     args = parser.parse_args()
 
+    args.lr_f_dc = EmbedConfig.lr_f_dc if args.lr_f_dc is None else args.lr_f_dc
+    args.lr_f_rest = EmbedConfig.lr_f_rest if args.lr_f_rest is None else args.lr_f_rest
     dev = resolve_device(args.device)
     args.tag = args.tag or ("embed_lego_cuda" if dev.type == "cuda" else "embed_lego")
     model = load_inria_model(args.model)
@@ -108,7 +113,8 @@ def main() -> int:
     results["bits"] = {}
     for k in args.bits:
         cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, mask=args.mask,
-                          attacks=args.attacks, weights=LossWeights() if lp else LossWeights(lpips=0.0))
+                          attacks=args.attacks, lr_f_dc=args.lr_f_dc, lr_f_rest=args.lr_f_rest,
+                          weights=LossWeights(message=args.message_weight, lpips=LossWeights.lpips if lp else 0.0))
         res = embed(g, train.cameras, num_bits=k, images=train_images, config=cfg, progress=True)
         v = verify((res.gaussians, test.cameras), res.message, background=bg)
         v0 = verify((g, test.cameras), res.message, background=bg)
@@ -138,7 +144,7 @@ def main() -> int:
              f"Model: {len(g):,} Gaussians from `benchmarks/train_lego.py`; {len(train.cameras)} training "
              f"views for embedding, {len(test.cameras)} held-out views (every 8th) for evaluation. "
              f"Settings: {args.epochs} epochs, LPIPS term {args.lpips}, mask {args.mask}, train-time "
-             f"attacks {args.attacks}. Metrics vs renders of the original model (paper protocol); "
+             f"attacks {args.attacks}, learning rates f_dc {args.lr_f_dc:g} / f_rest {args.lr_f_rest:g}, message weight {args.message_weight:g}. Metrics vs renders of the original model (paper protocol); "
              f"LPIPS network: {args.metric_lpips}. torch {torch.__version__}, {torch.get_num_threads()} threads, "
              f"{results['machine']['date']}.", "",
              "| bits | bit acc (held-out) | min view | views p<=1e-6 | unmarked acc | PSNR | SSIM | "

@@ -93,7 +93,7 @@ def markdown(rep: dict, bits: list[int]) -> str:
     a0 = r0.get("args", {})
     wmode, wcenter = a0.get("whiten_mode", "pca").upper(), a0.get("whiten_center", "mean")
     cont = (f" The run continued an earlier one (`--init`: warm restart with a new optimizer and schedule, lr "
-            f"{cfg['lr']}, no curriculum); steps and time are the totals of both." if a0.get("init") else "")
+            f"{cfg['lr']}, no curriculum); steps and time are totals over the chain of runs." if a0.get("init") else "")
     lines = [
         f"## Watermark decoders (HiDDeN pre-training, {wmode} whitening)",
         "",
@@ -107,7 +107,10 @@ def markdown(rep: dict, bits: list[int]) -> str:
         f"{cfg.get('noise_ramp_end', 0):.0%} and PSNR to {cfg['psnr_target']:.0f} dB by {cfg.get('psnr_ramp_end', 0):.0%}; "
         f"{cfg.get('noise_chunks', 1)} random training attacks per batch (device-only, kornia differentiable JPEG); "
         f"encoder run at 1/{cfg.get('enc_down', 1)} resolution (training aid); on/off template encoder aid "
-        f"of side {cfg.get('templates', 0)} (0 = off).{cont} "
+        f"of side {cfg.get('templates', 0)} (0 = off); view warp "
+        + ("on (every sample also rotated by up to +-180 deg, zoomed x0.71-1.4 and foreshortened down to x0.5 "
+           "along a random direction, ramped with the attack strength: what another viewpoint does to a "
+           "surface texture)" if cfg.get("view_warp") else "off") + f".{cont} "
         f"{wmode} whitening, {wcenter}-centred, fitted on the decoder outputs of the train photos, their "
         f"mirror images and {a0.get('whiten_crops', 4000):,} random crops. "
         f"All numbers below on bsds500/val (100 photos, full size, real JPEG), from the same GPU run; "

@@ -76,6 +76,8 @@ def make_val_fn(val_bank, cfg):
             x_w = T.embed_scaled(e, crops, msgs[k], psnr, cfg.enc_down)
             out[f"k{k}"] = {n: round(float(bit_accuracy(d(ll_subband(att.apply(n, x_w, 1.0).float())).float(),
                                                         msgs[k]).mean()), 4) for n in cfg.noise_layers}
+            out[f"k{k}"]["view"] = round(float(bit_accuracy(d(ll_subband(att.view(x_w, 1.0))).float(),
+                                                            msgs[k]).mean()), 4)
         return out
 
     return val_fn
@@ -128,11 +130,14 @@ def main() -> None:
     ap.add_argument("--psnr", type=float, default=30.0)
     ap.add_argument("--psnr-start", type=float, default=22.0)
     ap.add_argument("--clean-frac", type=float, default=0.3)
+    ap.add_argument("--noise-ramp-end", type=float, default=0.6, help="attack strength reaches 1 at this fraction")
     ap.add_argument("--enc-down", type=int, default=2, help="encoder resolution divisor (training aid)")
     ap.add_argument("--channels", type=int, default=64)
     ap.add_argument("--dec-norm", default="standardize", choices=["none", "center", "standardize"],
                     help="decoder input normalisation (HiddenDecoder input_norm)")
     ap.add_argument("--templates", type=int, default=0, help="> 0: on/off template encoder aid of this side")
+    ap.add_argument("--view-warp", action="store_true",
+                    help="every training sample also goes through a random view warp (rotation, zoom, foreshortening)")
     ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run")
     ap.add_argument("--whiten-mode", default="zca", choices=["pca", "zca"])
     ap.add_argument("--whiten-center", default="median", choices=["mean", "median"])
@@ -161,9 +166,11 @@ def main() -> None:
     amp = (device.type == "cuda") if args.amp == "auto" else args.amp == "on"
     cfg = T.MultiConfig(bits=tuple(args.bits), channels=args.channels, crop=args.crop, batch_size=args.batch,
                         lr=args.lr, psnr_start=args.psnr_start, psnr_target=args.psnr, clean_frac=args.clean_frac,
+                        noise_ramp_end=args.noise_ramp_end,
                         steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
                         channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
-                        enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates)
+                        enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates,
+                        view_warp=args.view_warp)
     encs0, decs0 = load_init(Path(args.init), cfg) if args.init else (None, None)
     st = T.train_multi(cfg, bank, encoders=encs0, decoders=decs0, val_fn=make_val_fn(val_bank, cfg),
                        val_every_s=args.val_every_s, tag="train ")

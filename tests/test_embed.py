@@ -10,6 +10,9 @@ from gsw.losses import LossWeights
 from gsw.scenes import default_scene
 
 
+EPOCHS = 20
+
+
 @pytest.fixture(scope="module")
 def scene():
     return default_scene(width=64, height=64, n_cameras=6, detail=0.5)
@@ -18,7 +21,7 @@ def scene():
 @pytest.fixture(scope="module")
 def result(scene):
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=6, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    cfg = EmbedConfig(epochs=EPOCHS, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
     before = scene.gaussians.clone()
     res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=cfg,
                 progress=False)
@@ -34,7 +37,7 @@ def test_embed_result_structure(scene, result) -> None:
     n_in = len(scene.gaussians)
     assert len(result.gaussians) == n_in - result.prune.num_removed + result.split.num_split
     assert len(result.bit_accuracy) == len(result.psnr) == len(scene.cameras)
-    assert len(result.history) == 6 * len(scene.cameras)
+    assert len(result.history) == EPOCHS * len(scene.cameras)
     assert {"renders", "fgd", "finetune", "evaluate", "total"} <= set(result.timings)
     # positions are frozen by default; FGD children aside, kept Gaussians did not move
     assert not result.gaussians.means.requires_grad
@@ -44,7 +47,8 @@ def test_embedding_raises_bit_accuracy(scene, result) -> None:
     bg = tuple(float(v) for v in scene.background)
     before = verify((scene.gaussians, scene.cameras), result.message, background=bg)
     after = verify((result.gaussians, scene.cameras), result.message, background=bg)
-    assert sum(after.bit_accuracy) / 6 >= sum(before.bit_accuracy) / 6 + 0.1
+    assert sum(after.bit_accuracy) / 6 >= 0.95  # the end-to-end target on a tiny CPU scene
+    assert sum(after.bit_accuracy) / 6 >= sum(before.bit_accuracy) / 6 + 0.3
     assert after.p_value < before.p_value
     assert min(result.psnr) > 28.0
 

@@ -320,6 +320,7 @@ class MultiConfig:
     log_every: int = 100
     enc_down: int = 1  # the encoder works on the crop downsampled by this factor (see embed_scaled)
     templates: int = 0  # > 0: the encoder also adds learned periodic per-bit templates of this side (LL2 px)
+    view_warp: bool = False  # every sample also goes through GpuAttacks.view (ramped with the attack strength)
 
 
 class TemplateEncoder(torch.nn.Module):
@@ -475,6 +476,28 @@ class GpuAttacks:
         grid = F.affine_grid(theta, [B, 3, H, W], align_corners=False)
         return F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
+    def view(self, x: torch.Tensor, s: float, max_zoom: float = 1.4, min_foreshortening: float = 0.5) -> torch.Tensor:
+        """What another viewpoint does to a surface texture, to first order: a random affine map per image,
+        in-plane rotation uniform in +-180 s degrees, isotropic zoom in [1/max_zoom, max_zoom]^s (log-uniform)
+        and foreshortening by a factor in [1 - s (1 - min_foreshortening), 1] along a random direction;
+        reflection padding, bilinear.  A 3DGS can only carry a watermark that survives this (a decoder
+        trained without it reads an image-space pattern that no multi-view consistent scene produces)."""
+        B, _, H, W = x.shape
+        u = torch.rand(B, 4, device=x.device, generator=self.gen)
+        a = (u[:, 0] * 2.0 - 1.0) * math.pi * s
+        zoom = torch.exp((u[:, 1] * 2.0 - 1.0) * math.log(max_zoom) * s)
+        f = 1.0 - u[:, 2] * s * (1.0 - min_foreshortening)
+        phi = u[:, 3] * math.pi
+        c, sn, cp, sp = torch.cos(a), torch.sin(a), torch.cos(phi), torch.sin(phi)
+        rot = torch.stack([torch.stack([c, -sn], -1), torch.stack([sn, c], -1)], 1)  # [B,2,2]
+        rphi = torch.stack([torch.stack([cp, -sp], -1), torch.stack([sp, cp], -1)], 1)
+        squash = torch.diag_embed(torch.stack([1.0 / f, torch.ones_like(f)], -1))  # output px -> input px
+        lin = rot @ rphi @ squash @ rphi.transpose(1, 2) * zoom.view(B, 1, 1)
+        aspect = torch.tensor([[1.0, H / W], [W / H, 1.0]], device=x.device)
+        theta = torch.cat([lin * aspect, torch.zeros(B, 2, 1, device=x.device)], -1)
+        grid = F.affine_grid(theta, [B, 3, H, W], align_corners=False)
+        return F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="reflection", align_corners=False)
+
     def combined(self, x: torch.Tensor, s: float) -> torch.Tensor:
         x = self.crop(x, s, lo=0.5)
         x = self.blur(x, s, lo=0.1, hi=1.0)
@@ -591,7 +614,8 @@ def train_multi(
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
                 x_w = embed_scaled(encoders[m], imgs, msgs, psnr, cfg.enc_down)
             for sl, li in zip(chunks, picks):
-                y = attacks.apply(names[li], x_w[sl], strength)
+                y = attacks.view(x_w[sl], strength) if cfg.view_warp else x_w[sl]
+                y = attacks.apply(names[li], y, strength)
                 ll = ll_subband(y.float())
                 if cfg.channels_last:
                     ll = ll.contiguous(memory_format=torch.channels_last)

@@ -1,0 +1,49 @@
+"""Decoder-training helpers of gsw.watermark.training (device attacks, multi-bit trainer)."""
+
+import math
+
+import torch
+
+from gsw.watermark import training as T
+
+
+def _ramp(h: int = 32, w: int = 48) -> torch.Tensor:
+    y, x = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    return torch.stack([x, y, 0.5 * (x + y)])[None].repeat(2, 1, 1, 1)
+
+
+def test_view_warp_strength_zero_is_identity():
+    x = _ramp()
+    y = T.GpuAttacks(torch.device("cpu"), 0).view(x, 0.0)
+    assert y.shape == x.shape
+    assert torch.allclose(y, x, atol=1e-5)
+
+
+def test_view_warp_deterministic_in_range_and_changes_the_image():
+    x = _ramp()
+    a = T.GpuAttacks(torch.device("cpu"), 3).view(x, 1.0)
+    b = T.GpuAttacks(torch.device("cpu"), 3).view(x, 1.0)
+    assert torch.equal(a, b)
+    assert a.shape == x.shape and a.min() >= 0.0 and a.max() <= 1.0
+    assert (a - x).abs().mean() > 0.05
+
+
+def test_view_warp_rotation_of_a_radial_pattern_is_invisible():
+    # only rotation (no zoom, no foreshortening): a centred radial pattern is unchanged away from the border
+    h = w = 65
+    y, x = torch.meshgrid(torch.arange(h) - 32.0, torch.arange(w) - 32.0, indexing="ij")
+    img = (0.5 + 0.5 * torch.cos((x**2 + y**2).sqrt() / 3.0)).expand(1, 3, h, w)
+    out = T.GpuAttacks(torch.device("cpu"), 1).view(img, 1.0, max_zoom=1.0, min_foreshortening=1.0)
+    inner = (x**2 + y**2).sqrt() < 24
+    assert (out[0, 0] - img[0, 0])[inner].abs().max() < 0.1  # bilinear resampling error only
+
+
+def test_train_multi_with_view_warp_runs_and_logs():
+    gen = torch.Generator().manual_seed(0)
+    bank = (torch.rand(4, 3, 40, 40, generator=gen) * 255).to(torch.uint8)
+    cfg = T.MultiConfig(bits=(8,), channels=8, enc_blocks=1, dec_blocks=2, crop=32, batch_size=4, steps=3,
+                        amp=False, channels_last=False, log_every=1, clean_frac=0.0, view_warp=True)
+    st = T.train_multi(cfg, bank, verbose=False)
+    assert st["step"] == 3 and len(st["log"]) == 3
+    assert all(math.isfinite(e["loss"]) for e in st["log"])
+    assert st["log"][-1]["strength"] > 0  # the warp (and attacks) were on
