@@ -144,7 +144,8 @@ def main() -> int:
              f"Model: {len(g):,} Gaussians from `benchmarks/train_lego.py`; {len(train.cameras)} training "
              f"views for embedding, {len(test.cameras)} held-out views (every 8th) for evaluation. "
              f"Settings: {args.epochs} epochs, LPIPS term {args.lpips}, mask {args.mask}, train-time "
-             f"attacks {args.attacks}, learning rates f_dc {args.lr_f_dc:g} / f_rest {args.lr_f_rest:g}, message weight {args.message_weight:g}. Metrics vs renders of the original model (paper protocol); "
+             f"attacks {args.attacks}, learning rates f_dc {args.lr_f_dc:g} / f_rest {args.lr_f_rest:g}, message "
+             f"weight {args.message_weight:g}. Metrics vs renders of the original model (paper protocol); "
              f"LPIPS network: {args.metric_lpips}. torch {torch.__version__}, {torch.get_num_threads()} threads, "
              f"{results['machine']['date']}.", "",
              "| bits | bit acc (held-out) | min view | views p<=1e-6 | unmarked acc | PSNR | SSIM | "

@@ -400,6 +400,22 @@ def bank_crops(bank: torch.Tensor, n: int, size: int, gen: torch.Generator,
     return x.contiguous(memory_format=torch.channels_last) if channels_last else x.contiguous()
 
 
+def _rot2(a: torch.Tensor) -> torch.Tensor:
+    """[B] angles (radians) -> [B,2,2] rotation matrices."""
+    c, s = torch.cos(a), torch.sin(a)
+    return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], 1)
+
+
+def _affine(x: torch.Tensor, lin: torch.Tensor, padding: str) -> torch.Tensor:
+    """Resample x [B,C,H,W] (bilinear) so that output pixel p (pixel units, from the centre) shows input
+    pixel lin[b] @ p; lin [B,2,2] acts on (x, y)."""
+    B, _, H, W = x.shape
+    aspect = torch.tensor([[1.0, H / W], [W / H, 1.0]], device=x.device, dtype=lin.dtype)  # pixels -> [-1,1]
+    theta = torch.cat([lin * aspect, torch.zeros(B, 2, 1, device=x.device, dtype=lin.dtype)], -1)
+    grid = F.affine_grid(theta, [B, x.shape[1], H, W], align_corners=False)
+    return F.grid_sample(x.float(), grid, mode="bilinear", padding_mode=padding, align_corners=False)
+
+
 class GpuAttacks:
     """Device-only training attacks, same names and ranges as :func:`training_noise_layers`.
 
@@ -467,14 +483,10 @@ class GpuAttacks:
         return clamp_st(x + n * std.view(-1, 1, 1, 1).to(x.dtype))
 
     def rotation(self, x: torch.Tensor, s: float) -> torch.Tensor:
-        B, _, H, W = x.shape
+        B = x.shape[0]
         u = torch.rand(B, 2, device=x.device, generator=self.gen)
         a = torch.deg2rad(15.0 * u[:, 0] * s * torch.where(u[:, 1] < 0.5, -1.0, 1.0))
-        cos, sin = torch.cos(a), torch.sin(a)
-        z = torch.zeros_like(a)
-        theta = torch.stack([torch.stack([cos, -sin * H / W, z], -1), torch.stack([sin * W / H, cos, z], -1)], 1)
-        grid = F.affine_grid(theta, [B, 3, H, W], align_corners=False)
-        return F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return _affine(x, _rot2(a), "zeros")
 
     def view(self, x: torch.Tensor, s: float, max_zoom: float = 1.4, min_foreshortening: float = 0.5) -> torch.Tensor:
         """What another viewpoint does to a surface texture, to first order: a random affine map per image,
@@ -482,21 +494,15 @@ class GpuAttacks:
         and foreshortening by a factor in [1 - s (1 - min_foreshortening), 1] along a random direction;
         reflection padding, bilinear.  A 3DGS can only carry a watermark that survives this (a decoder
         trained without it reads an image-space pattern that no multi-view consistent scene produces)."""
-        B, _, H, W = x.shape
+        B = x.shape[0]
         u = torch.rand(B, 4, device=x.device, generator=self.gen)
         a = (u[:, 0] * 2.0 - 1.0) * math.pi * s
         zoom = torch.exp((u[:, 1] * 2.0 - 1.0) * math.log(max_zoom) * s)
         f = 1.0 - u[:, 2] * s * (1.0 - min_foreshortening)
         phi = u[:, 3] * math.pi
-        c, sn, cp, sp = torch.cos(a), torch.sin(a), torch.cos(phi), torch.sin(phi)
-        rot = torch.stack([torch.stack([c, -sn], -1), torch.stack([sn, c], -1)], 1)  # [B,2,2]
-        rphi = torch.stack([torch.stack([cp, -sp], -1), torch.stack([sp, cp], -1)], 1)
-        squash = torch.diag_embed(torch.stack([1.0 / f, torch.ones_like(f)], -1))  # output px -> input px
-        lin = rot @ rphi @ squash @ rphi.transpose(1, 2) * zoom.view(B, 1, 1)
-        aspect = torch.tensor([[1.0, H / W], [W / H, 1.0]], device=x.device)
-        theta = torch.cat([lin * aspect, torch.zeros(B, 2, 1, device=x.device)], -1)
-        grid = F.affine_grid(theta, [B, 3, H, W], align_corners=False)
-        return F.grid_sample(x.float(), grid, mode="bilinear", padding_mode="reflection", align_corners=False)
+        rphi = _rot2(phi)
+        squash = torch.diag_embed(torch.stack([1.0 / f, torch.ones_like(f)], -1))
+        return _affine(x, _rot2(a) @ rphi @ squash @ rphi.transpose(1, 2) * zoom.view(B, 1, 1), "reflection")
 
     def combined(self, x: torch.Tensor, s: float) -> torch.Tensor:
         x = self.crop(x, s, lo=0.5)
