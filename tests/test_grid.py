@@ -16,6 +16,7 @@ import gsw.grid as grid
 from gsw.cli import main
 from gsw.data import save_inria_model, write_image
 from gsw.embed import EmbedConfig
+from gsw.losses import LossWeights
 from gsw.grid import (METHODS, GridMismatchError, GridSpec, aggregate, apply_overrides, default_grid_scene,
                       detection_rate, detection_rates, load_grid_scene, lpips_loss_overrides, mean_std,
                       method_config, run_grid)
@@ -60,7 +61,8 @@ def test_cell_config_layers_grid_overrides_method_and_axes() -> None:
                     embed={"weights": {"subband": 0.5, "lpips": 0.0}, "lr_f_dc": 1e-3, "lpips_net": None})
     full, ablated = spec.config("3d-gsw", 7, (1, 1, 1)), spec.config("no-subband", 7, (1, 1, 1))
     assert full.weights.subband == 0.5 and ablated.weights.subband == 0.0  # the method wins
-    assert full.weights.lpips == ablated.weights.lpips == 0.0 and ablated.weights.message == 0.4
+    assert full.weights.lpips == ablated.weights.lpips == 0.0
+    assert ablated.weights.message == LossWeights().message  # untouched weights keep their defaults
     for cfg in (full, ablated):
         assert (cfg.epochs, cfg.seed, cfg.background, cfg.lr_f_dc, cfg.lpips_net) == (3, 7, (1.0, 1.0, 1.0), 1e-3, None)
     assert apply_overrides(EmbedConfig(), {"background": [1, 0, 0]}).background == (1, 0, 0)
