@@ -62,7 +62,7 @@ __all__ = [
     "METHODS", "ABLATIONS", "PAPER_MODEL_ATTACKS", "GridSpec", "GridScene", "Cell", "Stat", "GridSummary",
     "GridMismatchError", "method_config", "apply_overrides", "lpips_loss_overrides", "default_grid_scene",
     "load_grid_scene", "detection_rate", "detection_rates", "mean_std", "cell_metrics", "aggregate", "run_cell",
-    "run_grid",
+    "run_grid", "decoder_fingerprint",
 ]
 
 #: Named methods as :class:`~gsw.embed.EmbedConfig` overrides (``"weights"`` overrides single fields of
@@ -781,8 +781,20 @@ _CELL_KEYS = ("format", "grid", "method", "bits", "seed", "config", "message", "
               "embedding", "timings", "fps", "storage")
 
 
-def _load_cell(path: Path, cell: Cell, digest: str) -> dict[str, Any] | None:
-    """A finished cell of this grid, or None (missing, corrupt or from other settings: recompute)."""
+def decoder_fingerprint(decoder: torch.nn.Module) -> str:
+    """Short sha256 of a decoder's parameters and buffers (names, dtypes, shapes, values)."""
+    h = hashlib.sha256()
+    for name, t in sorted(decoder.state_dict().items()):
+        t = t.detach().cpu().contiguous()
+        h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _load_cell(path: Path, cell: Cell, digest: str, config: dict[str, Any],
+               decoder: str) -> dict[str, Any] | None:
+    """A finished cell of this grid, or None (missing, corrupt, or from other settings, another resolved
+    EmbedConfig (e.g. changed library defaults) or another decoder: recompute)."""
     if not path.exists():
         return None
     try:
@@ -793,8 +805,12 @@ def _load_cell(path: Path, cell: Cell, digest: str) -> dict[str, Any] | None:
     if not complete or (data["method"], data["bits"], data["seed"]) != tuple(cell) or data["format"] != FORMAT:
         warnings.warn(f"{path} is corrupt or incomplete; recomputing the cell", RuntimeWarning, stacklevel=3)
         return None
-    if data["grid"] != digest:
+    if data["grid"] != digest or json.loads(json.dumps(data["config"])) != json.loads(json.dumps(config)):
         warnings.warn(f"{path} was computed with other settings; recomputing the cell", RuntimeWarning,
+                      stacklevel=3)
+        return None
+    if data.get("decoder") != decoder:
+        warnings.warn(f"{path} was computed with another decoder; recomputing the cell", RuntimeWarning,
                       stacklevel=3)
         return None
     return data
@@ -819,6 +835,8 @@ def run_grid(spec: GridSpec, scene: GridScene, output: str | Path, *, resume: bo
         force: replace the settings of a folder that holds another grid (its cells are recomputed).
         progress: show a progress bar over the cells on stderr.
         decoder_for: bit length -> frozen decoder (default: the shipped ones), loaded once per bit length.
+            A finished cell is reused only if its decoder (parameter fingerprint) and its resolved
+            EmbedConfig are the current ones.
 
     Returns:
         The :class:`GridSummary` of the spec's cells (also written as ``summary.json`` / ``summary.md``).
@@ -835,20 +853,20 @@ def run_grid(spec: GridSpec, scene: GridScene, output: str | Path, *, resume: bo
     from gsw.data.images import write_image
 
     write_image(out / "original.png", _first_view(scene.gaussians, scene))
-    decoders: dict[int, torch.nn.Module] = {}
+    decoders = {bits: decoder_for(bits) for bits in spec.bits}
+    fingerprints = {bits: decoder_fingerprint(d) for bits, d in decoders.items()}
     original_storage: dict[str, int] | None = None
     cells, computed = [], 0
     with Progress(len(spec.cells()), "grid", enabled=progress) as bar:
         for cell in spec.cells():
             path = out / "cells" / f"{cell.name}.json"
-            data = _load_cell(path, cell, digest) if resume else None
+            config = asdict(spec.config(cell.method, cell.seed, scene.background))
+            data = _load_cell(path, cell, digest, config, fingerprints[cell.bits]) if resume else None
             if data is None:
-                if cell.bits not in decoders:
-                    decoders[cell.bits] = decoder_for(cell.bits)
                 original_storage = original_storage or _storage(scene.gaussians)
-                data = {"grid": digest, **run_cell(spec, scene, cell, decoder=decoders[cell.bits],
-                                                   original_storage=original_storage,
-                                                   image_path=path.with_suffix(".png"))}
+                data = {"grid": digest, "decoder": fingerprints[cell.bits],
+                        **run_cell(spec, scene, cell, decoder=decoders[cell.bits], original_storage=original_storage,
+                                   image_path=path.with_suffix(".png"))}
                 _write_json(path, data)
                 computed += 1
             cells.append(data)

@@ -17,9 +17,9 @@ from gsw.cli import main
 from gsw.data import save_inria_model, write_image
 from gsw.embed import EmbedConfig
 from gsw.losses import LossWeights
-from gsw.grid import (METHODS, GridMismatchError, GridSpec, aggregate, apply_overrides, default_grid_scene,
-                      detection_rate, detection_rates, load_grid_scene, lpips_loss_overrides, mean_std,
-                      method_config, run_grid)
+from gsw.grid import (METHODS, GridMismatchError, GridSpec, aggregate, apply_overrides, decoder_fingerprint,
+                      default_grid_scene, detection_rate, detection_rates, load_grid_scene, lpips_loss_overrides,
+                      mean_std, method_config, run_grid)
 from gsw.messages import binomial_p_value
 from gsw.scenes import default_scene
 from gsw.watermark.evaluation import false_positive_threshold
@@ -278,6 +278,42 @@ def test_rerun_skips_finished_cells_and_recomputes_corrupt_ones(tiny_grid, tiny_
     assert calls == [1, 2, 0] and forced.computed == 1
     assert json.loads((out / "grid.json").read_text())["settings"]["fps_repeats"] == 2
     assert not [p for p in out.rglob(".*")]  # no temporary files left
+
+
+def test_rerun_recomputes_cells_of_another_decoder_or_changed_defaults(tiny_grid, tiny_scene, tmp_path,
+                                                                      monkeypatch) -> None:
+    out = tmp_path / "g"
+    shutil.copytree(tiny_grid[0], out)
+    spec = dataclasses.replace(GridSpec(**TINY), methods=("waterf-3dgs",), seeds=(0,))
+    calls = []
+    real_embed = grid.embed
+
+    def counting_embed(*args, **kwargs):
+        calls.append(kwargs["config"].seed)
+        return real_embed(*args, **kwargs)
+
+    monkeypatch.setattr(grid, "embed", counting_embed)
+    from gsw.watermark.zoo import load_decoder
+
+    def other_decoder(bits: int):
+        d = load_decoder(bits)
+        d.whitening.bias.add_(0.5)  # a retrained / replaced decoder
+        return d
+
+    assert decoder_fingerprint(other_decoder(32)) != decoder_fingerprint(load_decoder(32))
+    with pytest.warns(RuntimeWarning, match="another decoder"):
+        again = run_grid(spec, tiny_scene, out, progress=False, decoder_for=other_decoder)
+    assert calls == [0] and again.computed == 1
+    # a library default that changes a cell's EmbedConfig (not the grid's settings) invalidates it too
+    @dataclasses.dataclass
+    class ChangedDefaults(EmbedConfig):
+        lr_f_rest: float = 1e-3
+
+    monkeypatch.setattr(grid, "EmbedConfig", ChangedDefaults)
+    with pytest.warns(RuntimeWarning, match="other settings"):
+        again = run_grid(spec, tiny_scene, out, progress=False, decoder_for=other_decoder)
+    assert calls == [0, 0] and again.computed == 1
+    assert json.loads((out / "cells" / "waterf-3dgs_32b_seed0.json").read_text())["config"]["lr_f_rest"] == 1e-3
 
 
 # ------------------------------------------------------------------------------------------ CLI
