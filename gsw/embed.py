@@ -32,7 +32,7 @@ from gsw.progress import Progress
 @dataclass
 class EmbedConfig:
     """Settings of :func:`embed` (defaults: the paper's recipe; learning rates of the official code except
-    the SH colours: f_dc x2 and f_rest x4, measured best with the shipped decoders, BENCHMARKS.md §6).
+    the SH colours: f_dc x2 and f_rest x8, measured best with the shipped decoders, BENCHMARKS.md §6).
 
     Attributes:
         epochs: passes over the shuffled training views.
@@ -53,7 +53,7 @@ class EmbedConfig:
 
     epochs: int = 8
     lr_f_dc: float = 5e-3  # official code: 2.5e-3
-    lr_f_rest: float = 5e-4  # official code: 1.25e-4
+    lr_f_rest: float = 1e-3  # official code: 1.25e-4
     lr_opacity: float = 0.05
     lr_scaling: float = 5e-3
     lr_rotation: float = 1e-3

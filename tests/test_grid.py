@@ -307,13 +307,13 @@ def test_rerun_recomputes_cells_of_another_decoder_or_changed_defaults(tiny_grid
     # a library default that changes a cell's EmbedConfig (not the grid's settings) invalidates it too
     @dataclasses.dataclass
     class ChangedDefaults(EmbedConfig):
-        lr_f_rest: float = 1e-3
+        lr_f_rest: float = 2 * EmbedConfig.lr_f_rest
 
     monkeypatch.setattr(grid, "EmbedConfig", ChangedDefaults)
     with pytest.warns(RuntimeWarning, match="other settings"):
         again = run_grid(spec, tiny_scene, out, progress=False, decoder_for=other_decoder)
     assert calls == [0, 0] and again.computed == 1
-    assert json.loads((out / "cells" / "waterf-3dgs_32b_seed0.json").read_text())["config"]["lr_f_rest"] == 1e-3
+    assert json.loads((out / "cells" / "waterf-3dgs_32b_seed0.json").read_text())["config"]["lr_f_rest"] == 2 * EmbedConfig.lr_f_rest
 
 
 # ------------------------------------------------------------------------------------------ CLI
