@@ -49,14 +49,12 @@ def main() -> int:
     parser.add_argument("--mask", default="exp", choices=["exp", "stega", "none"])
     parser.add_argument("--attacks", type=float, default=0.0)
     parser.add_argument("--message-weight", type=float, default=LossWeights.message, help="weight of the BCE term")
-    parser.add_argument("--lr-f-dc", type=float, default=None, help="default: EmbedConfig's")
-    parser.add_argument("--lr-f-rest", type=float, default=None, help="default: EmbedConfig's")
+    parser.add_argument("--lr-f-dc", type=float, default=EmbedConfig.lr_f_dc)
+    parser.add_argument("--lr-f-rest", type=float, default=EmbedConfig.lr_f_rest)
     parser.add_argument("--tag", default=None, help="results name (default embed_lego, embed_lego_cuda on a GPU)")
     parser.add_argument("--device", default="auto", help="cpu, cuda[:N] or auto")
     args = parser.parse_args()
 
-    args.lr_f_dc = EmbedConfig.lr_f_dc if args.lr_f_dc is None else args.lr_f_dc
-    args.lr_f_rest = EmbedConfig.lr_f_rest if args.lr_f_rest is None else args.lr_f_rest
     dev = resolve_device(args.device)
     args.tag = args.tag or ("embed_lego_cuda" if dev.type == "cuda" else "embed_lego")
     model = load_inria_model(args.model)

@@ -239,11 +239,10 @@ def test_tiny_grid_writes_cells_and_tables(tiny_grid, tiny_scene) -> None:
     assert json.loads((out / "summary.json").read_text())["groups"][1]["method"] == "waterf-3dgs"
 
 
-def test_rerun_skips_finished_cells_and_recomputes_corrupt_ones(tiny_grid, tiny_scene, tmp_path,
-                                                                monkeypatch) -> None:
-    out = tmp_path / "g"
-    shutil.copytree(tiny_grid[0], out)
-    calls = []
+@pytest.fixture
+def embed_calls(monkeypatch) -> list[int]:
+    """The seeds of the cells that :func:`gsw.grid.run_grid` embeds (i.e. recomputes), in order."""
+    calls: list[int] = []
     real_embed = grid.embed
 
     def counting_embed(*args, **kwargs):
@@ -251,6 +250,14 @@ def test_rerun_skips_finished_cells_and_recomputes_corrupt_ones(tiny_grid, tiny_
         return real_embed(*args, **kwargs)
 
     monkeypatch.setattr(grid, "embed", counting_embed)
+    return calls
+
+
+def test_rerun_skips_finished_cells_and_recomputes_corrupt_ones(tiny_grid, tiny_scene, tmp_path,
+                                                                embed_calls) -> None:
+    calls = embed_calls
+    out = tmp_path / "g"
+    shutil.copytree(tiny_grid[0], out)
     spec = GridSpec(**TINY)
     again = run_grid(spec, tiny_scene, out, progress=False)
     assert calls == [] and (again.computed, again.reused) == (0, 4)
@@ -281,18 +288,11 @@ def test_rerun_skips_finished_cells_and_recomputes_corrupt_ones(tiny_grid, tiny_
 
 
 def test_rerun_recomputes_cells_of_another_decoder_or_changed_defaults(tiny_grid, tiny_scene, tmp_path,
-                                                                      monkeypatch) -> None:
+                                                                      embed_calls, monkeypatch) -> None:
+    calls = embed_calls
     out = tmp_path / "g"
     shutil.copytree(tiny_grid[0], out)
     spec = dataclasses.replace(GridSpec(**TINY), methods=("waterf-3dgs",), seeds=(0,))
-    calls = []
-    real_embed = grid.embed
-
-    def counting_embed(*args, **kwargs):
-        calls.append(kwargs["config"].seed)
-        return real_embed(*args, **kwargs)
-
-    monkeypatch.setattr(grid, "embed", counting_embed)
     from gsw.watermark.zoo import load_decoder
 
     def other_decoder(bits: int):

@@ -18,13 +18,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
+
+if __package__ and __package__.startswith("gsw."):
+    from gsw._atomic import atomic_write
+else:  # gsw/watermark imported as the top-level package ``watermark`` (benchmarks; no compiled extension)
+    from _atomic import atomic_write
 
 from .dwt import LEVELS, ll_subband
 from .hidden import HiddenDecoder
@@ -162,25 +165,12 @@ def load_decoder(
 
 
 def atomic_torch_save(obj: Any, path: str | Path) -> None:
-    """``torch.save`` to a temporary file in the same directory, then ``os.replace``: readers never see a
-    partial file and a failed write leaves ``path`` untouched.  (This subpackage imports nothing from
-    the rest of ``gsw``, so it does not use ``gsw._atomic``.)"""
+    """``torch.save`` through :func:`gsw._atomic.atomic_write` (creating the directory): readers never see
+    a partial file and a failed write leaves ``path`` untouched."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_write(path, "wb") as f:
+        torch.save(obj, f)
 
 
 def save_decoder(
