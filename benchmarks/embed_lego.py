@@ -33,7 +33,7 @@ def main() -> int:
     import gsw
     from gsw.data import load_inria_model, load_nerf_synthetic
     from gsw.embed import EmbedConfig, embed, verify
-    from gsw.fgd import fgd_prune
+    from gsw.fgd import PRUNE_THRESHOLD, fgd_prune
     from gsw.losses import LossWeights
     from gsw.metrics import psnr, ssim
     from gsw.train import resolve_device
@@ -53,6 +53,8 @@ def main() -> int:
     parser.add_argument("--lr-f-rest", type=float, default=EmbedConfig.lr_f_rest)
     parser.add_argument("--tag", default=None, help="results name (default embed_lego, embed_lego_cuda on a GPU)")
     parser.add_argument("--device", default="auto", help="cpu, cuda[:N] or auto")
+    parser.add_argument("--prune-sweep", type=float, nargs="*", default=[],
+                        help="also report FGD phase 1 at these multiples of the default threshold")
     args = parser.parse_args()
 
     dev = resolve_device(args.device)
@@ -106,6 +108,12 @@ def main() -> int:
     results["speed"] = dict(fps_original=fps(g, test.cameras), fps_pruned=fps(pruned, test.cameras),
                             ply_mb_original=len(g) * 62 * 4 / 2**20,
                             ply_mb_pruned=len(pruned) * 62 * 4 / 2**20)
+    results["fgd_sweep"] = []
+    for mult in args.prune_sweep:
+        p_g, p_s = fgd_prune(g, train.cameras, train_images, background=bg, threshold=PRUNE_THRESHOLD * mult)
+        results["fgd_sweep"].append(dict(threshold=PRUNE_THRESHOLD * mult, removed=p_s.num_removed,
+                                         fraction=p_s.fraction_removed,
+                                         psnr_vs_original=_mean(r["psnr"] for r in quality(g, p_g, test.cameras))))
     print(json.dumps(results, indent=1), flush=True)
 
     results["bits"] = {}
@@ -160,6 +168,11 @@ def main() -> int:
               f"({100 * fp['fraction']:.1f} %); pruned model vs original renders {fp['psnr_vs_original']:.2f} dB; "
               f"{where} render speed {sp['fps_original']:.1f} -> {sp['fps_pruned']:.1f} FPS; PLY size "
               f"{sp['ply_mb_original']:.1f} -> {sp['ply_mb_pruned']:.1f} MB."]
+    if results["fgd_sweep"]:
+        lines += ["", "FGD phase 1 threshold sweep (held-out views, pruned model vs original renders):", "",
+                  "| threshold | removed | fraction | PSNR vs original |", "|---|---|---|---|"]
+        lines += [f"| {r['threshold']:.0e} | {r['removed']:,} | {100 * r['fraction']:.1f} % | "
+                  f"{r['psnr_vs_original']:.2f} dB |" for r in results["fgd_sweep"]]
     (out / f"{args.tag}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -39,6 +39,8 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--seeds", nargs="+", type=int, default=list(default.seeds))
     ap.add_argument("--epochs", type=int, default=default.epochs)
     ap.add_argument("--sweeps", nargs="*", default=list(default.sweeps))
+    ap.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks),
+                    help="keys of gsw.attacks.MODEL_ATTACKS")
     ap.add_argument("--lpips", default="alex", choices=["vgg", "alex", "none"], help="LPIPS term of the embedding loss")
     ap.add_argument("--metric-lpips", default="vgg", choices=["vgg", "alex", "none"], help="LPIPS of the report")
     ap.add_argument("--train-views", type=int, default=None, help="evenly spaced embedding views (default: all 87)")
@@ -64,7 +66,7 @@ def main() -> int:
     scene = dataclasses.replace(scene, gaussians=scene.gaussians.to(dev),
                                 images=None if scene.images is None else scene.images.to(dev))
     spec = GridSpec(methods=tuple(args.methods), bits=tuple(args.bits), seeds=tuple(args.seeds), epochs=args.epochs,
-                    sweeps=tuple(args.sweeps), embed=lpips_loss_overrides(None if args.lpips == "none" else args.lpips),
+                    sweeps=tuple(args.sweeps), model_attacks=tuple(args.model_attacks), embed=lpips_loss_overrides(None if args.lpips == "none" else args.lpips),
                     lpips_net=None if args.metric_lpips == "none" else args.metric_lpips)
     start = time.perf_counter()
     summary = run_grid(spec, scene, ROOT / "build" / "eval_grid" / tag, force=args.force,

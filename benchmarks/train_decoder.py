@@ -138,9 +138,15 @@ def main() -> None:
     ap.add_argument("--templates", type=int, default=0, help="> 0: on/off template encoder aid of this side")
     ap.add_argument("--view-warp", action="store_true",
                     help="every training sample also goes through a random view warp (rotation, zoom, foreshortening)")
+    ap.add_argument("--balance", type=float, default=0.0,
+                    help="weight of the unmarked-balance loss (decoder unbiased per bit on unmarked crops)")
+    ap.add_argument("--balance-batch", type=int, default=16, help="unmarked crops per step for that loss")
+    ap.add_argument("--freeze-bn", action="store_true",
+                    help="decoder BatchNorm in eval mode (fine-tuning: train exactly the inference network)")
     ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run")
     ap.add_argument("--whiten-mode", default="zca", choices=["pca", "zca"])
     ap.add_argument("--whiten-center", default="median", choices=["mean", "median"])
+    ap.add_argument("--whiten-eps", type=float, default=1e-3, help="eigenvalue floor relative to the largest")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--log-every", type=int, default=200)
     ap.add_argument("--val-every-s", type=float, default=60.0)
@@ -170,7 +176,8 @@ def main() -> None:
                         steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
                         channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
                         enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates,
-                        view_warp=args.view_warp)
+                        view_warp=args.view_warp, balance=args.balance, balance_batch=args.balance_batch,
+                        freeze_bn=args.freeze_bn)
     encs0, decs0 = load_init(Path(args.init), cfg) if args.init else (None, None)
     st = T.train_multi(cfg, bank, encoders=encs0, decoders=decs0, val_fn=make_val_fn(val_bank, cfg),
                        val_every_s=args.val_every_s, tag="train ")
@@ -181,8 +188,9 @@ def main() -> None:
     encs, decs = st["encoders"], st["decoders"]
     log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")
     torch.backends.cudnn.benchmark = False  # evaluation sees many image sizes
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False  # whitening in float32
     whitens, nfit = T.fit_whitening_multi(decs, train_images, bank, num_crops=args.whiten_crops,
-                                          mode=args.whiten_mode, center=args.whiten_center)
+                                          mode=args.whiten_mode, center=args.whiten_center, eps=args.whiten_eps)
     whitens = [w.to(device) for w in whitens]
     log(f"whitening fitted on {nfit} samples")
     dev_name = torch.cuda.get_device_name(0) if device.type == "cuda" else (platform.processor() or "cpu")

@@ -423,7 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="watermark the built-in scene and read it back (no downloads)")
     demo.add_argument("--output", default="gsw-demo", help="output folder (default: gsw-demo)")
-    demo.add_argument("--size", type=_positive_int, default=128, help="render size (pixels)")
+    demo.add_argument("--size", type=_positive_int, default=256, help="render size (pixels); the decoder reads the LL2 subband, 64x64 here")
     demo.add_argument("--views", type=_positive_int, default=24, help="training views")
     demo.add_argument("--epochs", type=_positive_int, default=8)
     demo.add_argument("--bits", type=_positive_int, default=32)

@@ -244,6 +244,16 @@ def test_parameter_noise():
         A.parameter_noise(g, fields=("colors",))
 
 
+def test_parameter_noise_attributes_leaves_positions_alone():
+    g = random_model(5000)
+    out = A.parameter_noise_attributes(g, sigma=0.1, seed=0)
+    full = A.parameter_noise(g, sigma=0.1, seed=0)
+    assert torch.equal(out.means, g.means)
+    for name in ("log_scales", "quats", "opacity_logits", "sh"):
+        assert torch.equal(getattr(out, name), getattr(full, name)), name  # same noise as the full attack
+    assert A.MODEL_ATTACKS["parameter_noise_attributes"] is A.parameter_noise_attributes
+
+
 @pytest.mark.parametrize("n", [1000, 7, 0])
 def test_remove_random(n):
     g = random_model(n)

@@ -47,3 +47,40 @@ def test_train_multi_with_view_warp_runs_and_logs():
     assert st["step"] == 3 and len(st["log"]) == 3
     assert all(math.isfinite(e["loss"]) for e in st["log"])
     assert st["log"][-1]["strength"] > 0  # the warp (and attacks) were on
+
+
+def test_balance_loss_zero_when_every_bit_is_split_in_half_and_one_when_constant():
+    half = torch.tensor([[20.0, -20.0], [-20.0, 20.0]])  # each bit 1 on one image of two
+    assert float(T.balance_loss(half)) < 1e-12
+    assert abs(float(T.balance_loss(torch.full((5, 3), 30.0))) - 1.0) < 1e-6
+    assert abs(float(T.balance_loss(torch.full((5, 3), -30.0))) - 1.0) < 1e-6
+    x = torch.tensor([[1.0, 2.0], [0.5, -0.1]], requires_grad=True)
+    T.balance_loss(x).backward()
+    assert (x.grad > 0).all()  # both bits lean to 1: descent lowers every logit
+
+
+def test_train_multi_balance_loss_unbiases_an_unmarked_decoder():
+    gen = torch.Generator().manual_seed(0)
+    bank = (torch.rand(8, 3, 48, 48, generator=gen) * 255).to(torch.uint8)
+    cfg = T.MultiConfig(bits=(4,), channels=8, enc_blocks=1, dec_blocks=2, crop=32, batch_size=8, steps=100,
+                        amp=False, channels_last=False, log_every=10, clean_frac=1.0, lr=1e-2,
+                        balance=10.0, balance_batch=16, balance_sizes=(32, 48), freeze_bn=True)
+    dec = T.HiddenDecoder(4, 2, 8, cfg.dec_norm)
+    with torch.no_grad():
+        dec.linear.bias.fill_(3.0)  # every bit 1 on every image
+    cover = T.bank_crops(bank, 64, 40, torch.Generator().manual_seed(5))
+    ll = T.ll_subband(cover)
+
+    def p1_dev() -> float:
+        dec.eval()
+        with torch.no_grad():
+            return float(((dec(ll) > 0).float().mean(0) - 0.5).abs().mean())
+
+    assert p1_dev() == 0.5
+    bn_before = [b.running_mean.clone() for b in dec.modules() if isinstance(b, torch.nn.BatchNorm2d)]
+    st = T.train_multi(cfg, bank, decoders=[dec], verbose=False)
+    bal = [e["balance"]["k4"] for e in st["log"]]
+    assert bal[-1] < 0.6 * bal[0]
+    assert p1_dev() < 0.4
+    bn_after = [b.running_mean for b in dec.modules() if isinstance(b, torch.nn.BatchNorm2d)]
+    assert all(torch.equal(a, b) for a, b in zip(bn_before, bn_after))  # freeze_bn: statistics untouched

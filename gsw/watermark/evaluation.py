@@ -124,6 +124,7 @@ def unbiasedness(
         "per_bit_p1": per_bit_p1.tolist(),
         "per_bit_p1_max_dev": float((per_bit_p1 - 0.5).abs().max()),
         "per_bit_p1_stderr_if_fair": 0.5 / math.sqrt(n),
+        "per_bit_p1_max_dev_if_fair": fair_max_dev(n, num_bits),
         "per_bit_acc_vs_messages_min": float(per_bit_acc.min()),
         "per_bit_acc_vs_messages_max": float(per_bit_acc.max()),
         "fp_threshold": thr,
@@ -149,8 +150,17 @@ def unbiasedness(
         p1 = vbits.mean(0)
         res.update(views_num=vbits.shape[0], views_per_bit_p1=p1.tolist(),
                    views_per_bit_p1_max_dev=float((p1 - 0.5).abs().max()),
+                   views_per_bit_p1_max_dev_if_fair=fair_max_dev(vbits.shape[0], num_bits),
                    views_mean_bit_acc=float(((vbits @ msgs.T + (1 - vbits) @ (1 - msgs).T) / num_bits).mean()))
     return res
+
+
+def fair_max_dev(n: int, k: int, trials: int = 4000, seed: int = 0) -> float:
+    """Median over simulations of max_j |P(bit j = 1) - 0.5| for n images of k fair, independent bits: the
+    value a perfectly unbiased decoder shows on n images (the measurement floor of the per-bit target)."""
+    gen = np.random.default_rng(seed)
+    p1 = gen.binomial(n, 0.5, size=(trials, k)) / n
+    return float(np.median(np.abs(p1 - 0.5).max(1)))
 
 
 def summarize_bits(values: list[float]) -> dict[str, float]:

@@ -11,6 +11,9 @@ The pipeline (``benchmarks/train_decoder.py`` is the command-line entry point):
 2. :func:`train_multi` - the GPU-resident trainer that produced the shipped weights: every bit length at
    once on crops of a device-side image bank, device-only attacks; also the encoder-only fine-tune against
    frozen whitened decoders. :func:`fit_whitening_multi` then fits their whitening (ZCA, median-centred).
+   Optionally (``MultiConfig.balance``) the decoder is also trained to be unbiased on unmarked crops of
+   several sizes (:func:`balance_loss`), which whitening alone cannot give: the raw outputs of unmarked
+   images shift with the image size, so a median fitted at one size leaves bits biased at another.
 
 Only this subpackage is imported (no compiled extension), so it runs wherever torch does.
 """
@@ -36,6 +39,7 @@ from .zoo import atomic_torch_save
 
 __all__ = [
     "TrainConfig",
+    "balance_loss",
     "load_images",
     "random_crops",
     "embed",
@@ -321,6 +325,10 @@ class MultiConfig:
     enc_down: int = 1  # the encoder works on the crop downsampled by this factor (see embed_scaled)
     templates: int = 0  # > 0: the encoder also adds learned periodic per-bit templates of this side (LL2 px)
     view_warp: bool = False  # every sample also goes through GpuAttacks.view (ramped with the attack strength)
+    balance: float = 0.0  # weight of the unmarked-balance loss (0 = off), see balance_loss
+    balance_batch: int = 16  # unmarked crops per step and bit length for that loss
+    balance_sizes: tuple[int, ...] = (128, 192, 256, 320)  # their side, one drawn per step
+    freeze_bn: bool = False  # decoder BatchNorm in eval mode (running statistics, frozen): for fine-tuning
 
 
 class TemplateEncoder(torch.nn.Module):
@@ -525,6 +533,23 @@ def _sched(cfg: MultiConfig, p: float) -> tuple[float, float, float]:
     return lr, strength, psnr
 
 
+def balance_loss(logits: torch.Tensor) -> torch.Tensor:
+    """Unmarked-balance loss: mean over bits of (batch mean of tanh(logit))^2, for logits [B,k] of
+    *unmarked* images.  Zero when every bit is 1 on half of the batch (tanh is a soft sign), so it pushes
+    each bit's P(1) over unmarked images towards 0.5 without asking for any particular code."""
+    return torch.tanh(logits.float()).mean(0).pow(2).mean()
+
+
+def _train_mode(decoder: HiddenDecoder, freeze_bn: bool) -> None:
+    """Decoder in training mode; with ``freeze_bn`` its BatchNorm layers stay in eval mode, so the network
+    trained is exactly the one used at inference (running statistics no longer follow the batches)."""
+    decoder.train()
+    if freeze_bn:
+        for mod in decoder.modules():
+            if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm):
+                mod.eval()
+
+
 def _to_cl(m: torch.nn.Module, on: bool) -> torch.nn.Module:
     if on:
         for mod in m.modules():  # only the convolutions (a TemplateEncoder's templates are 5-D)
@@ -574,7 +599,7 @@ def train_multi(
     else:
         whitenings = None
         for d in decoders:
-            d.train()
+            _train_mode(d, cfg.freeze_bn)
         params = [p for m in (*encoders, *decoders) for p in m.parameters()]
     for e in encoders:
         e.train()
@@ -587,6 +612,7 @@ def train_multi(
     acc_sum = torch.zeros(M, L, device=dev)
     cnt = [0] * L
     loss_sum = torch.zeros((), device=dev)
+    bal_sum = torch.zeros(M, device=dev)
     n_loss = 0
     log: list[dict[str, Any]] = []
     vals: list[dict[str, Any]] = []
@@ -615,6 +641,7 @@ def train_multi(
         else:
             picks = [attacks.rng.randrange(L) for _ in chunks]
         total = 0.0
+        cover_size = min(attacks.rng.choice(cfg.balance_sizes), *bank.shape[-2:])
         for m, k in enumerate(cfg.bits):
             msgs = torch.randint(0, 2, (B, k), device=dev, generator=gen).float()
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
@@ -633,6 +660,21 @@ def train_multi(
                 total = total + F.binary_cross_entropy_with_logits(logits, msgs[sl]) * (
                     (sl.stop - sl.start) / B)
                 acc_sum[m, li] += bit_accuracy(logits.detach(), msgs[sl]).mean()
+            if cfg.balance > 0 and not finetune_encoders:
+                # unmarked crops of a random size, decoded as at inference (eval-mode BatchNorm: in train
+                # mode the batch statistics would hide exactly the shift that biases the bits)
+                cover = bank_crops(bank, cfg.balance_batch, cover_size, gen, cfg.channels_last)
+                cover = attacks.view(cover, strength) if cfg.view_warp else cover
+                ll = ll_subband(cover.float())
+                if cfg.channels_last:
+                    ll = ll.contiguous(memory_format=torch.channels_last)
+                decoders[m].eval()
+                with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
+                    u = decoders[m](ll)
+                _train_mode(decoders[m], cfg.freeze_bn)
+                bal = balance_loss(u)
+                total = total + cfg.balance * bal
+                bal_sum[m] += bal.detach()
         for li in picks:
             cnt[li] += 1
         opt.zero_grad(set_to_none=True)
@@ -658,8 +700,12 @@ def train_multi(
                                      "loss": float(loss_sum) / max(1, n_loss)}
             for m, k in enumerate(cfg.bits):
                 entry[f"k{k}"] = {names[li]: round(accs[m][li], 4) for li in range(L) if cnt[li]}
+            if cfg.balance > 0 and not finetune_encoders:
+                entry["balance"] = {f"k{k}": round(float(bal_sum[m]) / max(1, n_loss), 5)
+                                    for m, k in enumerate(cfg.bits)}
             log.append(entry)
             acc_sum.zero_()
+            bal_sum.zero_()
             loss_sum.zero_()
             cnt, n_loss = [0] * L, 0
             if verbose:
@@ -675,7 +721,7 @@ def train_multi(
                 e.train()
             if not finetune_encoders:
                 for d in decoders:
-                    d.train()
+                    _train_mode(d, cfg.freeze_bn)
             v.update(step=step, elapsed=round(elapsed, 1))
             vals.append(v)
             if verbose:
@@ -703,10 +749,14 @@ def fit_whitening_multi(
     seed: int = 1,
     mode: str = "zca",
     center: str = "median",
+    eps: float = 1e-3,
 ) -> tuple[list[WhiteningLayer], int]:
     """Whitening of each (eval-mode) decoder on the same unmarked inputs: every full photo of ``images``
     and its mirror image, plus ``num_crops`` random crops (+ flips) of ``bank`` in ``crop_sizes``.
-    ``mode`` / ``center`` as in :meth:`WhiteningLayer.fit`.  Returns the layers (on the CPU) and the
+    ``mode`` / ``center`` / ``eps`` as in :meth:`WhiteningLayer.fit`; the default ``eps`` (relative to the
+    largest eigenvalue) caps the gain at ~30x the top direction's: a decoder trained with the balance loss
+    can have a dead output direction (eigenvalue ~1e-11) that an unregularised inverse square root would
+    amplify by ~1e5, turning float rounding (TF32 on GPUs) into bit flips.  Returns the layers (on the CPU) and the
     number of samples."""
     dev = bank.device
     for d in decoders:
@@ -724,6 +774,6 @@ def fit_whitening_multi(
             ll = ll_subband(bank_crops(bank, min(250, per - i0), s, gen))
             for i, d in enumerate(decoders):
                 outs[i].append(d(ll).float().cpu())
-    layers = [WhiteningLayer(d.num_bits).fit(torch.cat(o), mode=mode, center=center)
+    layers = [WhiteningLayer(d.num_bits).fit(torch.cat(o), mode=mode, center=center, eps=eps)
               for d, o in zip(decoders, outs)]
     return layers, int(torch.cat(outs[0]).shape[0])
