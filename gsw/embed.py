@@ -47,6 +47,11 @@ class EmbedConfig:
         top_percent: FGD phase-2 share of patches (percent).
         split_quantile: FGD phase-2 low-contribution quantile that is split.
         attacks: train-time attack sampling: probability of decoding an attacked render.
+        model_attacks: train-time model-attack sampling: probability of decoding the render of a perturbed
+            copy of the model instead (Gaussian noise of std ``model_noise`` on every raw parameter but
+            the positions, or the SH reduced to degree 0, each half of the time); fidelity losses stay on
+            the unperturbed render.  Combines with ``attacks`` (the image attack then hits that render).
+        model_noise: std of that parameter noise.
         background: render background.
         seed: RNG seed (view order, attacks).
     """
@@ -67,6 +72,8 @@ class EmbedConfig:
     top_percent: float = TOP_PERCENT
     split_quantile: float = 0.5
     attacks: float = 0.0
+    model_attacks: float = 0.0
+    model_noise: float = 0.1
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
 
@@ -94,6 +101,18 @@ class EmbedResult:
     bit_accuracy: list[float]
     psnr: list[float]
     history: list[dict[str, float]]
+
+
+def _perturbed(g: Gaussians, rng: random.Random, tgen: torch.Generator, sigma: float) -> Gaussians:
+    """A differentiable model attack for train-time sampling: N(0, sigma^2) on every raw parameter but
+    the positions, or the view-dependent SH dropped (degree 0); one of the two at random."""
+    if rng.random() < 0.5:
+        def noisy(t: Tensor) -> Tensor:
+            return t + sigma * torch.randn(t.shape, generator=tgen).to(device=t.device, dtype=t.dtype)
+
+        return Gaussians(g.means, noisy(g.log_scales), noisy(g.quats), noisy(g.opacity_logits), noisy(g.sh))
+    return Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits,
+                     torch.cat([g.sh[:, :1], torch.zeros_like(g.sh[:, 1:])], dim=1))
 
 
 def _psnr(a: Tensor, b: Tensor) -> float:
@@ -137,6 +156,11 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
     cfg = config or EmbedConfig()
     if len(cameras) == 0:
         raise ValueError("embed needs at least one camera")
+    for name in ("attacks", "model_attacks"):
+        if not 0.0 <= getattr(cfg, name) <= 1.0:
+            raise ValueError(f"EmbedConfig.{name} is a probability in [0, 1], got {getattr(cfg, name)}")
+    if cfg.model_noise < 0:
+        raise ValueError(f"EmbedConfig.model_noise must be >= 0, got {cfg.model_noise}")
     gaussians.check_finite()
     bits = as_message(message, num_bits, seed=cfg.seed if message is None else None)
     device = gaussians.device
@@ -191,8 +215,12 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
                 current = Gaussians(means, log_scales, quats, logits, torch.cat([dc, rest], dim=1))
                 render = rasterize(current, cameras[v], background=bg, validate=False).image
                 attacked = None
+                if cfg.model_attacks > 0 and rng.random() < cfg.model_attacks:
+                    attacked = rasterize(_perturbed(current, rng, tgen, cfg.model_noise), cameras[v],
+                                         background=bg, validate=False).image
                 if attacks is not None and rng.random() < cfg.attacks:
-                    attacked = _sample_attack(rng, attacks, render.clamp(0, 1), tgen)
+                    base = render if attacked is None else attacked
+                    attacked = _sample_attack(rng, attacks, base.clamp(0, 1), tgen)
                 loss, terms, out_logits = loss_fn(render, originals[v], target, attacked)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()

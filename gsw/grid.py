@@ -68,7 +68,9 @@ __all__ = [
 #: Named methods as :class:`~gsw.embed.EmbedConfig` overrides (``"weights"`` overrides single fields of
 #: :class:`~gsw.losses.LossWeights`). The two baselines are the prior methods ported to this embedder: no FGD
 #: and no wavelet-subband loss, with StegaNeRF's magnitude mask (no exponential) or no mask (WateRF).
-#: ``3d-gsw+attacks`` decodes an attacked copy of the render at half of the fine-tuning steps.
+#: ``3d-gsw+attacks`` decodes an attacked copy of the render at half of the fine-tuning steps;
+#: ``3d-gsw+all-attacks`` also decodes the render of a perturbed model (parameter noise or SH degree 0) at
+#: half of them (``EmbedConfig.model_attacks``).
 METHODS: dict[str, dict[str, Any]] = {
     "3d-gsw": {},
     "no-fgd": {"fgd": False},
@@ -77,6 +79,7 @@ METHODS: dict[str, dict[str, Any]] = {
     "stega-3dgs": {"fgd": False, "mask": "stega", "weights": {"subband": 0.0}},
     "waterf-3dgs": {"fgd": False, "mask": "none", "weights": {"subband": 0.0}},
     "3d-gsw+attacks": {"attacks": 0.5},
+    "3d-gsw+all-attacks": {"attacks": 0.5, "model_attacks": 0.5},
 }
 
 #: Rows of the ablation table: the full method and one component off at a time.

@@ -79,3 +79,45 @@ def test_bad_inputs(scene) -> None:
     bad.means[0, 0] = float("nan")
     with pytest.raises(ValueError, match="means"):
         embed(bad, scene.cameras, progress=False)
+
+
+def test_bad_attack_settings(scene) -> None:
+    with pytest.raises(ValueError, match="model_attacks"):
+        embed(scene.gaussians, scene.cameras, config=EmbedConfig(model_attacks=1.5), progress=False)
+    with pytest.raises(ValueError, match="attacks"):
+        embed(scene.gaussians, scene.cameras, config=EmbedConfig(attacks=-0.1), progress=False)
+    with pytest.raises(ValueError, match="model_noise"):
+        embed(scene.gaussians, scene.cameras, config=EmbedConfig(model_noise=-1.0), progress=False)
+
+
+def test_train_time_model_attack_is_differentiable_and_spares_positions(scene) -> None:
+    import random
+
+    from gsw.embed import _perturbed
+
+    g = scene.gaussians.clone()
+    sh = g.sh.clone().requires_grad_()
+    g = type(g)(g.means, g.log_scales, g.quats, g.opacity_logits, sh)
+    seen = set()
+    for seed in range(8):
+        out = _perturbed(g, random.Random(seed), torch.Generator().manual_seed(seed), 0.1)
+        assert torch.equal(out.means, g.means)
+        if torch.equal(out.log_scales, g.log_scales):  # the SH-degree-0 variant
+            assert (out.sh[:, 1:] == 0).all() and torch.equal(out.sh[:, :1], g.sh[:, :1])
+            seen.add("sh0")
+        else:  # parameter noise of std 0.1 on everything but the positions
+            for name in ("log_scales", "quats", "opacity_logits", "sh"):
+                assert abs(float((getattr(out, name) - getattr(g, name)).std()) - 0.1) < 0.01, name
+            seen.add("noise")
+        (grad,) = torch.autograd.grad(out.sh.sum(), sh)
+        assert grad[:, :1].eq(1).all()  # the clean colour receives the gradient through the attack
+    assert seen == {"sh0", "noise"}
+
+
+def test_embed_with_train_time_model_and_image_attacks_runs(scene) -> None:
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, fgd=False,
+                      attacks=1.0, model_attacks=1.0)
+    res = embed(scene.gaussians, scene.cameras, num_bits=32, config=cfg, progress=False)
+    assert len(res.history) == len(scene.cameras)
+    assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)

@@ -50,6 +50,7 @@ def test_methods_are_the_intended_embedder_configurations() -> None:
         "stega-3dgs": {"fgd": False, "mask": "stega", "weights.subband": 0.0},
         "waterf-3dgs": {"fgd": False, "mask": "none", "weights.subband": 0.0},
         "3d-gsw+attacks": {"attacks": 0.5},
+        "3d-gsw+all-attacks": {"attacks": 0.5, "model_attacks": 0.5},
     }
     assert {m: _differences(method_config(m)) for m in METHODS} == expected
     with pytest.raises(ValueError, match="unknown method"):
@@ -99,7 +100,7 @@ def test_spec_rejects_bad_selections(kwargs, message) -> None:
 def test_spec_defaults_cells_and_settings() -> None:
     spec = GridSpec()
     assert spec.methods == tuple(METHODS) and spec.bits == (32, 48, 64) and spec.report_bits == 32
-    assert len(spec.cells()) == 7 * 3 * 3
+    assert len(spec.cells()) == len(METHODS) * 3 * 3
     small = GridSpec(methods=("no-fgd",), bits=(64, 48), seeds=(3,))
     assert [c.name for c in small.cells()] == ["no-fgd_64b_seed3", "no-fgd_48b_seed3"] and small.report_bits == 64
     # the selection is not a setting: a grid can grow in the same folder

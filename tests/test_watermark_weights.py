@@ -98,3 +98,19 @@ def test_false_positive_threshold():
     assert [false_positive_threshold(k) for k in (32, 48, 64)] == [30, 41, 51]  # the thresholds
     assert binomial_tail(32, 30) <= 1e-6 < binomial_tail(32, 29)
     assert false_positive_threshold(8) == 9  # no count of 8 bits reaches 1e-6
+
+
+def test_fair_max_dev_matches_the_binomial_floor():
+    from gsw.watermark.evaluation import fair_max_dev
+
+    # one fair bit over n images: median |P(1) - 0.5| = 0.6745 * 0.5 / sqrt(n) (half-normal median)
+    assert abs(fair_max_dev(400, 1) - 0.6745 * 0.5 / 20) < 0.006
+    assert fair_max_dev(100, 64) > fair_max_dev(100, 32) > fair_max_dev(100, 1)  # more bits, larger max
+    assert fair_max_dev(10_000, 32) < fair_max_dev(100, 32) / 5  # shrinks like 1 / sqrt(n)
+
+
+def test_shipped_decoders_keep_the_trained_input_normalisation():
+    # the exported architecture must be the trained one (an export once dropped input_norm="standardize")
+    for k in AVAILABLE_BITS:
+        blob = torch.load(WEIGHTS_DIR / f"hidden_k{k}.pt", map_location="cpu", weights_only=False)
+        assert load_decoder(k).decoder.input_norm == blob["arch"]["input_norm"] != "none"
