@@ -39,6 +39,8 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--seeds", nargs="+", type=int, default=list(default.seeds))
     ap.add_argument("--epochs", type=int, default=default.epochs)
     ap.add_argument("--sweeps", nargs="*", default=list(default.sweeps))
+    ap.add_argument("--message-weight", type=float, default=None,
+                    help="weight of the message BCE term for every method (default: LossWeights.message)")
     ap.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks),
                     help="keys of gsw.attacks.MODEL_ATTACKS")
     ap.add_argument("--lpips", default="alex", choices=["vgg", "alex", "none"], help="LPIPS term of the embedding loss")
@@ -65,8 +67,12 @@ def main() -> int:
                             train_views=args.train_views, eval_views=args.eval_views)
     scene = dataclasses.replace(scene, gaussians=scene.gaussians.to(dev),
                                 images=None if scene.images is None else scene.images.to(dev))
+    embed_overrides = lpips_loss_overrides(None if args.lpips == "none" else args.lpips)
+    if args.message_weight is not None:
+        embed_overrides["weights"] = {**embed_overrides.get("weights", {}), "message": args.message_weight}
     spec = GridSpec(methods=tuple(args.methods), bits=tuple(args.bits), seeds=tuple(args.seeds), epochs=args.epochs,
-                    sweeps=tuple(args.sweeps), model_attacks=tuple(args.model_attacks), embed=lpips_loss_overrides(None if args.lpips == "none" else args.lpips),
+                    sweeps=tuple(args.sweeps), model_attacks=tuple(args.model_attacks),
+                    embed=embed_overrides,
                     lpips_net=None if args.metric_lpips == "none" else args.metric_lpips)
     start = time.perf_counter()
     summary = run_grid(spec, scene, ROOT / "build" / "eval_grid" / tag, force=args.force,

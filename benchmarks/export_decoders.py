@@ -52,7 +52,6 @@ def main() -> None:
     ap.add_argument("--whiten-crops", type=int, default=1600)
     ap.add_argument("--whiten-eps", type=float, default=1e-3)
     args = ap.parse_args()
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     run = Path(args.run_dir)
     val_images = load_images(Path(args.data) / "val")
     train_images = load_images(Path(args.data) / "train") if args.refit_whitening else []
@@ -139,8 +138,7 @@ def markdown(rep: dict, bits: list[int]) -> str:
            + ", ".join(str(k) for k in bits if rep["runs"][str(k)]["config"].get("balance", 0) > 0)
            + " bits; " if any(rep["runs"][str(k)]["config"].get("balance", 0) > 0 for k in bits) else "")
         + ("BatchNorm frozen (eval mode) in the last run. " if cfg.get("freeze_bn") else "")
-        + 
-        f"{wmode} whitening, {wcenter}-centred, fitted on the decoder outputs of the train photos, their "
+        + f"{wmode} whitening, {wcenter}-centred, fitted on the decoder outputs of the train photos, their "
         f"mirror images and {r0.get('whitening_fit_samples', 0) - 400:,} random crops"
         + (f", on the CPU in float32 with eigenvalue floor {r0['whitening_refit']['eps']:g} x the largest "
            "(`export_decoders.py --refit-whitening`)" if r0.get("whitening_refit") else "") + ". "

@@ -6,6 +6,7 @@ Run `gsw <command> --help` for the options of each command.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -56,9 +57,12 @@ def _embed_config(args: argparse.Namespace):
     from gsw.losses import LossWeights
 
     lpips_net = None if args.lpips == "none" else args.lpips
+    weights = LossWeights(lpips=0.0) if lpips_net is None else LossWeights()
+    if args.message_weight is not None:
+        weights = dataclasses.replace(weights, message=args.message_weight)
     return EmbedConfig(epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask,
-                       lpips_net=lpips_net, attacks=args.attacks, seed=args.seed,
-                       weights=LossWeights(lpips=0.0) if lpips_net is None else LossWeights(),
+                       lpips_net=lpips_net, attacks=args.attacks, model_attacks=args.model_attack_prob,
+                       seed=args.seed, weights=weights,
                        background=(1.0, 1.0, 1.0) if args.white else (0.0, 0.0, 0.0))
 
 
@@ -423,7 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="watermark the built-in scene and read it back (no downloads)")
     demo.add_argument("--output", default="gsw-demo", help="output folder (default: gsw-demo)")
-    demo.add_argument("--size", type=_positive_int, default=256, help="render size (pixels); the decoder reads the LL2 subband, 64x64 here")
+    demo.add_argument("--size", type=_positive_int, default=256,
+                      help="render size (pixels; the decoder reads the 4x smaller LL2 subband)")
     demo.add_argument("--views", type=_positive_int, default=24, help="training views")
     demo.add_argument("--epochs", type=_positive_int, default=8)
     demo.add_argument("--bits", type=_positive_int, default=32)
@@ -448,7 +453,10 @@ def build_parser() -> argparse.ArgumentParser:
     emb.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
     emb.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
     emb.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
-    emb.add_argument("--attacks", type=float, default=0.0, help="train-time attack probability")
+    emb.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
+    emb.add_argument("--model-attack-prob", type=float, default=0.0,
+                     help="train-time model-attack probability (parameter noise / SH degree 0)")
+    emb.add_argument("--message-weight", type=float, default=None, help="weight of the message loss (default: LossWeights.message)")
     emb.add_argument("--white", action="store_true", help="white background")
     emb.add_argument("--seed", type=int, default=0)
     emb.add_argument("--no-progress", action="store_true")

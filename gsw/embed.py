@@ -104,8 +104,10 @@ class EmbedResult:
 
 
 def _perturbed(g: Gaussians, rng: random.Random, tgen: torch.Generator, sigma: float) -> Gaussians:
-    """A differentiable model attack for train-time sampling: N(0, sigma^2) on every raw parameter but
-    the positions, or the view-dependent SH dropped (degree 0); one of the two at random."""
+    """A differentiable model attack for train-time sampling, one of two at random: N(0, sigma^2) on every
+    raw parameter but the positions, or the view-dependent SH dropped (degree 0).  The evaluation's
+    :func:`gsw.attacks.parameter_noise_attributes` / :func:`gsw.attacks.reduce_sh` return detached copies;
+    these keep the graph so the clean parameters learn a message that survives them."""
     if rng.random() < 0.5:
         def noisy(t: Tensor) -> Tensor:
             return t + sigma * torch.randn(t.shape, generator=tgen).to(device=t.device, dtype=t.dtype)

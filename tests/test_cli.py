@@ -81,3 +81,15 @@ def test_demo_tiny(tmp_path, capsys) -> None:
     assert table["message"] and "dB" in table["PSNR vs original render"]
     for name in ("original.png", "watermarked.png", "difference_x2.png"):
         assert (tmp_path / "demo" / name).is_file()
+
+
+def test_embed_robustness_flags_reach_the_config() -> None:
+    from gsw.cli import _embed_config, build_parser
+    from gsw.losses import LossWeights
+
+    args = build_parser().parse_args(["embed", "in", "--output", "out", "--attacks", "0.5",
+                                      "--model-attack-prob", "0.5", "--message-weight", "0.1"])
+    cfg = _embed_config(args)
+    assert (cfg.attacks, cfg.model_attacks, cfg.weights.message) == (0.5, 0.5, 0.1)
+    default = _embed_config(build_parser().parse_args(["embed", "in", "--output", "out"]))
+    assert default.model_attacks == 0.0 and default.weights.message == LossWeights().message
