@@ -86,9 +86,9 @@ def main() -> None:
         path = WEIGHTS_DIR / f"hidden_k{k}.pt"
         sha = save_decoder(dec, wl, path, meta=prov)
         manifest["files"][path.name] = {"num_bits": k, "sha256": sha, "bytes": path.stat().st_size, **prov}
-        report["runs"][str(k)] = {x: meta[x] for x in ("steps", "steps_per_s", "train_elapsed_s", "wall_s", "device", "torch",
-                                                       "python", "config", "args", "results", "whitening_fit_samples",
-                                                       "val_log", "train_log", "whitening_refit") if x in meta}
+        keep = ("steps", "steps_per_s", "train_elapsed_s", "wall_s", "device", "torch", "python", "config", "args",
+                "results", "whitening_fit_samples", "num_train_images", "val_log", "train_log", "whitening_refit")
+        report["runs"][str(k)] = {x: meta[x] for x in keep if x in meta}
     (WEIGHTS_DIR / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     for k in args.bits:  # the exported files, through the public loader, on the CPU
         model = load_decoder(k)
@@ -139,7 +139,7 @@ def markdown(rep: dict, bits: list[int]) -> str:
            + " bits; " if any(rep["runs"][str(k)]["config"].get("balance", 0) > 0 for k in bits) else "")
         + ("BatchNorm frozen (eval mode) in the last run. " if cfg.get("freeze_bn") else "")
         + f"{wmode} whitening, {wcenter}-centred, fitted on the decoder outputs of the train photos, their "
-        f"mirror images and {r0.get('whitening_fit_samples', 0) - 400:,} random crops"
+        f"mirror images and {r0.get('whitening_fit_samples', 0) - 2 * r0.get('num_train_images', 200):,} random crops"
         + (f", on the CPU in float32 with eigenvalue floor {r0['whitening_refit']['eps']:g} x the largest "
            "(`export_decoders.py --refit-whitening`)" if r0.get("whitening_refit") else "") + ". "
         "All numbers below on bsds500/val (100 photos, full size, real JPEG); pair accuracies from the GPU run, "

@@ -456,7 +456,8 @@ def build_parser() -> argparse.ArgumentParser:
     emb.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
     emb.add_argument("--model-attack-prob", type=float, default=0.0,
                      help="train-time model-attack probability (parameter noise / SH degree 0)")
-    emb.add_argument("--message-weight", type=float, default=None, help="weight of the message loss (default: LossWeights.message)")
+    emb.add_argument("--message-weight", type=float, default=None,
+                     help="weight of the message loss (default: LossWeights.message)")
     emb.add_argument("--white", action="store_true", help="white background")
     emb.add_argument("--seed", type=int, default=0)
     emb.add_argument("--no-progress", action="store_true")

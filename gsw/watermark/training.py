@@ -627,6 +627,7 @@ def train_multi(
 
     B = cfg.batch_size
     chunks = _chunks(B, max(1, cfg.noise_chunks))
+    balance_on = cfg.balance > 0 and not finetune_encoders
     while progress() < 1.0:
         p = progress()
         if finetune_encoders:
@@ -641,7 +642,7 @@ def train_multi(
         else:
             picks = [attacks.rng.randrange(L) for _ in chunks]
         total = 0.0
-        cover_size = min(attacks.rng.choice(cfg.balance_sizes), *bank.shape[-2:])
+        cover_size = min(attacks.rng.choice(cfg.balance_sizes), *bank.shape[-2:]) if balance_on else 0
         for m, k in enumerate(cfg.bits):
             msgs = torch.randint(0, 2, (B, k), device=dev, generator=gen).float()
             with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
@@ -660,7 +661,7 @@ def train_multi(
                 total = total + F.binary_cross_entropy_with_logits(logits, msgs[sl]) * (
                     (sl.stop - sl.start) / B)
                 acc_sum[m, li] += bit_accuracy(logits.detach(), msgs[sl]).mean()
-            if cfg.balance > 0 and not finetune_encoders:
+            if balance_on:
                 # unmarked crops of a random size, decoded as at inference (eval-mode BatchNorm: in train
                 # mode the batch statistics would hide exactly the shift that biases the bits)
                 cover = bank_crops(bank, cfg.balance_batch, cover_size, gen, cfg.channels_last)
@@ -700,7 +701,7 @@ def train_multi(
                                      "loss": float(loss_sum) / max(1, n_loss)}
             for m, k in enumerate(cfg.bits):
                 entry[f"k{k}"] = {names[li]: round(accs[m][li], 4) for li in range(L) if cnt[li]}
-            if cfg.balance > 0 and not finetune_encoders:
+            if balance_on:
                 entry["balance"] = {f"k{k}": round(float(bal_sum[m]) / max(1, n_loss), 5)
                                     for m, k in enumerate(cfg.bits)}
             log.append(entry)
