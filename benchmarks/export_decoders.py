@@ -24,7 +24,7 @@ import torch  # noqa: E402
 from watermark import noise as N  # noqa: E402
 from watermark.evaluation import unbiasedness  # noqa: E402
 from watermark.hidden import HiddenDecoder  # noqa: E402
-from watermark.training import fit_whitening_multi, image_bank, load_images  # noqa: E402
+from watermark.training import WHITEN_EIG_FLOOR, fit_whitening_multi, image_bank, load_images  # noqa: E402
 from watermark.whitening import WhiteningLayer  # noqa: E402
 from watermark.zoo import WEIGHTS_DIR, load_decoder, save_decoder  # noqa: E402
 
@@ -50,7 +50,7 @@ def main() -> None:
     ap.add_argument("--refit-whitening", action="store_true",
                     help="refit the whitening here on the CPU (float32) and re-measure unbiasedness with it")
     ap.add_argument("--whiten-crops", type=int, default=1600)
-    ap.add_argument("--whiten-eps", type=float, default=1e-3)
+    ap.add_argument("--whiten-eps", type=float, default=WHITEN_EIG_FLOOR)
     args = ap.parse_args()
     run = Path(args.run_dir)
     val_images = load_images(Path(args.data) / "val")

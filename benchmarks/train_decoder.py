@@ -146,7 +146,7 @@ def main() -> None:
     ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run")
     ap.add_argument("--whiten-mode", default="zca", choices=["pca", "zca"])
     ap.add_argument("--whiten-center", default="median", choices=["mean", "median"])
-    ap.add_argument("--whiten-eps", type=float, default=1e-3, help="eigenvalue floor relative to the largest")
+    ap.add_argument("--whiten-eps", type=float, default=T.WHITEN_EIG_FLOOR, help="eigenvalue floor relative to the largest")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--log-every", type=int, default=200)
     ap.add_argument("--val-every-s", type=float, default=60.0)

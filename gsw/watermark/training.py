@@ -297,6 +297,12 @@ def train(
 #   (``psnr_start``), then the attack strength ramps to 1 and the PSNR to ``psnr_target``.
 
 
+#: Sides of the unmarked crops seen by the balance loss and by the whitening fit.
+UNMARKED_CROP_SIZES: tuple[int, ...] = (128, 192, 256, 320)
+#: Whitening eigenvalue floor, relative to the largest eigenvalue (see :func:`fit_whitening_multi`).
+WHITEN_EIG_FLOOR = 1e-3
+
+
 @dataclasses.dataclass
 class MultiConfig:
     bits: tuple[int, ...] = (32, 48, 64)
@@ -327,7 +333,7 @@ class MultiConfig:
     view_warp: bool = False  # every sample also goes through GpuAttacks.view (ramped with the attack strength)
     balance: float = 0.0  # weight of the unmarked-balance loss (0 = off), see balance_loss
     balance_batch: int = 16  # unmarked crops per step and bit length for that loss
-    balance_sizes: tuple[int, ...] = (128, 192, 256, 320)  # their side, one drawn per step
+    balance_sizes: tuple[int, ...] = UNMARKED_CROP_SIZES  # their side, one drawn per step
     freeze_bn: bool = False  # decoder BatchNorm in eval mode (running statistics, frozen): for fine-tuning
 
 
@@ -550,6 +556,12 @@ def _train_mode(decoder: HiddenDecoder, freeze_bn: bool) -> None:
                 mod.eval()
 
 
+def _decoder_input(images: torch.Tensor, channels_last: bool) -> torch.Tensor:
+    """LL2 subband (float32) of images [B,3,H,W], in the decoder's memory format."""
+    ll = ll_subband(images.float())
+    return ll.contiguous(memory_format=torch.channels_last) if channels_last else ll
+
+
 def _to_cl(m: torch.nn.Module, on: bool) -> torch.nn.Module:
     if on:
         for mod in m.modules():  # only the convolutions (a TemplateEncoder's templates are 5-D)
@@ -649,10 +661,7 @@ def train_multi(
                 x_w = embed_scaled(encoders[m], imgs, msgs, psnr, cfg.enc_down)
             for sl, li in zip(chunks, picks):
                 y = attacks.view(x_w[sl], strength) if cfg.view_warp else x_w[sl]
-                y = attacks.apply(names[li], y, strength)
-                ll = ll_subband(y.float())
-                if cfg.channels_last:
-                    ll = ll.contiguous(memory_format=torch.channels_last)
+                ll = _decoder_input(attacks.apply(names[li], y, strength), cfg.channels_last)
                 with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
                     logits = decoders[m](ll)
                 logits = logits.float()
@@ -666,9 +675,7 @@ def train_multi(
                 # mode the batch statistics would hide exactly the shift that biases the bits)
                 cover = bank_crops(bank, cfg.balance_batch, cover_size, gen, cfg.channels_last)
                 cover = attacks.view(cover, strength) if cfg.view_warp else cover
-                ll = ll_subband(cover.float())
-                if cfg.channels_last:
-                    ll = ll.contiguous(memory_format=torch.channels_last)
+                ll = _decoder_input(cover, cfg.channels_last)
                 decoders[m].eval()
                 with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.amp):
                     u = decoders[m](ll)
@@ -746,11 +753,11 @@ def fit_whitening_multi(
     images: list[torch.Tensor],
     bank: torch.Tensor,
     num_crops: int = 4000,
-    crop_sizes: tuple[int, ...] = (128, 192, 256, 320),
+    crop_sizes: tuple[int, ...] = UNMARKED_CROP_SIZES,
     seed: int = 1,
     mode: str = "zca",
     center: str = "median",
-    eps: float = 1e-3,
+    eps: float = WHITEN_EIG_FLOOR,
 ) -> tuple[list[WhiteningLayer], int]:
     """Whitening of each (eval-mode) decoder on the same unmarked inputs: every full photo of ``images``
     and its mirror image, plus ``num_crops`` random crops (+ flips) of ``bank`` in ``crop_sizes``.
