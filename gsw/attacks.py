@@ -33,14 +33,15 @@ Example:
     >>> attacks.crop(img, keep_area=0.4, seed=0).shape
     torch.Size([3, 40, 30])
     >>> sorted(attacks.IMAGE_ATTACKS)
-    ['blur', 'combined', 'crop', 'jpeg', 'noise', 'rotation', 'scaling']
+    ['blur', 'brightness', 'combined', 'contrast', 'crop', 'jpeg', 'noise', 'rotation', 'scaling']
 """
 
 from __future__ import annotations
 
+import functools
 import io
 import math
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 import torch
@@ -48,6 +49,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gsw.gaussians import Gaussians, cat_gaussians
+
+if TYPE_CHECKING:
+    from gsw.camera import Camera
 
 __all__ = [
     "gaussian_noise",
@@ -73,6 +77,9 @@ __all__ = [
     "sweep",
     "sweep_parameter",
     "MODEL_FIELDS",
+    "finetune",
+    "VIEW_MODEL_ATTACKS",
+    "bind_model_attacks",
     "parameter_noise",
     "parameter_noise_attributes",
     "remove_random",
@@ -377,7 +384,7 @@ def combined(
     return jpeg(gaussian_blur(crop(img, keep_area=keep_area, seed=seed), sigma=blur_sigma), quality=quality)
 
 
-def brightness(img: Tensor, factor: float) -> Tensor:
+def brightness(img: Tensor, factor: float = 1.5) -> Tensor:
     """Multiply every pixel by ``factor`` and clamp to ``[0, 1]`` (torchvision's ``adjust_brightness``).
 
     Args:
@@ -393,7 +400,7 @@ def brightness(img: Tensor, factor: float) -> Tensor:
     return _restore((x * factor).clamp(0.0, 1.0), single)
 
 
-def contrast(img: Tensor, factor: float) -> Tensor:
+def contrast(img: Tensor, factor: float = 1.5) -> Tensor:
     """Blend each image with its mean grey level (torchvision's ``adjust_contrast``), clamp to ``[0, 1]``.
 
     ``out = m + factor * (img - m)`` with ``m`` the per-image mean of the luma
@@ -477,7 +484,8 @@ def official_jpeg(img: Tensor, quality: int = 10) -> Tensor:
     return jpeg(img, quality=quality)
 
 
-#: The paper's fixed-strength image attacks (defaults of each function); call as ``fn(img)``.
+#: The paper's fixed-strength image attacks (defaults of each function), plus brightness and contrast (factor
+#: 1.5, as in Stable Signature's evaluation); call as ``fn(img)``.
 IMAGE_ATTACKS: dict[str, Callable[[Tensor], Tensor]] = {
     "noise": gaussian_noise,
     "rotation": rotation,
@@ -486,6 +494,8 @@ IMAGE_ATTACKS: dict[str, Callable[[Tensor], Tensor]] = {
     "crop": crop,
     "jpeg": jpeg,
     "combined": combined,
+    "brightness": brightness,
+    "contrast": contrast,
 }
 
 #: The official code's attack settings (not the paper's); call as ``fn(img)``.
@@ -496,7 +506,8 @@ OFFICIAL_ATTACKS: dict[str, Callable[[Tensor], Tensor]] = {
     "jpeg": official_jpeg,
 }
 
-#: Robustness-curve sweeps: attack name -> (keyword of the attack function, values, weakest first).
+#: Robustness-curve sweeps: attack name -> (keyword of the attack function, values: weakest first; brightness
+#: and contrast in increasing factor, 1 being the identity).
 SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
     "noise": ("sigma", (0.0, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3)),
     "jpeg": ("quality", (90, 70, 50, 30, 20, 10)),
@@ -504,18 +515,20 @@ SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
     "crop": ("keep_area", (1.0, 0.8, 0.6, 0.4, 0.3, 0.2, 0.1)),
     "rotation": ("degrees", (0.0, 5.0, 10.0, 15.0, 30.0, 45.0, 90.0)),
     "scaling": ("factor", (1.0, 0.9, 0.75, 0.5, 0.4, 0.25)),
+    "brightness": ("factor", (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)),
+    "contrast": ("factor", (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)),
 }
 
 
 def sweep(name: str) -> list:
-    """Parameter values for a robustness curve of the attack ``name`` (weakest first).
+    """Parameter values for a robustness curve of the attack ``name`` (see :data:`SWEEPS` for the order).
 
     Use with :func:`sweep_parameter`: ``[IMAGE_ATTACKS[name](img, **{sweep_parameter(name): v}) for v in
     sweep(name)]``.
 
     Args:
         name: one of ``noise`` (sigma), ``jpeg`` (quality), ``blur`` (sigma), ``crop`` (keep_area),
-            ``rotation`` (degrees), ``scaling`` (factor).
+            ``rotation`` (degrees), ``scaling``, ``brightness``, ``contrast`` (factor).
 
     Returns:
         A new list of values.
@@ -717,6 +730,48 @@ def quantize(g: Gaussians, bits: int = 8) -> Gaussians:
     return Gaussians(**{name: _quantize_columns(t, bits) for name, t in g.parameters().items()})
 
 
+def finetune(g: Gaussians, cameras: Sequence["Camera"], *, steps: int = 300, quality: int | None = 50,
+             background: tuple[float, float, float] = (0.0, 0.0, 0.0), seed: int = 0) -> Gaussians:
+    """Fine-tunes the model for ``steps`` iterations on its own renders (an attacker without the photos).
+
+    The targets are the model's renders of ``cameras``, laundered through real JPEG at ``quality`` (the
+    attacker's attempt to wash the watermark out of the training targets; ``None`` keeps the renders as
+    they are, so the loss starts at zero and the attack only checks that plain fine-tuning keeps the
+    mark). Training is :func:`gsw.train.train` started from ``g`` with INRIA's fine-stage settings: L1 +
+    0.2 D-SSIM, Adam on every parameter (positions at the final INRIA rate ``1.6e-6 x extent``), one view
+    per step, no densification and no opacity reset. Runs on ``g``'s device and needs the compiled
+    extension.
+
+    Args:
+        g: input Gaussians (not modified).
+        cameras: the views the attacker renders and trains on.
+        steps: optimisation steps, ``>= 1``.
+        quality: JPEG quality of the targets in ``1..100``, or None for the plain renders.
+        background: render background.
+        seed: view order.
+
+    Returns:
+        New, fine-tuned Gaussians.
+    """
+    from gsw.rasterize import rasterize
+    from gsw.train import TrainConfig, train
+
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps must be an int >= 1, got {steps!r}")
+    if not cameras:
+        raise ValueError("finetune needs at least one camera")
+    with torch.no_grad():
+        targets = torch.stack([rasterize(g, cam, background=background).image.clamp(0.0, 1.0) for cam in cameras])
+    if quality is not None:
+        targets = jpeg(targets, quality=quality)
+    cfg = TrainConfig(iterations=steps, sh_degree=g.sh_degree, position_lr_init=TrainConfig.position_lr_final,
+                      densify_until_iter=0, opacity_reset_interval=0, seed=seed, log_interval=steps,
+                      device=str(g.device))
+    with torch.enable_grad():
+        return train((list(cameras), targets), config=cfg, init=_fresh(g), progress=False,
+                     background=background).gaussians
+
+
 #: Model attacks at the paper's strengths (plus the extra ones at their defaults); call as ``fn(g)``.
 MODEL_ATTACKS: dict[str, Callable[[Gaussians], Gaussians]] = {
     "parameter_noise": parameter_noise,
@@ -727,3 +782,29 @@ MODEL_ATTACKS: dict[str, Callable[[Gaussians], Gaussians]] = {
     "prune_by_opacity": prune_by_opacity,
     "quantize": quantize,
 }
+
+#: Model attacks that render the model, at their defaults; call as ``fn(g, cameras, background=bg)``
+#: (:func:`bind_model_attacks` turns them into ``fn(g)``).
+VIEW_MODEL_ATTACKS: dict[str, Callable[..., Gaussians]] = {
+    "finetune": finetune,
+}
+
+
+def bind_model_attacks(names: Sequence[str], cameras: Sequence["Camera"],
+                       background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Callable[[Gaussians], Gaussians]]:
+    """Model attacks by name, as ``fn(g)``: those of :data:`VIEW_MODEL_ATTACKS` bound to ``cameras``.
+
+    Args:
+        names: keys of :data:`MODEL_ATTACKS` or :data:`VIEW_MODEL_ATTACKS`.
+        cameras: the views a view attack renders (e.g. the embedding views).
+        background: their render background.
+
+    Returns:
+        name -> attack.
+    """
+    unknown = [n for n in names if n not in MODEL_ATTACKS and n not in VIEW_MODEL_ATTACKS]
+    if unknown:
+        raise KeyError(f"unknown model attacks {unknown}; choose from {[*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS]}")
+    return {n: MODEL_ATTACKS[n] if n in MODEL_ATTACKS else
+            functools.partial(VIEW_MODEL_ATTACKS[n], cameras=list(cameras), background=tuple(background))
+            for n in names}

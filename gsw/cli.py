@@ -321,7 +321,10 @@ def cmd_eval_grid(args: argparse.Namespace) -> int:
                     model_attacks=tuple(args.model_attacks), sweeps=tuple(args.sweeps),
                     embed=lpips_loss_overrides(None if args.lpips == "none" else args.lpips), fpr=args.fpr,
                     lpips_net=None if args.metric_lpips == "none" else args.metric_lpips)
-    summary = run_grid(spec, _grid_scene(args), args.output, resume=args.resume, force=args.force,
+    from gsw.train import resolve_device
+
+    scene = _grid_scene(args).to(resolve_device(args.device))
+    summary = run_grid(spec, scene, args.output, resume=args.resume, force=args.force,
                        progress=not args.no_progress)
     plots = []
     if args.plots:
@@ -377,7 +380,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def _add_eval_grid_parser(sub) -> None:
-    from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS
+    from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS, VIEW_MODEL_ATTACKS
     from gsw.grid import METHODS, PAPER_MODEL_ATTACKS, GridSpec
 
     default = GridSpec()
@@ -403,7 +406,7 @@ def _add_eval_grid_parser(sub) -> None:
     grid.add_argument("--image-attacks", nargs="*", default=list(default.image_attacks), metavar="ATTACK",
                       help=f"of {', '.join(IMAGE_ATTACKS)} (default: all)")
     grid.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks), metavar="ATTACK",
-                      help=f"of {', '.join(MODEL_ATTACKS)} (default: the paper's {', '.join(PAPER_MODEL_ATTACKS)})")
+                      help=f"of {', '.join([*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS])} (default: the paper's {', '.join(PAPER_MODEL_ATTACKS)})")
     grid.add_argument("--sweeps", nargs="*", default=list(default.sweeps), metavar="ATTACK",
                       help=f"robustness curves, of {', '.join(SWEEPS)} (default: all)")
     grid.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg",
@@ -411,6 +414,7 @@ def _add_eval_grid_parser(sub) -> None:
     grid.add_argument("--metric-lpips", choices=["vgg", "alex", "none"], default="vgg",
                       help="LPIPS network of the invisibility metric")
     grid.add_argument("--fpr", type=float, default=default.fpr, help="false-positive rate of a detection")
+    grid.add_argument("--device", default="cpu", help="cpu, cuda[:N] or auto (default: cpu)")
     grid.add_argument("--resume", action=argparse.BooleanOptionalAction, default=True,
                       help="keep finished cells of an earlier run (default); --no-resume recomputes them")
     grid.add_argument("--force", action="store_true", help="replace the settings of a folder holding another grid")

@@ -43,7 +43,7 @@ class EmbedConfig:
         lpips_net: "vgg", "alex" or None (no LPIPS term; set weights.lpips = 0).
         mask: "exp" (3D-GSW), "stega" (StegaNeRF-style) or "none".
         fgd: run FGD (prune + split) before fine-tuning.
-        prune_threshold: FGD phase-1 threshold on the pixel-normalised contribution.
+        prune_threshold: FGD phase-1 threshold on the normalised contribution (:func:`gsw.fgd.fgd_prune`).
         top_percent: FGD phase-2 share of patches (percent).
         split_quantile: FGD phase-2 low-contribution quantile that is split.
         attacks: train-time attack sampling: probability of decoding an attacked render.

@@ -6,8 +6,10 @@ high-frequency image patches, giving the watermark capacity where it hides best.
 
 Departures from the official code, on purpose (see GUIDE section 2):
 
-* Phase 1 normalises the contribution by the pixel count, so the threshold does not depend on the
-  resolution; the default 1e-8 is the paper's threshold on its normalised loss.
+* Phase 1 normalises the contribution as the official code's loss does (a mean over the 3 H W elements of
+  the error-weighted render), so the threshold does not depend on the resolution and the default 1e-8 is
+  the paper's value on that loss. A Gaussian is pruned only when every channel is at or below it in
+  every view (the official code prunes when any one channel is).
 * Phase 2 uses a true 2-D DFT over (height, width) of each 16x16 patch and channel, and tracks
   Gaussians by their actual contribution to the selected patches (the contribution kernel with a
   patch mask), not by their projected centre.
@@ -31,7 +33,7 @@ from gsw.camera import Camera
 from gsw.gaussians import Gaussians
 from gsw.rasterize import contribution, rasterize
 
-#: Phase-1 threshold on the pixel-normalised contribution (the paper's value).
+#: Phase-1 threshold on the normalised contribution (the paper's value on its mean-reduced loss).
 PRUNE_THRESHOLD = 1e-8
 #: Phase-2 patch size (pixels) and share of patches kept (percent).
 PATCH_SIZE = 16
@@ -95,9 +97,11 @@ def fgd_prune(gaussians: Gaussians, cameras: Sequence[Camera], images: Sequence[
               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[Gaussians, PruneReport]:
     """FGD phase 1: removes Gaussians whose contribution is below `threshold` in every view.
 
-    Per view and channel, `V[i,c] = (1 / (H W)) sum_p E[c,p] alpha_i(p) T_i(p)` with the paper's
-    error weighting `E = |I_0 - I_gt|`, where `I_0` is the render with all colours set to zero
-    (background only) and `I_gt` the training image (or, without images, the model's own render).
+    Per view and channel, `V[i,c] = (1 / (3 H W)) sum_p E[c,p] alpha_i(p) T_i(p)`: the gradient of
+    the paper's loss `mean(E * I)` (mean over the 3 H W elements) with respect to a colour override
+    of Gaussian `i`, with the paper's error weighting `E = |I_0 - I_gt|`, where `I_0` is the render
+    with all colours set to zero (background only) and `I_gt` the training image (or, without
+    images, the model's own render).
 
     Args:
         gaussians: the model.
@@ -117,7 +121,7 @@ def fgd_prune(gaussians: Gaussians, cameras: Sequence[Camera], images: Sequence[
         target = images[i] if images is not None else rasterize(gaussians, cam, background=background).image
         empty = rasterize(gaussians, cam, colors=zero_colors, background=background).image
         error = (empty - target.to(empty)).abs()
-        v = contribution(gaussians, cam, error).values / float(cam.width * cam.height)
+        v = contribution(gaussians, cam, error).values / float(error.numel())
         best = torch.maximum(best, v.max(dim=1).values)
     keep = best > threshold
     report = PruneReport(num_before=n, num_removed=int((~keep).sum()), max_contribution=best,

@@ -50,7 +50,7 @@ import torch
 from torch import Tensor
 
 from gsw._atomic import atomic_write
-from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS
+from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS, VIEW_MODEL_ATTACKS, bind_model_attacks
 from gsw.camera import Camera
 from gsw.embed import EmbedConfig, embed
 from gsw.evaluate import DETECTION_FPR, evaluate_watermark
@@ -203,7 +203,8 @@ class GridSpec:
         seeds: seeds of the message, view order and train-time attacks.
         epochs: embedding epochs.
         image_attacks: keys of :data:`gsw.attacks.IMAGE_ATTACKS` (the paper's strengths).
-        model_attacks: keys of :data:`gsw.attacks.MODEL_ATTACKS`.
+        model_attacks: keys of :data:`gsw.attacks.MODEL_ATTACKS` or :data:`gsw.attacks.VIEW_MODEL_ATTACKS`
+            (``finetune`` trains on renders of the embedding views).
         sweeps: keys of :data:`gsw.attacks.SWEEPS`: robustness curves over their values.
         embed: further EmbedConfig overrides for every method (``"weights"`` as a dict), applied before the
             method's own; ``epochs``, ``seed`` and ``background`` are set by the grid.
@@ -229,7 +230,7 @@ class GridSpec:
         self.bits = _nonempty("bit lengths", _selection("bit lengths", self.bits))
         self.seeds = _nonempty("seeds", _selection("seeds", self.seeds))
         self.image_attacks = _selection("image attacks", self.image_attacks, IMAGE_ATTACKS)
-        self.model_attacks = _selection("model attacks", self.model_attacks, MODEL_ATTACKS)
+        self.model_attacks = _selection("model attacks", self.model_attacks, [*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS])
         self.sweeps = _selection("sweeps", self.sweeps, SWEEPS)
         for name, value in (("bits", self.bits), ("seeds", self.seeds), ("epochs", (self.epochs,)),
                             ("fps_repeats", (self.fps_repeats,))):
@@ -299,6 +300,11 @@ class GridScene:
     def __post_init__(self) -> None:
         if not self.cameras or not self.eval_cameras:
             raise ValueError("a grid scene needs training and evaluation views")
+
+    def to(self, device: torch.device | str) -> "GridScene":
+        """The same scene with its Gaussians and images on `device` (cameras stay plain data)."""
+        return dataclasses.replace(self, gaussians=self.gaussians.to(device),
+                                   images=None if self.images is None else self.images.to(device))
 
 
 def _first(items: Sequence, n: int | None, what: str) -> list:
@@ -505,7 +511,7 @@ def run_cell(spec: GridSpec, scene: GridScene, cell: Cell, *, decoder: torch.nn.
     start = time.perf_counter()
     report = evaluate_watermark(res.gaussians, scene.gaussians, scene.eval_cameras, res.message,
                                 num_bits=cell.bits, background=scene.background, image_attacks=_image_attacks(spec),
-                                model_attacks={name: MODEL_ATTACKS[name] for name in spec.model_attacks},
+                                model_attacks=bind_model_attacks(spec.model_attacks, scene.cameras, scene.background),
                                 lpips_net=spec.lpips_net, decoder=decoder, attack_unmarked=True).to_dict()
     evaluation_s = time.perf_counter() - start
     sweeps = _split_sweeps(report, spec)

@@ -47,6 +47,8 @@ EXPECTED_HW = {
     "crop": CROP_HW,
     "jpeg": (H, W),
     "combined": CROP_HW,
+    "brightness": (H, W),
+    "contrast": (H, W),
 }
 OFFICIAL_HW = {"noise": (H, W), "blur": (H, W), "crop": A.crop_size(H, W, 0.5), "jpeg": (H, W)}
 
@@ -330,3 +332,49 @@ def test_quantize():
         opacity_logits=torch.zeros(4), sh=torch.zeros(4, 1, 3),
     )
     assert torch.equal(A.quantize(const).means, const.means)
+
+
+# ------------------------------------------------------------------------------------- fine-tuning attack
+
+
+@pytest.fixture(scope="module")
+def tiny_scene():
+    from gsw.scenes import default_scene
+
+    return default_scene(width=32, height=32, n_cameras=4, detail=0.3)
+
+
+def _renders(g, scene):
+    from gsw.rasterize import rasterize
+
+    return torch.stack([rasterize(g, c, background=scene.background).image.clamp(0, 1) for c in scene.cameras])
+
+
+def test_finetune_moves_the_model_toward_jpeg_targets(tiny_scene):
+    g, bg = tiny_scene.gaussians, tuple(tiny_scene.background.tolist())
+    snap = {k: v.clone() for k, v in g.parameters().items()}
+    before = _renders(g, tiny_scene)
+    targets = A.jpeg(before, quality=10)
+    out = A.finetune(g, tiny_scene.cameras, steps=40, quality=10, background=bg)
+    after = _renders(out, tiny_scene)
+    assert (after - targets).abs().mean() < 0.9 * (before - targets).abs().mean()
+    assert all(torch.equal(v, snap[k]) for k, v in g.parameters().items())  # input untouched
+    again = A.finetune(g, tiny_scene.cameras, steps=40, quality=10, background=bg)
+    assert all(torch.equal(v, again.parameters()[k]) for k, v in out.parameters().items())  # deterministic
+
+
+def test_finetune_on_plain_renders_keeps_the_model(tiny_scene):
+    g, bg = tiny_scene.gaussians, tuple(tiny_scene.background.tolist())
+    out = A.finetune(g, tiny_scene.cameras, steps=20, quality=None, background=bg)
+    assert (_renders(out, tiny_scene) - _renders(g, tiny_scene)).abs().max() < 0.02
+
+
+def test_bind_model_attacks(tiny_scene):
+    bound = A.bind_model_attacks(["remove", "finetune"], tiny_scene.cameras)
+    assert bound["remove"] is A.remove_random and bound["finetune"].keywords["cameras"] == tiny_scene.cameras
+    with pytest.raises(KeyError, match="unknown model attacks"):
+        A.bind_model_attacks(["finetuning"], tiny_scene.cameras)
+    with pytest.raises(ValueError, match="steps"):
+        A.finetune(tiny_scene.gaussians, tiny_scene.cameras, steps=0)
+    with pytest.raises(ValueError, match="camera"):
+        A.finetune(tiny_scene.gaussians, [])

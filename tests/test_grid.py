@@ -343,6 +343,7 @@ def test_cli_round_trip_and_errors(tmp_path, capsys, monkeypatch) -> None:
         (("--image-attacks", "jpeg", "blurr"), "unknown image attacks"),
         (("--epochs", "2"), "other settings"),
         (("--data", str(tmp_path)), "INRIA model folder"),
+        (("--device", "tpu"), "tpu"),
     ]:
         assert _cli(out, *extra) == 2, extra
         assert message in capsys.readouterr().err
