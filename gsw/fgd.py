@@ -8,8 +8,8 @@ Departures from the official code, on purpose (see GUIDE section 2):
 
 * Phase 1 normalises the contribution as the official code's loss does (a mean over the 3 H W elements of
   the error-weighted render), so the threshold does not depend on the resolution and the default 1e-8 is
-  the paper's value on that loss. A Gaussian is pruned only when every channel is at or below it in
-  every view (the official code prunes when any one channel is).
+  the paper's value on that loss. As in the official code, a view votes for pruning when any one channel
+  is at or below the threshold, and a Gaussian is pruned when every view does.
 * Phase 2 uses a true 2-D DFT over (height, width) of each 16x16 patch and channel, and tracks
   Gaussians by their actual contribution to the selected patches (the contribution kernel with a
   patch mask), not by their projected centre.
@@ -47,8 +47,8 @@ class PruneReport:
     Attributes:
         num_before: Gaussians before pruning.
         num_removed: Gaussians removed.
-        max_contribution: [N] per-Gaussian maximum over views and channels of the normalised
-            contribution (before pruning).
+        max_contribution: [N] per-Gaussian maximum over views of the smallest channel's normalised
+            contribution (before pruning); a Gaussian is pruned when this is <= ``threshold``.
         threshold: the threshold used.
     """
 
@@ -107,7 +107,7 @@ def fgd_prune(gaussians: Gaussians, cameras: Sequence[Camera], images: Sequence[
         gaussians: the model.
         cameras: the training views.
         images: optional [3, H, W] training images in [0, 1], one per camera.
-        threshold: prune when the normalised contribution is <= this in every view and channel.
+        threshold: prune when, in every view, some channel's normalised contribution is <= this.
         background: background colour of the renders.
 
     Returns:
@@ -122,7 +122,7 @@ def fgd_prune(gaussians: Gaussians, cameras: Sequence[Camera], images: Sequence[
         empty = rasterize(gaussians, cam, colors=zero_colors, background=background).image
         error = (empty - target.to(empty)).abs()
         v = contribution(gaussians, cam, error).values / float(error.numel())
-        best = torch.maximum(best, v.max(dim=1).values)
+        best = torch.maximum(best, v.min(dim=1).values)
     keep = best > threshold
     report = PruneReport(num_before=n, num_removed=int((~keep).sum()), max_contribution=best,
                          threshold=threshold)

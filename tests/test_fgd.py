@@ -44,14 +44,15 @@ def test_prune_threshold_is_resolution_independent() -> None:
 
 
 def test_prune_contribution_is_the_gradient_of_the_mean_reduced_loss() -> None:
-    # V[i, c] = d mean(E * I) / d colour[i, c] at colour 0 (the official code's loss, mean over 3 H W).
+    # V[i, c] = d mean(E * I) / d colour[i, c] at colour 0 (the official code's loss, mean over 3 H W); a view
+    # keeps a Gaussian only when its smallest channel is above the threshold (the official rule).
     cam = _cams(1, 40)[0]
     g = random_gaussians(60, sh_degree=0, seed=3, extent=0.6, scale_range=(0.05, 0.12)).to(dtype=torch.float64)
     target = torch.rand(3, 40, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     colors = torch.zeros(len(g), 3, dtype=torch.float64, requires_grad=True)
     image = rasterize(g, cam, colors=colors).image
     ((image.detach() - target).abs() * image).mean().backward()
-    expected = colors.grad.max(dim=1).values
+    expected = colors.grad.min(dim=1).values
     got = fgd_prune(g, [cam], [target])[1].max_contribution
     assert torch.allclose(got, expected, rtol=1e-6, atol=1e-15)
 
