@@ -790,8 +790,11 @@ VIEW_MODEL_ATTACKS: dict[str, Callable[..., Gaussians]] = {
 }
 
 
+ModelAttack = Callable[[Gaussians], Gaussians]
+
+
 def bind_model_attacks(names: Sequence[str], cameras: Sequence["Camera"],
-                       background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, Callable[[Gaussians], Gaussians]]:
+                       background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, ModelAttack]:
     """Model attacks by name, as ``fn(g)``: those of :data:`VIEW_MODEL_ATTACKS` bound to ``cameras``.
 
     Args:

@@ -406,7 +406,8 @@ def _add_eval_grid_parser(sub) -> None:
     grid.add_argument("--image-attacks", nargs="*", default=list(default.image_attacks), metavar="ATTACK",
                       help=f"of {', '.join(IMAGE_ATTACKS)} (default: all)")
     grid.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks), metavar="ATTACK",
-                      help=f"of {', '.join([*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS])} (default: the paper's {', '.join(PAPER_MODEL_ATTACKS)})")
+                      help=f"of {', '.join([*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS])} "
+                      f"(default: the paper's {', '.join(PAPER_MODEL_ATTACKS)})")
     grid.add_argument("--sweeps", nargs="*", default=list(default.sweeps), metavar="ATTACK",
                       help=f"robustness curves, of {', '.join(SWEEPS)} (default: all)")
     grid.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg",
