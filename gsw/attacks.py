@@ -24,7 +24,9 @@ sigma 0.1, centre crop keeping 50 % of the area, JPEG quality 10.
 Model attacks
 -------------
 Model attacks take a :class:`Gaussians` and return new Gaussians whose tensors never alias the input's;
-the input is never modified.
+the input is never modified. :data:`MODEL_ATTACKS` need nothing else; :data:`VIEW_MODEL_ATTACKS`
+(:func:`finetune`) also render the model from given cameras, and :func:`bind_model_attacks` binds them
+to a scene's views.
 
 Example:
     >>> import torch
