@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
 
 import pytest
 from helpers import SHARED_DATA, require
@@ -358,3 +361,13 @@ def test_build_info_reports_backends() -> None:
     info = gsw.build_info()
     assert {"compiler", "openmp", "threads", "cuda", "version", "torch"} <= set(info)
     assert info["threads"] >= 1 and info["version"] == gsw.__version__
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or shutil.which("readelf") is None
+                    or not gsw.build_info()["compiler"].startswith("GNU"), reason="needs Linux, GCC and readelf")
+def test_extension_uses_the_shared_libstdcxx() -> None:
+    # A private static libstdc++ inside the module crashed torch's error formatting (see CMakeLists.txt).
+    from gsw import _C
+
+    dynamic = subprocess.run(["readelf", "-d", _C.__file__], capture_output=True, text=True, check=True).stdout
+    assert "libstdc++.so" in dynamic
