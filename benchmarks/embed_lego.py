@@ -32,13 +32,14 @@ def _mean(xs):
 def main() -> int:
     import gsw
     from gsw.data import load_inria_model, load_nerf_synthetic
-    from gsw.embed import EmbedConfig, embed, extract, verify
+    from gsw.embed import EmbedConfig, embed, verify
     from gsw.fgd import PRUNE_THRESHOLD, fgd_prune
     from gsw.losses import LossWeights
-    from gsw.messages import binomial_p_value
     from gsw.metrics import psnr, ssim
     from gsw.train import resolve_device
+    from gsw.watermark.evaluation import unbiasedness
     from gsw.watermark.lpips import lpips
+    from gsw.watermark.zoo import load_decoder
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=str(ROOT / "build" / "train_lego" / "train_lego_model"))
@@ -130,13 +131,9 @@ def main() -> int:
         # binomial draw, so also compare it with many random messages (the decoder issue's protocol).
         with torch.no_grad():
             renders = [gsw.rasterize(g, cam, background=bg).image.clamp(0, 1) for cam in test.cameras]
-            codes = extract(renders, num_bits=k).bits.cpu()  # [views, k]
-        msgs = torch.randint(0, 2, (args.unmarked_messages, k), generator=torch.Generator().manual_seed(k)).float()
-        matches = (codes[None] == msgs[:, None]).sum(-1)  # [messages, views]
-        p = torch.tensor([binomial_p_value(m, k) for m in range(k + 1)])[matches]
-        return dict(mean=float(matches.float().mean() / k), per_message_mean=(matches.float().mean(1) / k).tolist(),
-                    pairs_p_le_1e6=int((p <= 1e-6).sum()), pairs=matches.numel(),
-                    views_code_p1=codes.mean(0).tolist())
+        u = unbiasedness(load_decoder(k).to(dev).eval(), renders, k, args.unmarked_messages, seed=k, device=dev)
+        return dict(mean=u["mean_bit_acc"], pairs_p_le_1e6=u["false_positives"],
+                    pairs=u["num_images"] * u["num_messages"], views_code_p1=u["per_bit_p1"])
 
     results["bits"] = {}
     for k in args.bits:

@@ -81,6 +81,7 @@ __all__ = [
     "MODEL_FIELDS",
     "finetune",
     "VIEW_MODEL_ATTACKS",
+    "MODEL_ATTACK_NAMES",
     "bind_model_attacks",
     "parameter_noise",
     "parameter_noise_attributes",
@@ -795,6 +796,10 @@ VIEW_MODEL_ATTACKS: dict[str, Callable[..., Gaussians]] = {
 ModelAttack = Callable[[Gaussians], Gaussians]
 
 
+#: Every model attack name (:data:`MODEL_ATTACKS` and :data:`VIEW_MODEL_ATTACKS`).
+MODEL_ATTACK_NAMES: tuple[str, ...] = (*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS)
+
+
 def bind_model_attacks(names: Sequence[str], cameras: Sequence["Camera"],
                        background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, ModelAttack]:
     """Model attacks by name, as ``fn(g)``: those of :data:`VIEW_MODEL_ATTACKS` bound to ``cameras``.
@@ -807,9 +812,9 @@ def bind_model_attacks(names: Sequence[str], cameras: Sequence["Camera"],
     Returns:
         name -> attack.
     """
-    unknown = [n for n in names if n not in MODEL_ATTACKS and n not in VIEW_MODEL_ATTACKS]
+    unknown = [n for n in names if n not in MODEL_ATTACK_NAMES]
     if unknown:
-        raise KeyError(f"unknown model attacks {unknown}; choose from {[*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS]}")
+        raise KeyError(f"unknown model attacks {unknown}; choose from {list(MODEL_ATTACK_NAMES)}")
     return {n: MODEL_ATTACKS[n] if n in MODEL_ATTACKS else
             functools.partial(VIEW_MODEL_ATTACKS[n], cameras=list(cameras), background=tuple(background))
             for n in names}

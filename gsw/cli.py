@@ -380,7 +380,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def _add_eval_grid_parser(sub) -> None:
-    from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS, VIEW_MODEL_ATTACKS
+    from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
     from gsw.grid import METHODS, PAPER_MODEL_ATTACKS, GridSpec
 
     default = GridSpec()
@@ -406,7 +406,7 @@ def _add_eval_grid_parser(sub) -> None:
     grid.add_argument("--image-attacks", nargs="*", default=list(default.image_attacks), metavar="ATTACK",
                       help=f"of {', '.join(IMAGE_ATTACKS)} (default: all)")
     grid.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks), metavar="ATTACK",
-                      help=f"of {', '.join([*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS])} "
+                      help=f"of {', '.join(MODEL_ATTACK_NAMES)} "
                       f"(default: the paper's {', '.join(PAPER_MODEL_ATTACKS)})")
     grid.add_argument("--sweeps", nargs="*", default=list(default.sweeps), metavar="ATTACK",
                       help=f"robustness curves, of {', '.join(SWEEPS)} (default: all)")

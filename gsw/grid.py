@@ -50,7 +50,7 @@ import torch
 from torch import Tensor
 
 from gsw._atomic import atomic_write
-from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACKS, SWEEPS, VIEW_MODEL_ATTACKS, bind_model_attacks
+from gsw.attacks import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS, bind_model_attacks
 from gsw.camera import Camera
 from gsw.embed import EmbedConfig, embed
 from gsw.evaluate import DETECTION_FPR, evaluate_watermark
@@ -230,7 +230,7 @@ class GridSpec:
         self.bits = _nonempty("bit lengths", _selection("bit lengths", self.bits))
         self.seeds = _nonempty("seeds", _selection("seeds", self.seeds))
         self.image_attacks = _selection("image attacks", self.image_attacks, IMAGE_ATTACKS)
-        self.model_attacks = _selection("model attacks", self.model_attacks, [*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS])
+        self.model_attacks = _selection("model attacks", self.model_attacks, MODEL_ATTACK_NAMES)
         self.sweeps = _selection("sweeps", self.sweeps, SWEEPS)
         for name, value in (("bits", self.bits), ("seeds", self.seeds), ("epochs", (self.epochs,)),
                             ("fps_repeats", (self.fps_repeats,))):

@@ -81,6 +81,14 @@ def eval_attacks(
             "n": len(images) * msgs_per_image}
 
 
+def _decoded_bits(decode_fn: Callable[[torch.Tensor], torch.Tensor], img: torch.Tensor,
+                  device: torch.device | str) -> torch.Tensor:
+    """Bits [1,k] (CPU) of one image [3,H,W]: uint8, or float in [0, 1] (e.g. a render)."""
+    x = img[None].to(device)
+    x = x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
+    return (decode_fn(ll_subband(x)).float() > 0).float().cpu()
+
+
 @torch.no_grad()
 def unbiasedness(
     decode_fn: Callable[[torch.Tensor], torch.Tensor],
@@ -95,7 +103,7 @@ def unbiasedness(
 
     Args:
         decode_fn: LL2 subband -> logits [B,k].
-        images: unmarked photos, uint8 [3,H,W] (decoded at full size).
+        images: unmarked images [3,H,W], uint8 or float in [0, 1] (decoded at full size).
         extra_views: if > 0, also decode this many random crops (side 0.5..1 of the image, random flips)
             of every image, to estimate the per-bit means with more samples.
 
@@ -106,8 +114,7 @@ def unbiasedness(
         correlation of decoded bits.
     """
     gen = torch.Generator().manual_seed(seed)
-    bits = torch.cat([(decode_fn(ll_subband(img[None].to(device).float() / 255.0)).float() > 0).float().cpu()
-                      for img in images])  # [N,k]
+    bits = torch.cat([_decoded_bits(decode_fn, img, device) for img in images])  # [N,k]
     msgs = torch.randint(0, 2, (num_messages, num_bits), generator=gen).float()
     matches = bits @ msgs.T + (1 - bits) @ (1 - msgs).T  # [N, M] matching bits
     thr = false_positive_threshold(num_bits)
@@ -145,7 +152,7 @@ def unbiasedness(
                 c = img[:, y0 : y0 + ch, x0 : x0 + cw]
                 if float(torch.rand(1, generator=gen)) < 0.5:
                     c = c.flip(-1)
-                vb.append((decode_fn(ll_subband(c[None].to(device).float() / 255.0)).float() > 0).float().cpu())
+                vb.append(_decoded_bits(decode_fn, c, device))
         vbits = torch.cat(vb)
         p1 = vbits.mean(0)
         res.update(views_num=vbits.shape[0], views_per_bit_p1=p1.tolist(),
