@@ -44,6 +44,8 @@ from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import bit_accuracy  # noqa: E402
 from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
+from watermark.whitening import WhiteningLayer  # noqa: E402
+from watermark.zoo import load_decoder  # noqa: E402
 
 T0 = time.perf_counter()
 
@@ -115,6 +117,15 @@ def load_init(run: Path, cfg: T.MultiConfig) -> tuple[list, list]:
     return encs, decs
 
 
+def shipped_whitening(decoder: torch.nn.Module, k: int) -> torch.nn.Module:
+    """The package's whitening for ``k`` bits, after checking that ``decoder`` is the shipped decoder."""
+    shipped = load_decoder(k)
+    ours = {n: v.detach().cpu() for n, v in decoder.state_dict().items()}
+    if any(not torch.equal(ours[n], v) for n, v in shipped.decoder.state_dict().items()):
+        raise SystemExit(f"--shipped-whitening: the {k}-bit decoder is not the shipped one")
+    return shipped.whitening
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bits", type=int, nargs="+", default=[32, 48, 64])
@@ -123,6 +134,15 @@ def main() -> None:
     ap.add_argument("--train-s", type=float, default=330.0, help="training wall-time budget (all bit lengths)")
     ap.add_argument("--steps", type=int, default=1000, help="step budget when --train-s 0")
     ap.add_argument("--ft-s", type=float, default=25.0, help="encoder fine-tune against the whitened decoders")
+    ap.add_argument("--ft-lr", type=float, default=5e-4, help="learning rate of that fine-tune (cosine)")
+    ap.add_argument("--ft-warp", default="same", choices=["same", "on", "off"],
+                    help="view warp in the encoder fine-tune (same: as in training; off: the image-only task of "
+                         "the pair's evaluation)")
+    ap.add_argument("--ft-target", default="whitened", choices=["whitened", "raw"],
+                    help="decoder output the encoder is fine-tuned against (and then evaluated with)")
+    ap.add_argument("--shipped-whitening", action="store_true",
+                    help="use the package's whitening (gsw/watermark/weights) instead of fitting one; the "
+                         "decoders must be the shipped ones (checked)")
     ap.add_argument("--deadline-s", type=float, default=1e9, help="end everything by then (from the start)")
     ap.add_argument("--batch", type=int, default=64, help="per bit length")
     ap.add_argument("--crop", type=int, default=128)
@@ -143,7 +163,8 @@ def main() -> None:
     ap.add_argument("--balance-batch", type=int, default=16, help="unmarked crops per step for that loss")
     ap.add_argument("--freeze-bn", action="store_true",
                     help="decoder BatchNorm in eval mode (fine-tuning: train exactly the inference network)")
-    ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run")
+    ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run "
+                                                  "(with --train-s 0 --steps 0: no further training)")
     ap.add_argument("--whiten-mode", default="zca", choices=["pca", "zca"])
     ap.add_argument("--whiten-center", default="median", choices=["mean", "median"])
     ap.add_argument("--whiten-eps", type=float, default=T.WHITEN_EIG_FLOOR, help="eigenvalue floor relative to the largest")
@@ -179,8 +200,12 @@ def main() -> None:
                         view_warp=args.view_warp, balance=args.balance, balance_batch=args.balance_batch,
                         freeze_bn=args.freeze_bn)
     encs0, decs0 = load_init(Path(args.init), cfg) if args.init else (None, None)
-    st = T.train_multi(cfg, bank, encoders=encs0, decoders=decs0, val_fn=make_val_fn(val_bank, cfg),
-                       val_every_s=args.val_every_s, tag="train ")
+    if args.init and args.train_s <= 0 and args.steps <= 0:
+        st = {"encoders": [e.to(device).eval() for e in encs0], "decoders": [d.to(device).eval() for d in decs0],
+              "step": 0, "elapsed": 0.0, "log": [], "val": [], "steps_per_s": 0.0}
+    else:
+        st = T.train_multi(cfg, bank, encoders=encs0, decoders=decs0, val_fn=make_val_fn(val_bank, cfg),
+                           val_every_s=args.val_every_s, tag="train ")
     if args.init:
         prev = {k: json.loads((Path(args.init) / f"k{k}.json").read_text()) for k in cfg.bits}
         st["step"] += prev[cfg.bits[0]]["steps"]
@@ -189,10 +214,14 @@ def main() -> None:
     log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")
     torch.backends.cudnn.benchmark = False  # evaluation sees many image sizes
     torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False  # whitening in float32
-    whitens, nfit = T.fit_whitening_multi(decs, train_images, bank, num_crops=args.whiten_crops,
-                                          mode=args.whiten_mode, center=args.whiten_center, eps=args.whiten_eps)
+    if args.shipped_whitening:
+        whitens, nfit = [shipped_whitening(d, k) for d, k in zip(decs, cfg.bits)], 0
+        log("whitening: the shipped one")
+    else:
+        whitens, nfit = T.fit_whitening_multi(decs, train_images, bank, num_crops=args.whiten_crops,
+                                              mode=args.whiten_mode, center=args.whiten_center, eps=args.whiten_eps)
+        log(f"whitening fitted on {nfit} samples")
     whitens = [w.to(device) for w in whitens]
-    log(f"whitening fitted on {nfit} samples")
     dev_name = torch.cuda.get_device_name(0) if device.type == "cuda" else (platform.processor() or "cpu")
     metas = {}
     for i, k in enumerate(cfg.bits):
@@ -245,9 +274,12 @@ def main() -> None:
     ft_s = min(args.ft_s, max(0.0, left(args) * 0.4))
     if ft_s >= 3:
         ft_encs = [copy.deepcopy(e) for e in encs]
-        fcfg = dataclasses.replace(cfg, time_budget_s=ft_s, lr=5e-4, log_every=max(10, args.log_every // 4))
+        warp = cfg.view_warp if args.ft_warp == "same" else args.ft_warp == "on"
+        fcfg = dataclasses.replace(cfg, time_budget_s=ft_s, lr=args.ft_lr, view_warp=warp,
+                                   log_every=max(10, args.log_every // 4))
         torch.backends.cudnn.benchmark = device.type == "cuda"
-        ft = T.train_multi(fcfg, bank, encoders=ft_encs, decoders=decs, whitenings=whitens,
+        targets = whitens if args.ft_target == "whitened" else [WhiteningLayer(k).to(device) for k in cfg.bits]
+        ft = T.train_multi(fcfg, bank, encoders=ft_encs, decoders=decs, whitenings=targets,
                            finetune_encoders=True, tag="ft ")
         torch.backends.cudnn.benchmark = False
         log(f"encoder fine-tune: {ft['step']} steps in {ft['elapsed']:.0f} s")
@@ -255,14 +287,15 @@ def main() -> None:
             metas[k]["ft_log"] = ft["log"]
             metas[k]["ft_steps"] = ft["step"]
             metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
+            metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target)
         save("finetuned", ft["encoders"])
         for i, k in enumerate(cfg.bits):
             emb = lambda x, m, e=ft["encoders"][i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
-            dw = lambda ll, d=decs[i], w=whitens[i]: w(d(ll).float())  # noqa: E731
+            dw = lambda ll, d=decs[i], w=targets[i]: w(d(ll).float())  # noqa: E731
             r = eval_chunked(args, emb, dw, val_eval, attacks, k, 1, device,
                              frac_of_left=0.8 / (len(cfg.bits) - i))
-            metas[k]["results"]["pair_whitened"] = r
-            log(f"k={k} pair_whitened ({r['n']} pairs): "
+            metas[k]["results"][f"pair_{args.ft_target}_ft"] = r
+            log(f"k={k} pair_{args.ft_target}_ft ({r['n']} pairs): "
                 + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
         save("done", ft["encoders"])
     else:

@@ -109,6 +109,20 @@ def test_fair_max_dev_matches_the_binomial_floor():
     assert fair_max_dev(10_000, 32) < fair_max_dev(100, 32) / 5  # shrinks like 1 / sqrt(n)
 
 
+def test_fair_max_dev_with_a_fitted_median_and_its_p_value():
+    from gsw.watermark.evaluation import fair_max_dev, max_dev_p_value
+
+    # a median fitted on n_fit images adds its own error: one bit's P(1) then has variance
+    # 0.25 / n + 0.25 / n_fit (n = n_fit = 400: sd 0.0354, half-normal median 0.6745 sd)
+    assert abs(fair_max_dev(400, 1, n_fit=400) - 0.6745 * 0.5 * (2 / 400) ** 0.5) < 0.006
+    assert fair_max_dev(100, 64, n_fit=200) > fair_max_dev(100, 64)
+    assert abs(fair_max_dev(100, 64, n_fit=10**7) - fair_max_dev(100, 64)) <= 0.01  # exact median in the limit
+    assert max_dev_p_value(0.0, 100, 32) == 1.0  # every evaluation deviates at least 0
+    assert max_dev_p_value(0.5, 100, 32) < 1e-3  # a stuck bit is no sampling accident
+    p = [max_dev_p_value(d, 100, 32, n_fit=200) for d in (0.1, 0.15, 0.2)]
+    assert p[0] > p[1] > p[2]
+
+
 def test_shipped_decoders_keep_the_trained_input_normalisation():
     # the exported architecture must be the trained one (an export once dropped input_norm="standardize")
     for k in AVAILABLE_BITS:

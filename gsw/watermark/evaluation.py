@@ -17,7 +17,8 @@ from .dwt import ll_subband
 from .hidden import bit_accuracy
 from .noise import NoiseLayer
 
-__all__ = ["false_positive_threshold", "binomial_tail", "psnr", "eval_attacks", "unbiasedness"]
+__all__ = ["false_positive_threshold", "binomial_tail", "psnr", "eval_attacks", "unbiasedness", "fair_max_dev",
+           "max_dev_p_value"]
 
 
 def binomial_tail(k: int, m: int) -> float:
@@ -98,6 +99,7 @@ def unbiasedness(
     seed: int = 0,
     device: torch.device | str = "cpu",
     extra_views: int = 0,
+    fit_images: int | None = None,
 ) -> dict[str, object]:
     """Decode unmarked images and compare their bits with ``num_messages`` random messages.
 
@@ -106,6 +108,8 @@ def unbiasedness(
         images: unmarked images [3,H,W], uint8 or float in [0, 1] (decoded at full size).
         extra_views: if > 0, also decode this many random crops (side 0.5..1 of the image, random flips)
             of every image, to estimate the per-bit means with more samples.
+        fit_images: number of independent images the whitening's centre was fitted on; adds the floor and
+            the p-value of the per-bit deviation for a decoder centred on that many images.
 
     Returns:
         dict with mean bit accuracy vs the random messages, per-bit P(bit = 1) over images (and its
@@ -132,6 +136,7 @@ def unbiasedness(
         "per_bit_p1_max_dev": float((per_bit_p1 - 0.5).abs().max()),
         "per_bit_p1_stderr_if_fair": 0.5 / math.sqrt(n),
         "per_bit_p1_max_dev_if_fair": fair_max_dev(n, num_bits),
+        "per_bit_p1_max_dev_p_value": max_dev_p_value(float((per_bit_p1 - 0.5).abs().max()), n, num_bits),
         "per_bit_acc_vs_messages_min": float(per_bit_acc.min()),
         "per_bit_acc_vs_messages_max": float(per_bit_acc.max()),
         "fp_threshold": thr,
@@ -140,6 +145,11 @@ def unbiasedness(
         "max_matching_bits": int(matches.max()),
         "mean_abs_bit_corr": float(off.abs().mean()) if off.numel() else 0.0,
     }
+    if fit_images is not None:
+        res.update(fit_images=fit_images,
+                   per_bit_p1_max_dev_if_fair_fitted=fair_max_dev(n, num_bits, fit_images),
+                   per_bit_p1_max_dev_p_value_fitted=max_dev_p_value(res["per_bit_p1_max_dev"], n, num_bits,
+                                                                     fit_images))
     if extra_views > 0:
         vb = []
         for img in images:
@@ -162,12 +172,37 @@ def unbiasedness(
     return res
 
 
-def fair_max_dev(n: int, k: int, trials: int = 4000, seed: int = 0) -> float:
-    """Median over simulations of max_j |P(bit j = 1) - 0.5| for n images of k fair, independent bits: the
-    value a perfectly unbiased decoder shows on n images (the measurement floor of the per-bit target)."""
+def fair_max_devs(n: int, k: int, n_fit: int | None = None, trials: int = 4000, seed: int = 0) -> np.ndarray:
+    """Simulated max_j |P(bit j = 1) - 0.5| over n images of k independent bits of a decoder with no bias.
+
+    Args:
+        n: number of evaluation images.
+        k: number of bits.
+        n_fit: if given, each bit's threshold is the median of ``n_fit`` independent fitting images (what a
+            median-centred whitening does) instead of the exact median; the fitting error then adds to the
+            evaluation's binomial noise.
+        trials: number of simulated evaluations.
+
+    Returns:
+        [trials] the max deviation of each simulated evaluation.
+    """
     gen = np.random.default_rng(seed)
-    p1 = gen.binomial(n, 0.5, size=(trials, k)) / n
-    return float(np.median(np.abs(p1 - 0.5).max(1)))
+    p = np.full((trials, k), 0.5)
+    if n_fit is not None:  # the CDF value of a sample median of n_fit draws is Beta((n_fit + 1) / 2, ...)
+        p = 1.0 - gen.beta((n_fit + 1) / 2, (n_fit + 1) / 2, size=(trials, k))
+    return np.abs(gen.binomial(n, p) / n - 0.5).max(1)
+
+
+def fair_max_dev(n: int, k: int, n_fit: int | None = None, trials: int = 4000, seed: int = 0) -> float:
+    """Median of :func:`fair_max_devs`: the worst per-bit deviation an unbiased decoder shows on n images
+    (the measurement floor of the per-bit target)."""
+    return float(np.median(fair_max_devs(n, k, n_fit, trials, seed)))
+
+
+def max_dev_p_value(observed: float, n: int, k: int, n_fit: int | None = None, trials: int = 20000) -> float:
+    """P(an unbiased decoder shows a max per-bit deviation >= ``observed`` on n images): small values mean
+    the measured deviation is more than sampling noise."""
+    return float((fair_max_devs(n, k, n_fit, trials, seed=1) >= observed - 1e-12).mean())
 
 
 def summarize_bits(values: list[float]) -> dict[str, float]:
