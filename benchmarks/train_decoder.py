@@ -108,9 +108,11 @@ def load_init(run: Path, cfg: T.MultiConfig) -> tuple[list, list]:
     for k in cfg.bits:
         blob = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
         enc = T.HiddenEncoder(k, cfg.enc_blocks, cfg.channels)
-        enc = T.TemplateEncoder(enc, cfg.templates) if cfg.templates > 0 else enc
+        enc = T.TemplateEncoder(enc, cfg.templates, mlp=cfg.template_mlp) if cfg.templates > 0 else enc
         dec = T.HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm)
-        enc.load_state_dict(blob["encoder"])
+        missing, unexpected = enc.load_state_dict(blob["encoder"], strict=False)
+        if unexpected or any(not n.startswith("mlp.") for n in missing):  # a new mlp branch starts at zero
+            raise SystemExit(f"--init {run}: encoder mismatch (missing {missing}, unexpected {unexpected})")
         dec.load_state_dict(blob["decoder"])
         encs.append(enc)
         decs.append(dec)
@@ -156,6 +158,8 @@ def main() -> None:
     ap.add_argument("--dec-norm", default="standardize", choices=["none", "center", "standardize"],
                     help="decoder input normalisation (HiddenDecoder input_norm)")
     ap.add_argument("--templates", type=int, default=0, help="> 0: on/off template encoder aid of this side")
+    ap.add_argument("--template-mlp", type=int, default=0,
+                    help="> 0: nonlinear message -> template branch of this width (added at zero to an --init)")
     ap.add_argument("--view-warp", action="store_true",
                     help="every training sample also goes through a random view warp (rotation, zoom, foreshortening)")
     ap.add_argument("--balance", type=float, default=0.0,
@@ -197,6 +201,7 @@ def main() -> None:
                         steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
                         channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
                         enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates,
+                        template_mlp=args.template_mlp,
                         view_warp=args.view_warp, balance=args.balance, balance_batch=args.balance_batch,
                         freeze_bn=args.freeze_bn)
     encs0, decs0 = load_init(Path(args.init), cfg) if args.init else (None, None)

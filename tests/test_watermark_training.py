@@ -84,3 +84,21 @@ def test_train_multi_balance_loss_unbiases_an_unmarked_decoder():
     assert p1_dev() < 0.4
     bn_after = [b.running_mean for b in dec.modules() if isinstance(b, torch.nn.BatchNorm2d)]
     assert all(torch.equal(a, b) for a, b in zip(bn_before, bn_after))  # freeze_bn: statistics untouched
+
+
+def test_template_encoder_mlp_branch_starts_at_zero_and_learns():
+    torch.manual_seed(0)
+    hidden = T.HiddenEncoder(8, num_blocks=1, channels=8)
+    plain = T.TemplateEncoder(hidden, side=4).eval()
+    with_mlp = T.TemplateEncoder(hidden, side=4, mlp=16).eval()
+    missing, unexpected = with_mlp.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and all(n.startswith("mlp.") for n in missing)
+    x, m = torch.rand(2, 3, 24, 40), torch.randint(0, 2, (2, 8)).float()
+    assert torch.equal(with_mlp(x, m), plain(x, m))  # adding the branch changes nothing ...
+    with_mlp(x, m).pow(2).sum().backward()
+    assert with_mlp.mlp[-1].weight.grad.abs().sum() > 0  # ... until it is trained
+    m2 = m.clone()
+    m2[:, 0] = 1 - m2[:, 0]
+    with torch.no_grad():
+        with_mlp.mlp[-1].weight.normal_()
+    assert not torch.allclose(with_mlp(x, m) - plain(x, m), with_mlp(x, m2) - plain(x, m2))  # message-dependent

@@ -330,6 +330,7 @@ class MultiConfig:
     log_every: int = 100
     enc_down: int = 1  # the encoder works on the crop downsampled by this factor (see embed_scaled)
     templates: int = 0  # > 0: the encoder also adds learned periodic per-bit templates of this side (LL2 px)
+    template_mlp: int = 0  # > 0: plus a nonlinear message -> tile branch of this width (TemplateEncoder mlp)
     view_warp: bool = False  # every sample also goes through GpuAttacks.view (ramped with the attack strength)
     balance: float = 0.0  # weight of the unmarked-balance loss (0 = off), see balance_loss
     balance_batch: int = 16  # unmarked crops per step and bit length for that loss
@@ -345,13 +346,25 @@ class TemplateEncoder(torch.nn.Module):
     averages over space, which makes it (nearly) translation invariant: it cannot tell a zero-mean pattern
     from its negative when that is a shift of it, so a bit is keyed as *which* of two patterns is present
     (an energy it can detect at any position), not as a pattern's sign.
+
+    With ``mlp > 0`` a nonlinear branch adds ``MLP(2 m - 1)`` (two hidden layers of that width) to the tile:
+    the sum of per-bit templates is linear in the message, so the decoder's nonlinear features mix bits
+    (cross-talk no amplitude removes); the branch can shape the joint pattern of the whole message.  Its last
+    layer starts at zero, so the branch can be added to a trained encoder without changing it.
     """
 
-    def __init__(self, hidden: HiddenEncoder, side: int = 8, scale: float = 1.0) -> None:
+    def __init__(self, hidden: HiddenEncoder, side: int = 8, scale: float = 1.0, mlp: int = 0) -> None:
         super().__init__()
         self.hidden = hidden
         self.num_bits = hidden.num_bits
         self.templates = torch.nn.Parameter(torch.randn(2, hidden.num_bits, 3, side, side) * scale)
+        self.mlp = None
+        if mlp > 0:
+            self.mlp = torch.nn.Sequential(torch.nn.Linear(self.num_bits, mlp), torch.nn.GELU(),
+                                           torch.nn.Linear(mlp, mlp), torch.nn.GELU(),
+                                           torch.nn.Linear(mlp, 3 * side * side))
+            torch.nn.init.zeros_(self.mlp[-1].weight)
+            torch.nn.init.zeros_(self.mlp[-1].bias)
 
     def forward(self, imgs: torch.Tensor, msgs: torch.Tensor) -> torch.Tensor:
         h, w = imgs.shape[-2:]
@@ -361,6 +374,8 @@ class TemplateEncoder(torch.nn.Module):
         pat = torch.einsum("bk,kchw->bchw", m, self.templates[1]) + torch.einsum("bk,kchw->bchw", 1.0 - m,
                                                                                    self.templates[0])
         pat = pat / math.sqrt(self.num_bits)
+        if self.mlp is not None:
+            pat = pat + self.mlp(m * 2.0 - 1.0).view(-1, 3, t, t).to(pat.dtype)
         pat = pat.repeat(1, 1, -(-hs // t), -(-ws // t))[..., :hs, :ws]
         shift = [int(v) for v in torch.randint(0, t, (2,))] if self.training else [0, 0]
         pat = torch.roll(pat, shift, dims=(-2, -1))  # random phase while training: nothing to learn from it
@@ -597,7 +612,7 @@ def train_multi(
     if encoders is None:
         encoders = [HiddenEncoder(k, cfg.enc_blocks, cfg.channels) for k in cfg.bits]
         if cfg.templates > 0:
-            encoders = [TemplateEncoder(e, cfg.templates) for e in encoders]
+            encoders = [TemplateEncoder(e, cfg.templates, mlp=cfg.template_mlp) for e in encoders]
     if decoders is None:
         decoders = [HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm) for k in cfg.bits]
     encoders = [_to_cl(e.to(dev), cfg.channels_last) for e in encoders]
