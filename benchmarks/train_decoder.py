@@ -293,6 +293,11 @@ def main() -> None:
             metas[k]["ft_steps"] = ft["step"]
             metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
             metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target)
+            if args.init:  # an encoder fine-tuned before (its run's encoder_ft became --init's encoder)
+                before = json.loads((Path(args.init) / f"k{k}.json").read_text())
+                metas[k]["ft_steps_total"] = ft["step"] + before.get("ft_steps_total", before.get("ft_steps", 0))
+                metas[k]["ft_s_total"] = round(ft["elapsed"] + before.get(
+                    "ft_s_total", before["config"].get("ft_s", 0) if "ft_steps" in before else 0), 1)
         save("finetuned", ft["encoders"])
         for i, k in enumerate(cfg.bits):
             emb = lambda x, m, e=ft["encoders"][i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
