@@ -102,15 +102,24 @@ def eval_chunked(args, emb, dec, images, attacks, k, seed, device, frac_of_left=
             "psnr": sum(p["psnr"] * p["n"] for p in parts) / n, "n": n, "num_images": n // args.msgs_per_image}
 
 
-def load_init(run: Path, cfg: T.MultiConfig) -> tuple[list, list]:
-    """Encoders and decoders of an earlier run (``k{k}.pt`` per bit length), built for ``cfg``."""
+def load_init(run: Path, cfg: T.MultiConfig, encoder_key: str = "encoder") -> tuple[list, list]:
+    """Encoders and decoders of an earlier run (``k{k}.pt`` per bit length), built for ``cfg``.
+
+    ``encoder_key="encoder_ft"`` takes the run's fine-tuned encoder.  Templates of a smaller side that
+    divides ``cfg.templates`` are tiled up (the same periodic pattern, so the same encoder); a missing
+    ``mlp`` branch starts at zero (also the same encoder)."""
     encs, decs = [], []
     for k in cfg.bits:
         blob = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
         enc = T.HiddenEncoder(k, cfg.enc_blocks, cfg.channels)
         enc = T.TemplateEncoder(enc, cfg.templates, mlp=cfg.template_mlp) if cfg.templates > 0 else enc
         dec = T.HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm)
-        missing, unexpected = enc.load_state_dict(blob["encoder"], strict=False)
+        state = dict(blob[encoder_key])
+        side = state["templates"].shape[-1] if "templates" in state else 0
+        if side and cfg.templates != side and cfg.templates % side == 0:
+            reps = cfg.templates // side
+            state["templates"] = state["templates"].repeat(1, 1, 1, reps, reps)
+        missing, unexpected = enc.load_state_dict(state, strict=False)
         if unexpected or any(not n.startswith("mlp.") for n in missing):  # a new mlp branch starts at zero
             raise SystemExit(f"--init {run}: encoder mismatch (missing {missing}, unexpected {unexpected})")
         dec.load_state_dict(blob["decoder"])
@@ -169,6 +178,8 @@ def main() -> None:
                     help="decoder BatchNorm in eval mode (fine-tuning: train exactly the inference network)")
     ap.add_argument("--init", default=None, help="continue from DIR/k{bits}.pt of an earlier run "
                                                   "(with --train-s 0 --steps 0: no further training)")
+    ap.add_argument("--init-encoder", default="encoder", choices=["encoder", "encoder_ft"],
+                    help="which encoder of --init to start from (encoder_ft: its fine-tuned one, to chain fine-tunes)")
     ap.add_argument("--whiten-mode", default="zca", choices=["pca", "zca"])
     ap.add_argument("--whiten-center", default="median", choices=["mean", "median"])
     ap.add_argument("--whiten-eps", type=float, default=T.WHITEN_EIG_FLOOR, help="eigenvalue floor relative to the largest")
@@ -204,7 +215,7 @@ def main() -> None:
                         template_mlp=args.template_mlp,
                         view_warp=args.view_warp, balance=args.balance, balance_batch=args.balance_batch,
                         freeze_bn=args.freeze_bn)
-    encs0, decs0 = load_init(Path(args.init), cfg) if args.init else (None, None)
+    encs0, decs0 = load_init(Path(args.init), cfg, args.init_encoder) if args.init else (None, None)
     if args.init and args.train_s <= 0 and args.steps <= 0:
         st = {"encoders": [e.to(device).eval() for e in encs0], "decoders": [d.to(device).eval() for d in decs0],
               "step": 0, "elapsed": 0.0, "log": [], "val": [], "steps_per_s": 0.0}
@@ -293,7 +304,7 @@ def main() -> None:
             metas[k]["ft_steps"] = ft["step"]
             metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
             metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target)
-            if args.init:  # an encoder fine-tuned before (its run's encoder_ft became --init's encoder)
+            if args.init_encoder == "encoder_ft":  # chained fine-tunes: count the earlier ones too
                 before = json.loads((Path(args.init) / f"k{k}.json").read_text())
                 metas[k]["ft_steps_total"] = ft["step"] + before.get("ft_steps_total", before.get("ft_steps", 0))
                 metas[k]["ft_s_total"] = round(ft["elapsed"] + before.get(

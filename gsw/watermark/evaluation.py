@@ -123,6 +123,7 @@ def unbiasedness(
     matches = bits @ msgs.T + (1 - bits) @ (1 - msgs).T  # [N, M] matching bits
     thr = false_positive_threshold(num_bits)
     per_bit_p1 = bits.mean(0)
+    max_dev = float((per_bit_p1 - 0.5).abs().max())
     per_bit_acc = ((bits[:, None, :] == msgs[None]).float().mean((0, 1)))
     n = bits.shape[0]
     corr = torch.corrcoef(bits.T) if n > 2 else torch.zeros(num_bits, num_bits)
@@ -133,10 +134,10 @@ def unbiasedness(
         "num_messages": num_messages,
         "mean_bit_acc": float(matches.mean() / num_bits),
         "per_bit_p1": per_bit_p1.tolist(),
-        "per_bit_p1_max_dev": float((per_bit_p1 - 0.5).abs().max()),
+        "per_bit_p1_max_dev": max_dev,
         "per_bit_p1_stderr_if_fair": 0.5 / math.sqrt(n),
         "per_bit_p1_max_dev_if_fair": fair_max_dev(n, num_bits),
-        "per_bit_p1_max_dev_p_value": max_dev_p_value(float((per_bit_p1 - 0.5).abs().max()), n, num_bits),
+        "per_bit_p1_max_dev_p_value": max_dev_p_value(max_dev, n, num_bits),
         "per_bit_acc_vs_messages_min": float(per_bit_acc.min()),
         "per_bit_acc_vs_messages_max": float(per_bit_acc.max()),
         "fp_threshold": thr,
@@ -148,8 +149,7 @@ def unbiasedness(
     if fit_images is not None:
         res.update(fit_images=fit_images,
                    per_bit_p1_max_dev_if_fair_fitted=fair_max_dev(n, num_bits, fit_images),
-                   per_bit_p1_max_dev_p_value_fitted=max_dev_p_value(res["per_bit_p1_max_dev"], n, num_bits,
-                                                                     fit_images))
+                   per_bit_p1_max_dev_p_value_fitted=max_dev_p_value(max_dev, n, num_bits, fit_images))
     if extra_views > 0:
         vb = []
         for img in images:
