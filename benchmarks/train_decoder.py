@@ -105,23 +105,21 @@ def eval_chunked(args, emb, dec, images, attacks, k, seed, device, frac_of_left=
 def load_init(run: Path, cfg: T.MultiConfig, encoder_key: str = "encoder") -> tuple[list, list]:
     """Encoders and decoders of an earlier run (``k{k}.pt`` per bit length), built for ``cfg``.
 
-    ``encoder_key="encoder_ft"`` takes the run's fine-tuned encoder.  Templates of a smaller side that
-    divides ``cfg.templates`` are tiled up (the same periodic pattern, so the same encoder); a missing
-    ``mlp`` branch starts at zero (also the same encoder)."""
+    ``encoder_key="encoder_ft"`` takes the run's fine-tuned encoder; a template encoder may grow on the way
+    (:meth:`TemplateEncoder.load_grown_state_dict`: larger templates, a new or wider ``mlp`` branch)."""
     encs, decs = [], []
     for k in cfg.bits:
         blob = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
         enc = T.HiddenEncoder(k, cfg.enc_blocks, cfg.channels)
         enc = T.TemplateEncoder(enc, cfg.templates, mlp=cfg.template_mlp) if cfg.templates > 0 else enc
         dec = T.HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm)
-        state = dict(blob[encoder_key])
-        side = state["templates"].shape[-1] if "templates" in state else 0
-        if side and cfg.templates != side and cfg.templates % side == 0:
-            reps = cfg.templates // side
-            state["templates"] = state["templates"].repeat(1, 1, 1, reps, reps)
-        missing, unexpected = enc.load_state_dict(state, strict=False)
-        if unexpected or any(not n.startswith("mlp.") for n in missing):  # a new mlp branch starts at zero
-            raise SystemExit(f"--init {run}: encoder mismatch (missing {missing}, unexpected {unexpected})")
+        try:
+            if isinstance(enc, T.TemplateEncoder):
+                enc.load_grown_state_dict(blob[encoder_key])
+            else:
+                enc.load_state_dict(blob[encoder_key])
+        except (RuntimeError, ValueError) as e:
+            raise SystemExit(f"--init {run}: the {k}-bit encoder does not fit this configuration: {e}") from e
         dec.load_state_dict(blob["decoder"])
         encs.append(enc)
         decs.append(dec)

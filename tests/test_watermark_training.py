@@ -91,8 +91,7 @@ def test_template_encoder_mlp_branch_starts_at_zero_and_learns():
     hidden = T.HiddenEncoder(8, num_blocks=1, channels=8)
     plain = T.TemplateEncoder(hidden, side=4).eval()
     with_mlp = T.TemplateEncoder(hidden, side=4, mlp=16).eval()
-    missing, unexpected = with_mlp.load_state_dict(plain.state_dict(), strict=False)
-    assert not unexpected and all(n.startswith("mlp.") for n in missing)
+    with_mlp.load_grown_state_dict(plain.state_dict())
     x, m = torch.rand(2, 3, 24, 40), torch.randint(0, 2, (2, 8)).float()
     assert torch.equal(with_mlp(x, m), plain(x, m))  # adding the branch changes nothing ...
     with_mlp(x, m).pow(2).sum().backward()
@@ -102,3 +101,34 @@ def test_template_encoder_mlp_branch_starts_at_zero_and_learns():
     with torch.no_grad():
         with_mlp.mlp[-1].weight.normal_()
     assert not torch.allclose(with_mlp(x, m) - plain(x, m), with_mlp(x, m2) - plain(x, m2))  # message-dependent
+
+
+def test_template_encoder_grows_without_changing_its_residual():
+    torch.manual_seed(1)
+    hidden = T.HiddenEncoder(8, num_blocks=1, channels=8)
+    small = T.TemplateEncoder(hidden, side=4, mlp=16)
+    with torch.no_grad():
+        small.mlp[-1].weight.normal_()  # a trained (non-zero) branch
+    small.eval()
+    big = T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=8, mlp=64).eval()
+    big.load_grown_state_dict(small.state_dict())  # templates 4 -> 8 (tiled), mlp 16 -> 64 (widened)
+    x, m = torch.rand(3, 3, 40, 56), torch.randint(0, 2, (3, 8)).float()
+    assert torch.allclose(big(x, m), small(x, m), atol=1e-5)
+    big(x, m).pow(2).sum().backward()
+    assert big.mlp[0].weight.grad[16:].abs().sum() == 0  # new units are dead until their outputs move ...
+    assert big.mlp[-1].weight.grad[:, 16:].abs().sum() > 0  # ... which they can
+
+
+def test_template_encoder_growth_errors():
+    import pytest
+
+    small = T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=4, mlp=16)
+    with pytest.raises(ValueError, match="side 4 cannot grow to side 6"):
+        T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=6, mlp=16).load_grown_state_dict(
+            small.state_dict())
+    with pytest.raises(ValueError, match="cannot shrink"):
+        T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=4, mlp=8).load_grown_state_dict(
+            small.state_dict())
+    with pytest.raises(ValueError, match="has none"):
+        T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=4).load_grown_state_dict(
+            small.state_dict())

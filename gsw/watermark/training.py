@@ -366,6 +366,50 @@ class TemplateEncoder(torch.nn.Module):
             torch.nn.init.zeros_(self.mlp[-1].weight)
             torch.nn.init.zeros_(self.mlp[-1].bias)
 
+    @torch.no_grad()
+    def load_grown_state_dict(self, state: dict[str, torch.Tensor], seed: int = 0) -> None:
+        """Load the state of a smaller template encoder so that this one computes the same residual.
+
+        Templates (and an ``mlp`` branch's output tile) whose side divides this one's are tiled (the same
+        periodic pattern); a missing ``mlp`` branch keeps its zero output layer; a narrower one is widened:
+        new hidden units get random inputs and zero outputs, and old units never read new ones.  Anything
+        else must match exactly.
+        """
+        state = dict(state)
+        side, t = state["templates"].shape[-1], self.templates.shape[-1]
+        if t % side:
+            raise ValueError(f"templates of side {side} cannot grow to side {t}")
+        r = t // side
+        state["templates"] = state["templates"].repeat(1, 1, 1, r, r)
+        if "mlp.4.weight" in state:  # the branch's output is a tile too: repeat its rows the same way
+            w, b = state["mlp.4.weight"], state["mlp.4.bias"]
+            state["mlp.4.weight"] = w.view(3, side, side, -1).repeat(1, r, r, 1).reshape(3 * t * t, -1)
+            state["mlp.4.bias"] = b.view(3, side, side).repeat(1, r, r).reshape(-1)
+        if "mlp.0.weight" in state:
+            if self.mlp is None:
+                raise ValueError("the state has an mlp branch, this encoder has none")
+            h, width = state["mlp.0.weight"].shape[0], self.mlp[0].out_features
+            if width < h:
+                raise ValueError(f"an mlp branch of width {h} cannot shrink to {width}")
+            gen = torch.Generator().manual_seed(seed)
+            new = {n: p.detach().clone() for n, p in self.mlp.state_dict().items()}
+            k = new["0.weight"].shape[1]
+            new["0.weight"] = torch.randn(width, k, generator=gen) / k**0.5
+            new["0.weight"][:h] = state["mlp.0.weight"]
+            new["2.weight"] = torch.randn(width, width, generator=gen) / width**0.5
+            new["2.weight"][:h] = 0.0
+            new["2.weight"][:h, :h] = state["mlp.2.weight"]
+            new["4.weight"] = torch.zeros_like(new["4.weight"])
+            new["4.weight"][:, :h] = state["mlp.4.weight"]
+            for b in ("0.bias", "2.bias"):
+                new[b] = torch.zeros(width)
+                new[b][:h] = state[f"mlp.{b}"]
+            new["4.bias"] = state["mlp.4.bias"]
+            state.update({f"mlp.{n}": v for n, v in new.items()})
+        missing, unexpected = self.load_state_dict(state, strict=False)
+        if unexpected or any(not n.startswith("mlp.") for n in missing):
+            raise ValueError(f"state does not match (missing {missing}, unexpected {unexpected})")
+
     def forward(self, imgs: torch.Tensor, msgs: torch.Tensor) -> torch.Tensor:
         h, w = imgs.shape[-2:]
         hs, ws = -(-h // 4), -(-w // 4)
