@@ -54,8 +54,10 @@ def main() -> None:
     ap.add_argument("--ft-runs", nargs="*", default=[],
                     help="runs of encoder-only fine-tunes of the shipped decoders, merged into the report")
     ap.add_argument("--recheck-bits", type=int, nargs="*", default=[],
-                    help="re-measure the last --ft-runs pair on the CPU for these bit lengths: its encoder with the "
+                    help="re-measure a fine-tuned pair on the CPU for these bit lengths: its encoder with the "
                          "shipped decoder (package loader), new messages, 95 %% photo-bootstrap interval")
+    ap.add_argument("--recheck-run", default=None,
+                    help="the run whose encoder_ft is re-checked (default: the last of --ft-runs)")
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "bsds500"))
     ap.add_argument("--bits", type=int, nargs="+", default=[32, 48, 64])
     ap.add_argument("--results", default=str(ROOT / "benchmarks" / "results" / "decoder"))
@@ -147,8 +149,8 @@ def refresh_report(args) -> None:
                                             "ft_s_total": meta.get("ft_s_total", meta["config"].get("ft_s")),
                                             "device": meta["device"]}
     for k in args.recheck_bits:
-        rep["runs"][str(k)]["results"]["pair_ft_cpu_recheck"] = cpu_pair_recheck(Path(args.ft_runs[-1]), k,
-                                                                                  val_images)
+        rep["runs"][str(k)]["results"]["pair_ft_cpu_recheck"] = cpu_pair_recheck(
+            Path(args.recheck_run or args.ft_runs[-1]), k, val_images)
     out.with_suffix(".json").write_text(json.dumps(rep, indent=1))
     out.with_suffix(".md").write_text(markdown(rep, args.bits))
     print(out.with_suffix(".md").read_text())
@@ -159,7 +161,8 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
     """The fine-tuned encoder of ``run`` with the shipped decoder (raw outputs, loaded and checksum-checked by
     ``load_decoder``) on every val photo, messages drawn anew (seed 1000 + photo index), every training noise
     layer with the real codec; clean accuracy with a 95 % bootstrap interval over photos."""
-    cfg = json.loads((run / f"k{k}.json").read_text())["config"]
+    meta = json.loads((run / f"k{k}.json").read_text())
+    cfg = meta["config"]
     enc = HiddenEncoder(k, cfg["enc_blocks"], cfg["channels"])
     if cfg.get("templates"):
         enc = TemplateEncoder(enc, cfg["templates"], mlp=cfg.get("template_mlp", 0))
@@ -176,7 +179,10 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
     clean = np.asarray(per["identity"])
     boot = np.random.default_rng(0).choice(clean, (10000, len(clean))).mean(1)
     return {"bit_acc": {a: float(np.mean(v)) for a, v in per.items()}, "n": msgs_per_image * len(val_images),
-            "identity_ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))], "device": "cpu"}
+            "identity_ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))], "device": "cpu",
+            "encoder": {"templates": cfg.get("templates"), "template_mlp": cfg.get("template_mlp"),
+                        "ft_s_total": meta.get("ft_s_total", cfg.get("ft_s")),
+                        "pair_on_gpu": meta["results"]["pair_raw_ft"]["bit_acc"]["identity"]}}
 
 
 def _pct(v: float) -> str:
@@ -257,8 +263,11 @@ def markdown(rep: dict, bits: list[int]) -> str:
                                                   for k in bits) + " |")
     rc = {k: res[k]["pair_ft_cpu_recheck"] for k in bits if "pair_ft_cpu_recheck" in res[k]}
     if rc:
-        lines += [""] + [f"CPU re-check, {k} bits (the fine-tuned encoder with the shipped decoder as `load_decoder` "
-                         f"loads it, new messages, {r['n']} pairs): clean {_pct(r['bit_acc']['identity'])} % (95 % "
+        lines += [""] + [f"CPU re-check, {k} bits (the encoder of the fine-tune chain's "
+                         f"{r['encoder']['ft_s_total']:.0f}-s stage, templates {r['encoder']['templates']} + MLP width "
+                         f"{r['encoder']['template_mlp']}, {_pct(r['encoder']['pair_on_gpu'])} % clean on the GPU; with "
+                         f"the shipped decoder as `load_decoder` loads it, new messages, {r['n']} pairs): clean "
+                         f"{_pct(r['bit_acc']['identity'])} % (95 % "
                          f"bootstrap over photos {_pct(r['identity_ci95'][0])}-{_pct(r['identity_ci95'][1])}), "
                          "training layers " + ", ".join(f"{a} {_pct(v)}" for a, v in r["bit_acc"].items()
                                                         if a != "identity") + " %."
