@@ -16,6 +16,7 @@ report from ``benchmarks/results/decoder.json``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -28,9 +29,9 @@ import torch  # noqa: E402
 
 from watermark import noise as N  # noqa: E402
 from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
-from watermark.hidden import HiddenDecoder, HiddenEncoder  # noqa: E402
-from watermark.training import (WHITEN_EIG_FLOOR, TemplateEncoder, embed_scaled, fit_whitening_multi,  # noqa: E402
-                                image_bank, load_images)
+from watermark.hidden import HiddenDecoder  # noqa: E402
+from watermark.training import (WHITEN_EIG_FLOOR, MultiConfig, embed_scaled, fit_whitening_multi,  # noqa: E402
+                                image_bank, load_images, make_encoder)
 from watermark.whitening import WhiteningLayer  # noqa: E402
 from watermark.zoo import WEIGHTS_DIR, load_decoder, save_decoder  # noqa: E402
 
@@ -66,6 +67,8 @@ def main() -> None:
     ap.add_argument("--whiten-crops", type=int, default=1600)
     ap.add_argument("--whiten-eps", type=float, default=WHITEN_EIG_FLOOR)
     args = ap.parse_args()
+    if args.recheck_bits and not (args.recheck_run or args.ft_runs):
+        ap.error("--recheck-bits needs --recheck-run or --ft-runs")
     if args.report_only:
         return refresh_report(args)
     if not args.run_dir:
@@ -163,9 +166,8 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
     layer with the real codec; clean accuracy with a 95 % bootstrap interval over photos."""
     meta = json.loads((run / f"k{k}.json").read_text())
     cfg = meta["config"]
-    enc = HiddenEncoder(k, cfg["enc_blocks"], cfg["channels"])
-    if cfg.get("templates"):
-        enc = TemplateEncoder(enc, cfg["templates"], mlp=cfg.get("template_mlp", 0))
+    fields = {f.name for f in dataclasses.fields(MultiConfig)}
+    enc = make_encoder(k, MultiConfig(**{n: v for n, v in cfg.items() if n in fields}))
     enc.load_state_dict(torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)["encoder_ft"])
     enc.eval()
     dec = load_decoder(k).decoder

@@ -110,8 +110,7 @@ def load_init(run: Path, cfg: T.MultiConfig, encoder_key: str = "encoder") -> tu
     encs, decs = [], []
     for k in cfg.bits:
         blob = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
-        enc = T.HiddenEncoder(k, cfg.enc_blocks, cfg.channels)
-        enc = T.TemplateEncoder(enc, cfg.templates, mlp=cfg.template_mlp) if cfg.templates > 0 else enc
+        enc = T.make_encoder(k, cfg)
         dec = T.HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm)
         try:
             if isinstance(enc, T.TemplateEncoder):
@@ -220,8 +219,8 @@ def main() -> None:
     else:
         st = T.train_multi(cfg, bank, encoders=encs0, decoders=decs0, val_fn=make_val_fn(val_bank, cfg),
                            val_every_s=args.val_every_s, tag="train ")
+    prev = {k: json.loads((Path(args.init) / f"k{k}.json").read_text()) for k in cfg.bits} if args.init else {}
     if args.init:
-        prev = {k: json.loads((Path(args.init) / f"k{k}.json").read_text()) for k in cfg.bits}
         st["step"] += prev[cfg.bits[0]]["steps"]
         st["elapsed"] += prev[cfg.bits[0]]["train_elapsed_s"]
     encs, decs = st["encoders"], st["decoders"]
@@ -303,7 +302,7 @@ def main() -> None:
             metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
             metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target)
             if args.init_encoder == "encoder_ft":  # chained fine-tunes: count the earlier ones too
-                before = json.loads((Path(args.init) / f"k{k}.json").read_text())
+                before = prev[k]
                 metas[k]["ft_steps_total"] = ft["step"] + before.get("ft_steps_total", before.get("ft_steps", 0))
                 metas[k]["ft_s_total"] = round(ft["elapsed"] + before.get(
                     "ft_s_total", before["config"].get("ft_s", 0) if "ft_steps" in before else 0), 1)

@@ -427,6 +427,13 @@ class TemplateEncoder(torch.nn.Module):
         return self.hidden(imgs, msgs) + pat.to(imgs.dtype if not torch.is_autocast_enabled() else pat.dtype)
 
 
+def make_encoder(num_bits: int, cfg: MultiConfig) -> HiddenEncoder | TemplateEncoder:
+    """The pre-training encoder ``cfg`` describes: a :class:`HiddenEncoder`, wrapped in a
+    :class:`TemplateEncoder` when ``cfg.templates > 0`` (with its ``mlp`` branch when ``cfg.template_mlp > 0``)."""
+    enc = HiddenEncoder(num_bits, cfg.enc_blocks, cfg.channels)
+    return TemplateEncoder(enc, cfg.templates, mlp=cfg.template_mlp) if cfg.templates > 0 else enc
+
+
 def embed_scaled(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor, psnr: float,
                  down: int = 1) -> torch.Tensor:
     """:func:`embed` with the encoder run on ``imgs`` downsampled by ``down`` (antialiased bilinear) and its
@@ -654,9 +661,7 @@ def train_multi(
     dev = bank.device
     torch.manual_seed(cfg.seed)
     if encoders is None:
-        encoders = [HiddenEncoder(k, cfg.enc_blocks, cfg.channels) for k in cfg.bits]
-        if cfg.templates > 0:
-            encoders = [TemplateEncoder(e, cfg.templates, mlp=cfg.template_mlp) for e in encoders]
+        encoders = [make_encoder(k, cfg) for k in cfg.bits]
     if decoders is None:
         decoders = [HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm) for k in cfg.bits]
     encoders = [_to_cl(e.to(dev), cfg.channels_last) for e in encoders]
