@@ -1,0 +1,156 @@
+"""What limits the pre-training pair: the shipped decoders' capacity vs the encoder (CPU).
+
+Three checks on bsds500/val photos at full size, each against the shipped *raw* decoder
+(``load_decoder(k).decoder``, before whitening), PSNR fixed by rescaling the residual, 8-bit rounding:
+
+1. ``psnr``: a pre-training encoder (``--encoder-run``: a ``train_decoder.py`` run holding ``encoder_ft``)
+   at several PSNRs. If accuracy does not grow with the watermark's strength, the errors are in the code the
+   encoder writes, not noise.
+2. ``direct``: each photo's pixels optimised against the decoder (Adam, residual projected to the PSNR):
+   how many bits the decoder can read at all.
+3. ``tile``: one periodic tile per message (side ``--tile`` at LL2 resolution, tiled and upsampled as
+   ``TemplateEncoder`` does), optimised on a few photos and read on unseen ones: an image-agnostic code.
+
+    python benchmarks/decoder_capacity.py --encoder-run out/decoders/A --out benchmarks/results/decoder_capacity.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "gsw"))
+
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+
+from watermark.dwt import ll_subband  # noqa: E402
+from watermark.evaluation import psnr as psnr_db  # noqa: E402
+from watermark.training import MultiConfig, embed_scaled, load_images, make_encoder  # noqa: E402
+from watermark.zoo import load_decoder  # noqa: E402
+
+
+def _rms(psnr: float) -> float:
+    return 10.0 ** (-psnr / 20.0)
+
+
+def _accuracy(dec, y: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    """Per-image bit accuracy [B] of 8-bit-rounded images y [B,3,H,W] against messages m [B,k]."""
+    y = (y.clamp(0, 1) * 255).round() / 255
+    return ((dec(ll_subband(y)) > 0).float() == m).float().mean(1)
+
+
+@torch.no_grad()
+def psnr_sweep(run: Path, k: int, photos: list[torch.Tensor], levels: list[float], msgs_per_photo: int = 4) -> dict:
+    meta = json.loads((run / f"k{k}.json").read_text())
+    fields = {f.name for f in dataclasses.fields(MultiConfig)}
+    cfg = MultiConfig(**{n: v for n, v in meta["config"].items() if n in fields})
+    enc = make_encoder(k, cfg)
+    enc.load_state_dict(torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)["encoder_ft"])
+    enc.eval()
+    dec = load_decoder(k).decoder
+    out = {}
+    for level in levels:
+        gen = torch.Generator().manual_seed(0)
+        acc, ps = [], []
+        for img in photos:
+            x = (img.float() / 255)[None].expand(msgs_per_photo, -1, -1, -1).contiguous()
+            m = torch.randint(0, 2, (msgs_per_photo, k), generator=gen).float()
+            y = embed_scaled(enc, x, m, level, cfg.enc_down)
+            ps.append(psnr_db((y.clamp(0, 1) * 255).round() / 255, x))
+            acc.append(_accuracy(dec, y, m))
+        out[str(level)] = {"bit_acc": float(torch.cat(acc).mean()), "psnr": float(torch.cat(ps).mean())}
+    return out
+
+
+def direct(k: int, photos: list[torch.Tensor], psnr: float, steps: int) -> dict:
+    dec = load_decoder(k).decoder
+    gen = torch.Generator().manual_seed(0)
+    accs = []
+    for img in photos:
+        x = (img.float() / 255)[None]
+        m = torch.randint(0, 2, (1, k), generator=gen).float()
+        r = (torch.randn(x.shape, generator=gen) * 1e-3).requires_grad_(True)
+        opt = torch.optim.Adam([r], lr=0.01)
+        for _ in range(steps):
+            y = (x + r * (_rms(psnr) / r.pow(2).mean().sqrt().clamp_min(1e-12))).clamp(0, 1)
+            loss = F.binary_cross_entropy_with_logits(dec(ll_subband(y)), m)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            accs.append(float(_accuracy(dec, x + r * (_rms(psnr) / r.pow(2).mean().sqrt()), m)))
+    return {"bit_acc": sum(accs) / len(accs), "per_photo": accs, "photos": len(photos), "steps": steps}
+
+
+def _tiled(tile: torch.Tensor, x: torch.Tensor, psnr: float) -> torch.Tensor:
+    t = tile.shape[-1]
+    h, w = x.shape[-2:]
+    hs, ws = -(-h // 4), -(-w // 4)
+    pat = tile.repeat(1, 1, -(-hs // t), -(-ws // t))[..., :hs, :ws]
+    d = F.interpolate(pat, size=(hs * 4, ws * 4), mode="bilinear", align_corners=False)[..., :h, :w]
+    return x + d * (_rms(psnr) / d.pow(2).mean().sqrt().clamp_min(1e-12))
+
+
+def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int, psnr: float, steps: int,
+         messages: int) -> dict:
+    dec = load_decoder(k).decoder
+    gen = torch.Generator().manual_seed(0)
+    fit_x = [(p.float() / 255)[None] for p in fit]
+    unseen_x = [(p.float() / 255)[None] for p in unseen]
+    acc = {"fit": [], "unseen": []}
+    for _ in range(messages):
+        m = torch.randint(0, 2, (1, k), generator=gen).float()
+        p = (torch.randn(1, 3, side, side, generator=gen) * 0.01).requires_grad_(True)
+        opt = torch.optim.Adam([p], lr=0.02)
+        for _ in range(steps):
+            loss = sum(F.binary_cross_entropy_with_logits(dec(ll_subband(_tiled(p, x, psnr).clamp(0, 1))), m)
+                       for x in fit_x)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            for name, xs in (("fit", fit_x), ("unseen", unseen_x)):
+                acc[name] += [float(_accuracy(dec, _tiled(p, x, psnr), m)) for x in xs]
+    return {"bit_acc_fit_photos": sum(acc["fit"]) / len(acc["fit"]),
+            "bit_acc_unseen_photos": sum(acc["unseen"]) / len(acc["unseen"]),
+            "side": side, "messages": messages, "steps": steps, "fit_photos": len(fit), "unseen_photos": len(unseen)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "bsds500"))
+    ap.add_argument("--encoder-run", default=None, help="train_decoder.py run with encoder_ft (for the sweep)")
+    ap.add_argument("--psnr-levels", type=float, nargs="+", default=[30.0, 28.0, 26.0, 24.0])
+    ap.add_argument("--sweep-photos", type=int, default=50)
+    ap.add_argument("--direct-photos", type=int, nargs=2, default=[6, 12], metavar=("K48", "K64"))
+    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--tile", type=int, default=16)
+    ap.add_argument("--out", default=None, help="write the results as JSON here")
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    val = load_images(Path(args.data) / "val")
+    t0 = time.perf_counter()
+    res: dict = {"machine": platform.processor() or platform.machine(), "torch": torch.__version__,
+                 "psnr_target": 30.0}
+    if args.encoder_run:
+        res["psnr_sweep"] = {str(k): psnr_sweep(Path(args.encoder_run), k, val[: args.sweep_photos],
+                                                args.psnr_levels) for k in (48, 64)}
+        print(json.dumps(res["psnr_sweep"]), flush=True)
+    res["direct"] = {str(k): direct(k, val[:n], 30.0, args.steps) for k, n in zip((48, 64), args.direct_photos)}
+    print(json.dumps({k: v["bit_acc"] for k, v in res["direct"].items()}), flush=True)
+    res["tile_64"] = tile(64, val[:4], val[4:8], args.tile, 30.0, args.steps, messages=3)
+    print(json.dumps(res["tile_64"]), flush=True)
+    res["wall_s"] = round(time.perf_counter() - t0, 1)
+    if args.out:
+        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
