@@ -168,7 +168,11 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
     cfg = meta["config"]
     fields = {f.name for f in dataclasses.fields(MultiConfig)}
     enc = make_encoder(k, MultiConfig(**{n: v for n, v in cfg.items() if n in fields}))
-    enc.load_state_dict(torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)["encoder_ft"])
+    src = run / f"k{k}.pt"
+    if not src.exists():  # the float16 copy of --ft-half runs (their full checkpoints can be too large to fetch)
+        src = run / f"k{k}.encoder_ft16.pt"
+    state = torch.load(src, map_location="cpu", weights_only=False)["encoder_ft"]
+    enc.load_state_dict({n: v.float() if v.is_floating_point() else v for n, v in state.items()})
     enc.eval()
     dec = load_decoder(k).decoder
     attacks = dict(N.training_noise_layers("real"))

@@ -12,7 +12,8 @@
    decoders (val photos x 1,000 messages); then the encoders alone are fine-tuned for ``--ft-s`` against
    the frozen whitened decoders (what ships) and evaluated again.
 4. ``k{k}.pt`` (encoder, decoder, whitening) and ``k{k}.json`` (config, logs, results) in ``--out``,
-   written as soon as each stage ends; ``--deadline-s`` shortens the later stages to end in time.
+   written as soon as each stage ends; ``--deadline-s`` shortens the later stages to end in time;
+   ``--ft-half`` also writes the fine-tuned encoder alone in float16 (``k{k}.encoder_ft16.pt``).
 
 ``--init DIR`` continues from the ``k{k}.pt`` of an earlier run (its encoder and decoder; a warm restart with
 a new optimizer and learning-rate schedule, so pass ``--clean-frac 0 --psnr-start`` = ``--psnr`` to skip the
@@ -166,6 +167,11 @@ def main() -> None:
     ap.add_argument("--templates", type=int, default=0, help="> 0: on/off template encoder aid of this side")
     ap.add_argument("--template-mlp", type=int, default=0,
                     help="> 0: nonlinear message -> template branch of this width (added at zero to an --init)")
+    ap.add_argument("--template-refine", type=int, default=0,
+                    help="> 0: image-adaptive conv refiner of the template of this width (added at zero to an --init)")
+    ap.add_argument("--ft-half", action="store_true",
+                    help="round the fine-tuned encoders to float16 before their evaluation and also save them "
+                         "alone as k{k}.encoder_ft16.pt (half the size: fetchable for a CPU re-check)")
     ap.add_argument("--view-warp", action="store_true",
                     help="every training sample also goes through a random view warp (rotation, zoom, foreshortening)")
     ap.add_argument("--balance", type=float, default=0.0,
@@ -209,7 +215,7 @@ def main() -> None:
                         steps=args.steps, time_budget_s=args.train_s if args.train_s > 0 else None, amp=amp,
                         channels_last=device.type == "cuda", seed=args.seed, log_every=args.log_every,
                         enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates,
-                        template_mlp=args.template_mlp,
+                        template_mlp=args.template_mlp, template_refine=args.template_refine,
                         view_warp=args.view_warp, balance=args.balance, balance_batch=args.balance_batch,
                         freeze_bn=args.freeze_bn)
     encs0, decs0 = load_init(Path(args.init), cfg, args.init_encoder) if args.init else (None, None)
@@ -296,6 +302,12 @@ def main() -> None:
                            finetune_encoders=True, tag="ft ")
         torch.backends.cudnn.benchmark = False
         log(f"encoder fine-tune: {ft['step']} steps in {ft['elapsed']:.0f} s")
+        if args.ft_half:  # what is evaluated below is exactly what the float16 file holds
+            for i, (e, k) in enumerate(zip(ft["encoders"], cfg.bits)):
+                half = {n: v.half() if v.is_floating_point() else v for n, v in e.state_dict().items()}
+                e.load_state_dict(half)
+                torch.save({"num_bits": k, "config": metas[k]["config"], "encoder_ft": half},
+                           out / f"k{k}.encoder_ft16.pt")
         for i, k in enumerate(cfg.bits):
             metas[k]["ft_log"] = ft["log"]
             metas[k]["ft_steps"] = ft["step"]

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from gsw.watermark import training as T
@@ -103,6 +104,26 @@ def test_template_encoder_mlp_branch_starts_at_zero_and_learns():
     assert not torch.allclose(with_mlp(x, m) - plain(x, m), with_mlp(x, m2) - plain(x, m2))  # message-dependent
 
 
+def test_template_encoder_refiner_starts_at_zero_and_adapts_to_the_image():
+    torch.manual_seed(2)
+    small = T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=4, mlp=16).eval()
+    refined = T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=4, mlp=16, refine=12).eval()
+    refined.load_grown_state_dict(small.state_dict())
+    x, m = torch.rand(2, 3, 36, 52), torch.randint(0, 2, (2, 8)).float()
+    assert torch.equal(refined(x, m), small(x, m))  # the refiner starts at zero
+    refined(x, m).pow(2).sum().backward()
+    assert refined.refine[-1].weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        refined.refine[-1].weight.normal_()
+        x2 = x.flip(-1)  # the same pixel statistics, another image
+        # image-agnostic before: the pattern (residual minus the HiDDeN part) does not depend on the image
+        pat = lambda enc, im: enc(im, m) - enc.hidden(im, m)  # noqa: E731
+        assert torch.allclose(pat(small, x), pat(small, x2), atol=1e-6)
+        assert not torch.allclose(pat(refined, x), pat(refined, x2), atol=1e-3)  # image-adaptive after
+    with pytest.raises(ValueError, match="refine branch, this encoder has none"):
+        small.load_grown_state_dict(refined.state_dict())
+
+
 def test_template_encoder_grows_without_changing_its_residual():
     torch.manual_seed(1)
     hidden = T.HiddenEncoder(8, num_blocks=1, channels=8)
@@ -120,7 +141,6 @@ def test_template_encoder_grows_without_changing_its_residual():
 
 
 def test_template_encoder_growth_errors():
-    import pytest
 
     small = T.TemplateEncoder(T.HiddenEncoder(8, num_blocks=1, channels=8), side=4, mlp=16)
     with pytest.raises(ValueError, match="side 4 cannot grow to side 6"):
