@@ -45,6 +45,7 @@ from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import bit_accuracy  # noqa: E402
 from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
+from watermark.refine import refine_residual  # noqa: E402
 from watermark.whitening import WhiteningLayer  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
 
@@ -126,6 +127,22 @@ def load_init(run: Path, cfg: T.MultiConfig, encoder_key: str = "encoder") -> tu
     return encs, decs
 
 
+def refined_embedder(args, encoder, decoder, whitening, cfg, steps: int, device):
+    """(imgs, msgs) -> watermarked imgs: the encoder's residual refined against the decoder (+ whitening)."""
+    att = T.GpuAttacks(device, 11) if args.refine_eot else None
+    names = list(cfg.noise_layers)
+
+    def attack(y, step):
+        return att.apply(names[step % len(names)], y, 1.0)
+
+    def embed(x, m):
+        return refine_residual(lambda ll: whitening(decoder(ll).float()), x,
+                               T.encoder_residual(encoder, x, m, cfg.enc_down), m, cfg.psnr_target, steps,
+                               args.refine_lr, args.refine_margin, attack if att is not None else None)
+
+    return embed
+
+
 def shipped_whitening(decoder: torch.nn.Module, k: int) -> torch.nn.Module:
     """The package's whitening for ``k`` bits, after checking that ``decoder`` is the shipped decoder."""
     shipped = load_decoder(k)
@@ -169,6 +186,17 @@ def main() -> None:
                     help="> 0: nonlinear message -> template branch of this width (added at zero to an --init)")
     ap.add_argument("--template-refine", type=int, default=0,
                     help="> 0: image-adaptive conv refiner of the template of this width (added at zero to an --init)")
+    ap.add_argument("--ft-clean-chunk", action="store_true",
+                    help="in the encoder fine-tune half of every batch is never attacked (clean accuracy weighs more)")
+    ap.add_argument("--refine-steps", type=int, nargs="*", default=[],
+                    help="also evaluate the fine-tuned pair with the encoder's residual refined for this many Adam "
+                         "steps against the decoder (gsw.watermark.refine.refine_residual); one evaluation each")
+    ap.add_argument("--refine-lr", type=float, default=0.3, help="learning rate of that refinement")
+    ap.add_argument("--refine-margin", type=float, default=2.0, help="logit margin of that refinement")
+    ap.add_argument("--refine-eot", action="store_true",
+                    help="refine through the training noise layers (one per step, in turn; differentiable JPEG)")
+    ap.add_argument("--skip-init-eval", action="store_true",
+                    help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
     ap.add_argument("--ft-half", action="store_true",
                     help="round the fine-tuned encoders to float16 before their evaluation and also save them "
                          "alone as k{k}.encoder_ft16.pt (half the size: fetchable for a CPU re-check)")
@@ -269,33 +297,35 @@ def main() -> None:
     attacks.update(paper_attacks())
     val_eval = val_images[: args.eval_images]
     psnr_t = cfg.psnr_target
-    for i, k in enumerate(cfg.bits):
-        emb = lambda x, m, e=encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
-        r = eval_chunked(args, emb, decs[i], val_eval, attacks, k, 1, device, frac_of_left=0.45 / (len(cfg.bits) - i))
-        metas[k]["results"]["pair_raw"] = r
-        log(f"k={k} pair_raw ({r['n']} pairs, PSNR {r['psnr']:.1f}): "
-            + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
-    save("evaluated_raw")
-    for i, k in enumerate(cfg.bits):
-        dw = lambda ll, d=decs[i], w=whitens[i]: w(d(ll).float())  # noqa: E731
-        u = unbiasedness(dw, val_images, k, args.num_messages, seed=2, device=device, extra_views=10)
-        metas[k]["results"]["unbiased_whitened"] = u
-        metas[k]["results"]["unbiased_raw"] = unbiasedness(decs[i], val_images, k, args.num_messages, seed=2,
-                                                           device=device)
-        emb = lambda x, m, e=encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
-        metas[k]["results"]["pair_whitened_before_ft"] = eval_chunked(
-            args, emb, dw, val_eval, {"identity": attacks["identity"]}, k, 1, device, frac_of_left=0.05)
-        log(f"k={k} unbiased: acc={u['mean_bit_acc']:.4f} p1dev={u['per_bit_p1_max_dev']:.3f} "
-            f"views_p1dev={u.get('views_per_bit_p1_max_dev'):.3f} fp={u['false_positives']} "
-            f"max={u['max_matching_bits']} before-ft whitened acc="
-            f"{metas[k]['results']['pair_whitened_before_ft']['bit_acc']['identity']:.4f}")
-    save("evaluated_unbiased")
+    if not args.skip_init_eval:  # a chained fine-tune: the --init run's numbers stand
+        for i, k in enumerate(cfg.bits):
+            emb = lambda x, m, e=encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
+            r = eval_chunked(args, emb, decs[i], val_eval, attacks, k, 1, device,
+                             frac_of_left=0.45 / (len(cfg.bits) - i))
+            metas[k]["results"]["pair_raw"] = r
+            log(f"k={k} pair_raw ({r['n']} pairs, PSNR {r['psnr']:.1f}): "
+                + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
+        save("evaluated_raw")
+        for i, k in enumerate(cfg.bits):
+            dw = lambda ll, d=decs[i], w=whitens[i]: w(d(ll).float())  # noqa: E731
+            u = unbiasedness(dw, val_images, k, args.num_messages, seed=2, device=device, extra_views=10)
+            metas[k]["results"]["unbiased_whitened"] = u
+            metas[k]["results"]["unbiased_raw"] = unbiasedness(decs[i], val_images, k, args.num_messages, seed=2,
+                                                               device=device)
+            emb = lambda x, m, e=encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
+            metas[k]["results"]["pair_whitened_before_ft"] = eval_chunked(
+                args, emb, dw, val_eval, {"identity": attacks["identity"]}, k, 1, device, frac_of_left=0.05)
+            log(f"k={k} unbiased: acc={u['mean_bit_acc']:.4f} p1dev={u['per_bit_p1_max_dev']:.3f} "
+                f"views_p1dev={u.get('views_per_bit_p1_max_dev'):.3f} fp={u['false_positives']} "
+                f"max={u['max_matching_bits']} before-ft whitened acc="
+                f"{metas[k]['results']['pair_whitened_before_ft']['bit_acc']['identity']:.4f}")
+        save("evaluated_unbiased")
     ft_s = min(args.ft_s, max(0.0, left(args) * 0.4))
     if ft_s >= 3:
         ft_encs = [copy.deepcopy(e) for e in encs]
         warp = cfg.view_warp if args.ft_warp == "same" else args.ft_warp == "on"
         fcfg = dataclasses.replace(cfg, time_budget_s=ft_s, lr=args.ft_lr, view_warp=warp,
-                                   log_every=max(10, args.log_every // 4))
+                                   clean_chunk=args.ft_clean_chunk, log_every=max(10, args.log_every // 4))
         torch.backends.cudnn.benchmark = device.type == "cuda"
         targets = whitens if args.ft_target == "whitened" else [WhiteningLayer(k).to(device) for k in cfg.bits]
         ft = T.train_multi(fcfg, bank, encoders=ft_encs, decoders=decs, whitenings=targets,
@@ -304,7 +334,7 @@ def main() -> None:
         log(f"encoder fine-tune: {ft['step']} steps in {ft['elapsed']:.0f} s")
         if args.ft_half:  # what is evaluated below is exactly what the float16 file holds
             for i, (e, k) in enumerate(zip(ft["encoders"], cfg.bits)):
-                half = {n: v.half() if v.is_floating_point() else v for n, v in e.state_dict().items()}
+                half = {n: (v.half() if v.is_floating_point() else v).cpu() for n, v in e.state_dict().items()}
                 e.load_state_dict(half)
                 torch.save({"num_bits": k, "config": metas[k]["config"], "encoder_ft": half},
                            out / f"k{k}.encoder_ft16.pt")
@@ -312,7 +342,8 @@ def main() -> None:
             metas[k]["ft_log"] = ft["log"]
             metas[k]["ft_steps"] = ft["step"]
             metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
-            metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target)
+            metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target,
+                                      ft_clean_chunk=args.ft_clean_chunk)
             if args.init_encoder == "encoder_ft":  # chained fine-tunes: count the earlier ones too
                 before = prev[k]
                 metas[k]["ft_steps_total"] = ft["step"] + before.get("ft_steps_total", before.get("ft_steps", 0))
@@ -327,6 +358,17 @@ def main() -> None:
             metas[k]["results"][f"pair_{args.ft_target}_ft"] = r
             log(f"k={k} pair_{args.ft_target}_ft ({r['n']} pairs): "
                 + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
+        for steps in args.refine_steps:
+            for i, k in enumerate(cfg.bits):
+                r = eval_chunked(args, refined_embedder(args, ft["encoders"][i], decs[i], targets[i], cfg, steps,
+                                                        device), lambda ll, d=decs[i], w=targets[i]: w(d(ll).float()),
+                                 val_eval, attacks, k, 1, device, frac_of_left=0.8 / (len(cfg.bits) - i))
+                r["refine"] = {"steps": steps, "lr": args.refine_lr, "margin": args.refine_margin,
+                               "eot": args.refine_eot}
+                metas[k]["results"][f"pair_{args.ft_target}_ft_refine{steps}"] = r
+                log(f"k={k} pair_{args.ft_target}_ft + refine {steps} ({r['n']} pairs, PSNR {r['psnr']:.1f}): "
+                    + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
+            save("refined", ft["encoders"])
         save("done", ft["encoders"])
     else:
         save("done")

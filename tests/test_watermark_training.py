@@ -50,6 +50,17 @@ def test_train_multi_with_view_warp_runs_and_logs():
     assert st["log"][-1]["strength"] > 0  # the warp (and attacks) were on
 
 
+def test_train_multi_clean_chunk_keeps_half_of_every_batch_unattacked():
+    gen = torch.Generator().manual_seed(0)
+    bank = (torch.rand(4, 3, 40, 40, generator=gen) * 255).to(torch.uint8)
+    cfg = T.MultiConfig(bits=(8,), channels=8, enc_blocks=1, dec_blocks=2, crop=32, batch_size=4, steps=6,
+                        amp=False, channels_last=False, log_every=1, clean_frac=0.0, noise_chunks=2,
+                        noise_layers=("identity", "noise", "blur", "jpeg"), clean_chunk=True)
+    st = T.train_multi(cfg, bank, verbose=False)
+    assert all("identity" in e["k8"] for e in st["log"])  # every step decoded a clean chunk ...
+    assert any(set(e["k8"]) - {"identity"} for e in st["log"])  # ... beside an attacked one
+
+
 def test_balance_loss_zero_when_every_bit_is_split_in_half_and_one_when_constant():
     half = torch.tensor([[20.0, -20.0], [-20.0, 20.0]])  # each bit 1 on one image of two
     assert float(T.balance_loss(half)) < 1e-12

@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from .dwt import ll_subband
 from .hidden import HiddenDecoder, HiddenEncoder, bit_accuracy
 from .noise import NoiseLayer, clamp_st, training_noise_layers
+from .refine import scale_to_psnr
 from .whitening import WhiteningLayer
 from .zoo import atomic_torch_save
 
@@ -124,9 +125,7 @@ def random_crops(
 
 def embed(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor, psnr: float) -> torch.Tensor:
     """Watermark ``imgs`` [B,3,H,W] in [0,1]: residual rescaled per image to ``psnr`` dB, clamp (ST)."""
-    delta = encoder(imgs, msgs).float()
-    rms = delta.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
-    return clamp_st(imgs + delta * (10.0 ** (-psnr / 20.0) / rms))
+    return clamp_st(imgs + scale_to_psnr(encoder(imgs, msgs).float(), psnr))
 
 
 def _ramp(progress: float, frac: float) -> float:
@@ -337,6 +336,7 @@ class MultiConfig:
     balance_batch: int = 16  # unmarked crops per step and bit length for that loss
     balance_sizes: tuple[int, ...] = UNMARKED_CROP_SIZES  # their side, one drawn per step
     freeze_bn: bool = False  # decoder BatchNorm in eval mode (running statistics, frozen): for fine-tuning
+    clean_chunk: bool = False  # the first of the noise_chunks is never attacked (the clean task weighs more)
 
 
 class TemplateEncoder(torch.nn.Module):
@@ -470,14 +470,18 @@ def embed_scaled(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor,
     """:func:`embed` with the encoder run on ``imgs`` downsampled by ``down`` (antialiased bilinear) and its
     residual upsampled back (bilinear) before the rescale to ``psnr``: the watermark then lives in the low
     frequencies that the decoder's LL2 input keeps, and the encoder costs ``down**2`` times less."""
+    return clamp_st(imgs + scale_to_psnr(encoder_residual(encoder, imgs, msgs, down), psnr))
+
+
+def encoder_residual(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor, down: int = 1) -> torch.Tensor:
+    """The unscaled residual [B,3,H,W] (float32) that :func:`embed_scaled` rescales: the encoder run on
+    ``imgs`` downsampled by ``down`` (antialiased bilinear), its output upsampled back (bilinear)."""
     if down <= 1:
-        return embed(encoder, imgs, msgs, psnr)
+        return encoder(imgs, msgs).float()
     h, w = imgs.shape[-2:]
     small = F.interpolate(imgs, size=(max(4, round(h / down)), max(4, round(w / down))), mode="bilinear",
                           align_corners=False, antialias=True)
-    delta = F.interpolate(encoder(small, msgs).float(), size=(h, w), mode="bilinear", align_corners=False)
-    rms = delta.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
-    return clamp_st(imgs + delta * (10.0 ** (-psnr / 20.0) / rms))
+    return F.interpolate(encoder(small, msgs).float(), size=(h, w), mode="bilinear", align_corners=False)
 
 
 def image_bank(images: list[torch.Tensor], device: torch.device | str) -> torch.Tensor:
@@ -748,6 +752,8 @@ def train_multi(
             picks = [names.index("identity") if "identity" in names else 0] * len(chunks)
         else:
             picks = [attacks.rng.randrange(L) for _ in chunks]
+            if cfg.clean_chunk and "identity" in names:
+                picks[0] = names.index("identity")
         total = 0.0
         cover_size = min(attacks.rng.choice(cfg.balance_sizes), *bank.shape[-2:]) if balance_on else 0
         for m, k in enumerate(cfg.bits):

@@ -1,0 +1,85 @@
+"""Decoder-guided refinement of a watermark residual (an image-space embedding against a frozen decoder).
+
+The 3DGS embedding writes a message by optimising the scene against the frozen decoder; this module does the
+same for a single image's residual, starting from a pre-training encoder's output: ``steps`` Adam steps on
+the residual, which is kept at a fixed PSNR (rescaled per image) and clamped to the valid range, minimising a
+margin loss on the decoder's logits, optionally through random attacks (expectation over transformations).
+
+The learned template encoders stop improving at 64 bits well below what the decoders can read (BENCHMARKS.md
+section 5a: 94.6 % clean, where optimising each image's pixels reads 99.7 %); the refinement closes that gap
+for the pre-training pair's measurement and is what an image-space embedding with the shipped decoders does.
+
+Example:
+    >>> import torch
+    >>> from gsw.watermark.hidden import HiddenDecoder
+    >>> dec = HiddenDecoder(8, num_blocks=1, channels=8).eval()
+    >>> x, m = torch.rand(2, 3, 32, 32), torch.randint(0, 2, (2, 8)).float()
+    >>> refine_residual(dec, x, torch.randn_like(x), m, psnr=30.0, steps=2).shape
+    torch.Size([2, 3, 32, 32])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+
+from .dwt import ll_subband
+
+__all__ = ["scale_to_psnr", "refine_residual"]
+
+
+def scale_to_psnr(residual: torch.Tensor, psnr: float) -> torch.Tensor:
+    """residual [B,3,H,W] rescaled per image to the RMS of ``psnr`` dB (images in [0, 1])."""
+    rms = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
+    return residual * (10.0 ** (-psnr / 20.0) / rms)
+
+
+def refine_residual(
+    decoder: Callable[[torch.Tensor], torch.Tensor],
+    images: torch.Tensor,
+    residual: torch.Tensor,
+    msgs: torch.Tensor,
+    psnr: float,
+    steps: int = 50,
+    lr: float = 1e-2,
+    margin: float = 2.0,
+    attack: Callable[[torch.Tensor, int], torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Refine ``residual`` so that ``decoder`` reads ``msgs`` from the watermarked images.
+
+    Args:
+        decoder: LL2 subband [B,3,h,w] -> logits [B,k] (eval mode; its parameters get no gradient).
+        images: [B,3,H,W] in [0, 1], the cover images.
+        residual: [B,3,H,W] starting residual (any scale: it is rescaled to ``psnr``).
+        msgs: [B,k] in {0, 1}.
+        psnr: PSNR (dB) of the watermarked image before clamping, kept at every step.
+        steps: Adam steps (0 returns the start, rescaled and clamped).
+        lr: Adam learning rate, in the units of a residual at RMS 1 (the residual is rescaled after each
+            step, so this sets how far each step turns it).
+        margin: the loss is softplus(margin - s * logit), s = +-1 the target bit: bits keep being pushed
+            until they are ``margin`` past the threshold, which buys robustness.
+        attack: optional (images [B,3,H,W], step) -> attacked images, differentiable: the loss is taken
+            through it (one random attack per step, for instance).
+
+    Returns:
+        [B,3,H,W] watermarked images in [0, 1] (not quantised).
+    """
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    images = images.float()
+    unit = residual.detach().float()
+    unit = unit / unit.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
+    r = unit.clone().requires_grad_(True)
+    opt = torch.optim.Adam([r], lr=lr)
+    sign = msgs.float() * 2.0 - 1.0
+    with torch.enable_grad():
+        for step in range(steps):
+            y = (images + scale_to_psnr(r, psnr)).clamp(0.0, 1.0)
+            if attack is not None:
+                y = attack(y, step)
+            loss = F.softplus(margin - sign * decoder(ll_subband(y)).float()).mean()
+            (r.grad,) = torch.autograd.grad(loss, r)
+            opt.step()
+    return (images + scale_to_psnr(r.detach(), psnr)).clamp(0.0, 1.0)
