@@ -138,7 +138,8 @@ def refined_embedder(args, encoder, decoder, whitening, cfg, steps: int, device)
     def embed(x, m):
         return refine_residual(lambda ll: whitening(decoder(ll).float()), x,
                                T.encoder_residual(encoder, x, m, cfg.enc_down), m, cfg.psnr_target, steps,
-                               args.refine_lr, args.refine_margin, attack if att is not None else None)
+                               args.refine_lr, args.refine_margin, attack if att is not None else None,
+                               amp=device.type == "cuda")
 
     return embed
 
@@ -194,7 +195,8 @@ def main() -> None:
     ap.add_argument("--refine-lr", type=float, default=0.3, help="learning rate of that refinement")
     ap.add_argument("--refine-margin", type=float, default=2.0, help="logit margin of that refinement")
     ap.add_argument("--refine-eot", action="store_true",
-                    help="refine through the training noise layers (one per step, in turn; differentiable JPEG)")
+                    help="refine on the clean images and through the training noise layers (one per step, in "
+                         "turn; differentiable JPEG)")
     ap.add_argument("--skip-init-eval", action="store_true",
                     help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
     ap.add_argument("--ft-half", action="store_true",
@@ -321,19 +323,21 @@ def main() -> None:
                 f"{metas[k]['results']['pair_whitened_before_ft']['bit_acc']['identity']:.4f}")
         save("evaluated_unbiased")
     ft_s = min(args.ft_s, max(0.0, left(args) * 0.4))
+    targets = whitens if args.ft_target == "whitened" else [WhiteningLayer(k).to(device) for k in cfg.bits]
+    final, ft_encs = encs, None  # the encoders evaluated last (and refined)
     if ft_s >= 3:
         ft_encs = [copy.deepcopy(e) for e in encs]
         warp = cfg.view_warp if args.ft_warp == "same" else args.ft_warp == "on"
         fcfg = dataclasses.replace(cfg, time_budget_s=ft_s, lr=args.ft_lr, view_warp=warp,
                                    clean_chunk=args.ft_clean_chunk, log_every=max(10, args.log_every // 4))
         torch.backends.cudnn.benchmark = device.type == "cuda"
-        targets = whitens if args.ft_target == "whitened" else [WhiteningLayer(k).to(device) for k in cfg.bits]
         ft = T.train_multi(fcfg, bank, encoders=ft_encs, decoders=decs, whitenings=targets,
                            finetune_encoders=True, tag="ft ")
         torch.backends.cudnn.benchmark = False
+        final = ft_encs = ft["encoders"]
         log(f"encoder fine-tune: {ft['step']} steps in {ft['elapsed']:.0f} s")
         if args.ft_half:  # what is evaluated below is exactly what the float16 file holds
-            for i, (e, k) in enumerate(zip(ft["encoders"], cfg.bits)):
+            for i, (e, k) in enumerate(zip(ft_encs, cfg.bits)):
                 half = {n: (v.half() if v.is_floating_point() else v).cpu() for n, v in e.state_dict().items()}
                 e.load_state_dict(half)
                 torch.save({"num_bits": k, "config": metas[k]["config"], "encoder_ft": half},
@@ -349,29 +353,31 @@ def main() -> None:
                 metas[k]["ft_steps_total"] = ft["step"] + before.get("ft_steps_total", before.get("ft_steps", 0))
                 metas[k]["ft_s_total"] = round(ft["elapsed"] + before.get(
                     "ft_s_total", before["config"].get("ft_s", 0) if "ft_steps" in before else 0), 1)
-        save("finetuned", ft["encoders"])
+        save("finetuned", ft_encs)
         for i, k in enumerate(cfg.bits):
-            emb = lambda x, m, e=ft["encoders"][i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
+            emb = lambda x, m, e=ft_encs[i]: T.embed_scaled(e, x, m, psnr_t, cfg.enc_down)  # noqa: E731
             dw = lambda ll, d=decs[i], w=targets[i]: w(d(ll).float())  # noqa: E731
             r = eval_chunked(args, emb, dw, val_eval, attacks, k, 1, device,
                              frac_of_left=0.8 / (len(cfg.bits) - i))
             metas[k]["results"][f"pair_{args.ft_target}_ft"] = r
             log(f"k={k} pair_{args.ft_target}_ft ({r['n']} pairs): "
                 + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
-        for steps in args.refine_steps:
-            for i, k in enumerate(cfg.bits):
-                r = eval_chunked(args, refined_embedder(args, ft["encoders"][i], decs[i], targets[i], cfg, steps,
-                                                        device), lambda ll, d=decs[i], w=targets[i]: w(d(ll).float()),
-                                 val_eval, attacks, k, 1, device, frac_of_left=0.8 / (len(cfg.bits) - i))
-                r["refine"] = {"steps": steps, "lr": args.refine_lr, "margin": args.refine_margin,
-                               "eot": args.refine_eot}
-                metas[k]["results"][f"pair_{args.ft_target}_ft_refine{steps}"] = r
-                log(f"k={k} pair_{args.ft_target}_ft + refine {steps} ({r['n']} pairs, PSNR {r['psnr']:.1f}): "
-                    + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
-            save("refined", ft["encoders"])
-        save("done", ft["encoders"])
-    else:
-        save("done")
+    elif args.init_encoder == "encoder_ft":  # no new fine-tune: the init's counts stand
+        for k in cfg.bits:
+            metas[k].update({n: prev[k][n] for n in ("ft_steps", "ft_steps_total", "ft_s_total") if n in prev[k]})
+    tuned = ft_encs is not None or args.init_encoder == "encoder_ft"
+    for steps in args.refine_steps:
+        for i, k in enumerate(cfg.bits):
+            r = eval_chunked(args, refined_embedder(args, final[i], decs[i], targets[i], cfg, steps, device),
+                             lambda ll, d=decs[i], w=targets[i]: w(d(ll).float()), val_eval, attacks, k, 1, device,
+                             frac_of_left=0.8 / (len(cfg.bits) - i))
+            r["refine"] = {"steps": steps, "lr": args.refine_lr, "margin": args.refine_margin, "eot": args.refine_eot}
+            name = f"pair_{args.ft_target}{'_ft' if tuned else ''}_refine{steps}"
+            metas[k]["results"][name] = r
+            log(f"k={k} {name} ({r['n']} pairs, PSNR {r['psnr']:.1f}): "
+                + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
+        save("refined", ft_encs)
+    save("done", ft_encs)
     log("done")
 
 

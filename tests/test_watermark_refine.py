@@ -54,6 +54,7 @@ def test_refinement_goes_through_the_attack_each_step():
 
     def attack(y, step):
         seen.append(step)
+        assert y.requires_grad  # the attack sits inside the graph
         return y.flip(-1)
 
     x, m = torch.rand(1, 3, 32, 32), torch.randint(0, 2, (1, 16)).float()
