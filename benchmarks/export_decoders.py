@@ -144,10 +144,10 @@ def refresh_report(args) -> None:
                 continue
             meta = json.loads((Path(ft_dir) / f"k{k}.json").read_text())
             for name, r in meta["results"].items():
-                if name.endswith("_ft"):
+                if name.endswith("_ft") or "_ft_refine" in name:
                     run["results"][name] = {**r, "config": {c: meta["config"].get(c) for c in
                                                             ("ft_s", "ft_lr", "ft_view_warp", "ft_target",
-                                                             "templates", "template_mlp")},
+                                                             "templates", "template_mlp", "ft_clean_chunk")},
                                             "ft_steps": meta.get("ft_steps_total", meta.get("ft_steps")),
                                             "ft_s_total": meta.get("ft_s_total", meta["config"].get("ft_s")),
                                             "device": meta["device"]}
@@ -267,6 +267,21 @@ def markdown(rep: dict, bits: list[int]) -> str:
         for n in names:
             lines.append(f"| {n} | " + " | ".join(_pct(res[k][fn]["bit_acc"][n]) if fn in res[k] else "-"
                                                   for k in bits) + " |")
+    refine_names = sorted({n for k in bits for n in res[k] if "_ft_refine" in n},
+                          key=lambda n: int(n.split("refine")[1]))
+    for fn in refine_names:
+        f0 = next(res[k][fn] for k in bits if fn in res[k])
+        rf = f0["refine"]
+        lines += ["", f"The fine-tuned encoder's residual refined by {rf['steps']} Adam steps against the frozen "
+                      f"decoder (`gsw.watermark.refine.refine_residual`: lr {rf['lr']}, logit margin {rf['margin']}, "
+                      f"PSNR kept at {f0['psnr']:.1f} dB"
+                      + (", loss on the clean image and through one training noise layer per step, in turn" if rf["eot"]
+                         else ", clean loss only")
+                      + f"; what an image-space embedding with the shipped decoder does), {f0['n']} pairs:", "",
+                  "| attack | " + " | ".join(f"{k} bits" for k in bits) + " |", "|---|" + "---|" * len(bits)]
+        for n in names:
+            lines.append(f"| {n} | " + " | ".join(_pct(res[k][fn]["bit_acc"][n]) if fn in res[k] else "-"
+                                                  for k in bits) + " |")
     rc = {k: res[k]["pair_ft_cpu_recheck"] for k in bits if "pair_ft_cpu_recheck" in res[k]}
     if rc:
         lines += [""] + [f"CPU re-check, {k} bits (the encoder of the fine-tune chain's "
@@ -326,7 +341,9 @@ def markdown(rep: dict, bits: list[int]) -> str:
     for k in bits:
         pairs = []
         for fn, label in (("pair_raw", "jointly trained encoder"),
-                          *((n, f"encoder fine-tuned ({n})") for n in ft_names if n in res[k])):
+                          *((n, f"encoder fine-tuned ({n})") for n in ft_names if n in res[k]),
+                          *((n, f"fine-tuned encoder + {res[k][n]['refine']['steps']} refinement steps")
+                            for n in refine_names if n in res[k])):
             b = res[k][fn]["bit_acc"]
             worst = min(train_names, key=lambda n: b[n])
             ok_clean, ok_noise = b["identity"] >= 0.995, all(b[n] >= 0.90 for n in train_names)

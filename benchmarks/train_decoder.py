@@ -133,7 +133,9 @@ def refined_embedder(args, encoder, decoder, whitening, cfg, steps: int, device)
     names = list(cfg.noise_layers)
 
     def attack(y, step):
-        return att.apply(names[step % len(names)], y, 1.0)
+        if step % args.refine_eot_every:
+            return None
+        return att.apply(names[(step // args.refine_eot_every) % len(names)], y, 1.0)
 
     def embed(x, m):
         return refine_residual(lambda ll: whitening(decoder(ll).float()), x,
@@ -199,6 +201,8 @@ def main() -> None:
                          "turn; differentiable JPEG)")
     ap.add_argument("--skip-init-eval", action="store_true",
                     help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
+    ap.add_argument("--refine-eot-every", type=int, default=1,
+                    help="with --refine-eot, go through an attack on every n-th step only (the others are clean)")
     ap.add_argument("--ft-half", action="store_true",
                     help="round the fine-tuned encoders to float16 before their evaluation and also save them "
                          "alone as k{k}.encoder_ft16.pt (half the size: fetchable for a CPU re-check)")
@@ -371,7 +375,8 @@ def main() -> None:
             r = eval_chunked(args, refined_embedder(args, final[i], decs[i], targets[i], cfg, steps, device),
                              lambda ll, d=decs[i], w=targets[i]: w(d(ll).float()), val_eval, attacks, k, 1, device,
                              frac_of_left=0.8 / (len(cfg.bits) - i))
-            r["refine"] = {"steps": steps, "lr": args.refine_lr, "margin": args.refine_margin, "eot": args.refine_eot}
+            r["refine"] = {"steps": steps, "lr": args.refine_lr, "margin": args.refine_margin, "eot": args.refine_eot,
+                           "eot_every": args.refine_eot_every}
             name = f"pair_{args.ft_target}{'_ft' if tuned else ''}_refine{steps}"
             metas[k]["results"][name] = r
             log(f"k={k} {name} ({r['n']} pairs, PSNR {r['psnr']:.1f}): "

@@ -60,6 +60,9 @@ def test_refinement_goes_through_the_attack_each_step():
     x, m = torch.rand(1, 3, 32, 32), torch.randint(0, 2, (1, 16)).float()
     refine_residual(_decoder(), x, torch.randn_like(x), m, psnr=30.0, steps=3, attack=attack)
     assert seen == [0, 1, 2]
+    clean = refine_residual(_decoder(), x, torch.ones_like(x), m, psnr=30.0, steps=3)
+    skipped = refine_residual(_decoder(), x, torch.ones_like(x), m, psnr=30.0, steps=3, attack=lambda y, s: None)
+    assert torch.equal(clean, skipped)  # an attack that returns None leaves the clean loss alone
     with pytest.raises(ValueError, match="steps must be >= 0"):
         refine_residual(_decoder(), x, torch.randn_like(x), m, psnr=30.0, steps=-1)
 

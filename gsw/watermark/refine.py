@@ -63,7 +63,8 @@ def refine_residual(
         margin: the loss is softplus(margin - s * logit), s = +-1 the target bit: bits keep being pushed
             until they are ``margin`` past the threshold, which buys robustness.
         attack: optional (images [B,3,H,W], step) -> attacked images, differentiable: the loss is then the
-            mean of the clean images' and the attacked images' (one random attack per step, for instance).
+            mean of the clean images' and the attacked images' (one random attack per step, for instance);
+            returning None keeps that step's loss clean.
         amp: run the decoder under bfloat16 autocast (CUDA: about twice as fast; the result is still
             float32).
 
@@ -81,7 +82,8 @@ def refine_residual(
     with torch.enable_grad():
         for step in range(steps):
             y = (images + scale_to_psnr(r, psnr)).clamp(0.0, 1.0)
-            views = [y] if attack is None else [y, attack(y, step)]
+            attacked = None if attack is None else attack(y, step)
+            views = [y] if attacked is None else [y, attacked]
             loss = 0.0
             for v in views:
                 with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=amp):
