@@ -258,25 +258,36 @@ def markdown(rep: dict, bits: list[int]) -> str:
         arch = (f"on/off templates of side {c['templates']}"
                 + (f" + a nonlinear message -> tile branch (MLP width {c['template_mlp']})" if c.get("template_mlp")
                    else "") if c.get("templates") else "HiDDeN encoder")
-        lines += ["", f"Encoder ({arch}) fine-tuned against {what}, decoder frozen "
-                      f"({f0.get('ft_s_total', c['ft_s']):.0f} s, {f0['ft_steps']} steps "
-                      f"on {f0['device']}, lr {c['ft_lr']} cosine (last round), training noise layers, view warp "
-                      f"{'on' if c['ft_view_warp'] else 'off'}: the image-only task this table measures; the "
-                      f"decoder is the one that ships), {f0['n']} pairs, PSNR {f0['psnr']:.1f} dB:", "",
+        lines += ["", f"Encoder ({arch}) fine-tuned against {what}, decoder frozen (on {f0['device']}, "
+                      f"cosine lr, training noise layers, view warp {'on' if c['ft_view_warp'] else 'off'}: the "
+                      f"image-only task this table measures; the decoder is the one that ships), {f0['n']} pairs, "
+                      f"PSNR {f0['psnr']:.1f} dB:", "",
                   "| attack | " + " | ".join(f"{k} bits" for k in bits) + " |", "|---|" + "---|" * len(bits)]
         for n in names:
             lines.append(f"| {n} | " + " | ".join(_pct(res[k][fn]["bit_acc"][n]) if fn in res[k] else "-"
                                                   for k in bits) + " |")
+
+        def ft_cell(k: int, fn: str = fn) -> str:
+            if fn not in res[k]:
+                return "-"
+            r = res[k][fn]
+            return (f"{r.get('ft_s_total', r['config']['ft_s']):.0f} s, {r['ft_steps']} steps, MLP "
+                    f"{r['config'].get('template_mlp') or 0}" + (", clean chunk" if r["config"].get("ft_clean_chunk")
+                                                                   else ""))
+
+        lines.append("| fine-tune (whole chain) | " + " | ".join(ft_cell(k) for k in bits) + " |")
     refine_names = sorted({n for k in bits for n in res[k] if "_ft_refine" in n},
                           key=lambda n: int(n.split("refine")[1]))
     for fn in refine_names:
         f0 = next(res[k][fn] for k in bits if fn in res[k])
         rf = f0["refine"]
         lines += ["", f"The fine-tuned encoder's residual refined by {rf['steps']} Adam steps against the frozen "
-                      f"decoder (`gsw.watermark.refine.refine_residual`: lr {rf['lr']}, logit margin {rf['margin']}, "
+                      f"decoder (`gsw.watermark.refine.refine_residual`: lr {rf['lr']} "
+                      f"{rf.get('schedule', 'constant')}, logit margin {rf['margin']}, "
                       f"PSNR kept at {f0['psnr']:.1f} dB"
-                      + (", loss on the clean image and through one training noise layer per step, in turn" if rf["eot"]
-                         else ", clean loss only")
+                      + ((", loss on the clean image and through one training noise layer "
+                          + ("per step" if rf.get("eot_every", 1) == 1 else f"every {rf['eot_every']} steps")
+                          + ", in turn") if rf["eot"] else ", clean loss only")
                       + f"; what an image-space embedding with the shipped decoder does), {f0['n']} pairs:", "",
                   "| attack | " + " | ".join(f"{k} bits" for k in bits) + " |", "|---|" + "---|" * len(bits)]
         for n in names:

@@ -141,7 +141,7 @@ def refined_embedder(args, encoder, decoder, whitening, cfg, steps: int, device)
         return refine_residual(lambda ll: whitening(decoder(ll).float()), x,
                                T.encoder_residual(encoder, x, m, cfg.enc_down), m, cfg.psnr_target, steps,
                                args.refine_lr, args.refine_margin, attack if att is not None else None,
-                               amp=device.type == "cuda")
+                               amp=device.type == "cuda", schedule=args.refine_schedule)
 
     return embed
 
@@ -201,6 +201,8 @@ def main() -> None:
                          "turn; differentiable JPEG)")
     ap.add_argument("--skip-init-eval", action="store_true",
                     help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
+    ap.add_argument("--refine-schedule", default="cosine", choices=["cosine", "constant"],
+                    help="learning-rate schedule of that refinement")
     ap.add_argument("--refine-eot-every", type=int, default=1,
                     help="with --refine-eot, go through an attack on every n-th step only (the others are clean)")
     ap.add_argument("--ft-half", action="store_true",
@@ -376,7 +378,7 @@ def main() -> None:
                              lambda ll, d=decs[i], w=targets[i]: w(d(ll).float()), val_eval, attacks, k, 1, device,
                              frac_of_left=0.8 / (len(cfg.bits) - i))
             r["refine"] = {"steps": steps, "lr": args.refine_lr, "margin": args.refine_margin, "eot": args.refine_eot,
-                           "eot_every": args.refine_eot_every}
+                           "eot_every": args.refine_eot_every, "schedule": args.refine_schedule}
             name = f"pair_{args.ft_target}{'_ft' if tuned else ''}_refine{steps}"
             metas[k]["results"][name] = r
             log(f"k={k} {name} ({r['n']} pairs, PSNR {r['psnr']:.1f}): "

@@ -65,6 +65,8 @@ def test_refinement_goes_through_the_attack_each_step():
     assert torch.equal(clean, skipped)  # an attack that returns None leaves the clean loss alone
     with pytest.raises(ValueError, match="steps must be >= 0"):
         refine_residual(_decoder(), x, torch.randn_like(x), m, psnr=30.0, steps=-1)
+    with pytest.raises(ValueError, match="schedule must be one of"):
+        refine_residual(_decoder(), x, torch.randn_like(x), m, psnr=30.0, schedule="linear")
 
 
 def test_embed_scaled_is_the_encoder_residual_at_the_psnr():

@@ -21,6 +21,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -28,7 +29,10 @@ import torch.nn.functional as F
 
 from .dwt import ll_subband
 
-__all__ = ["scale_to_psnr", "refine_residual"]
+__all__ = ["SCHEDULES", "scale_to_psnr", "refine_residual"]
+
+#: Learning-rate schedules of :func:`refine_residual`.
+SCHEDULES = ("cosine", "constant")
 
 
 def scale_to_psnr(residual: torch.Tensor, psnr: float) -> torch.Tensor:
@@ -48,6 +52,7 @@ def refine_residual(
     margin: float = 2.0,
     attack: Callable[[torch.Tensor, int], torch.Tensor] | None = None,
     amp: bool = False,
+    schedule: str = "cosine",
 ) -> torch.Tensor:
     """Refine ``residual`` so that ``decoder`` reads ``msgs`` from the watermarked images.
 
@@ -67,12 +72,15 @@ def refine_residual(
             returning None keeps that step's loss clean.
         amp: run the decoder under bfloat16 autocast (CUDA: about twice as fast; the result is still
             float32).
+        schedule: ``"cosine"`` (lr decays to 0 over the steps) or ``"constant"``.
 
     Returns:
         [B,3,H,W] watermarked images in [0, 1] (not quantised).
     """
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
+    if schedule not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     images = images.float()
     unit = residual.detach().float()
     unit = unit / unit.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
@@ -90,5 +98,7 @@ def refine_residual(
                     logits = decoder(ll_subband(v))
                 loss = loss + F.softplus(margin - sign * logits.float()).mean() / len(views)
             (r.grad,) = torch.autograd.grad(loss, r)
+            if schedule == "cosine":
+                opt.param_groups[0]["lr"] = lr * 0.5 * (1.0 + math.cos(math.pi * step / steps))
             opt.step()
     return (images + scale_to_psnr(r.detach(), psnr)).clamp(0.0, 1.0)
