@@ -9,6 +9,7 @@ Public API:
     - Shipped decoders: :func:`load_decoder` -> :class:`WatermarkDecoder` (32/48/64 bits, sha256-checked),
       :func:`save_decoder`, :class:`WeightsError`.
     - Noise layers: :mod:`gsw.watermark.noise`.
+    - Image-space embedding against a frozen decoder: :func:`refine_residual` (:mod:`gsw.watermark.refine`).
     - Metrics: :func:`bit_accuracy`, :func:`false_positive_threshold`.
 
 Example:
@@ -22,6 +23,7 @@ Example:
 from .dwt import LEVELS, MODE, WAVELET, dwt2, idwt2, ll_subband
 from .evaluation import false_positive_threshold
 from .hidden import HiddenDecoder, HiddenEncoder, bit_accuracy, bits_from_logits
+from .refine import refine_residual
 from .whitening import WhiteningLayer, fit_whitening
 from .zoo import AVAILABLE_BITS, WatermarkDecoder, WeightsError, load_decoder, save_decoder
 
@@ -43,5 +45,6 @@ __all__ = [
     "idwt2",
     "ll_subband",
     "load_decoder",
+    "refine_residual",
     "save_decoder",
 ]
