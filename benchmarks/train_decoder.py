@@ -14,6 +14,9 @@
 4. ``k{k}.pt`` (encoder, decoder, whitening) and ``k{k}.json`` (config, logs, results) in ``--out``,
    written as soon as each stage ends; ``--deadline-s`` shortens the later stages to end in time;
    ``--ft-half`` also writes the fine-tuned encoder alone in float16 (``k{k}.encoder_ft16.pt``).
+5. ``--refine-steps N``: the last encoders' residuals refined by N Adam steps against the frozen decoder
+   (``gsw.watermark.refine.refine_residual``; ``--refine-eot``: also through the training noise layers) and
+   evaluated like the pairs; with ``--ft-s 0 --init-encoder encoder_ft`` it refines an earlier fine-tune.
 
 ``--init DIR`` continues from the ``k{k}.pt`` of an earlier run (its encoder and decoder; a warm restart with
 a new optimizer and learning-rate schedule, so pass ``--clean-frac 0 --psnr-start`` = ``--psnr`` to skip the
@@ -191,23 +194,23 @@ def main() -> None:
                     help="> 0: image-adaptive conv refiner of the template of this width (added at zero to an --init)")
     ap.add_argument("--ft-clean-chunk", action="store_true",
                     help="in the encoder fine-tune half of every batch is never attacked (clean accuracy weighs more)")
+    ap.add_argument("--ft-half", action="store_true",
+                    help="round the fine-tuned encoders to float16 before their evaluation and also save them "
+                         "alone as k{k}.encoder_ft16.pt (half the size: fetchable for a CPU re-check)")
+    ap.add_argument("--skip-init-eval", action="store_true",
+                    help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
     ap.add_argument("--refine-steps", type=int, nargs="*", default=[],
                     help="also evaluate the fine-tuned pair with the encoder's residual refined for this many Adam "
                          "steps against the decoder (gsw.watermark.refine.refine_residual); one evaluation each")
     ap.add_argument("--refine-lr", type=float, default=0.3, help="learning rate of that refinement")
+    ap.add_argument("--refine-schedule", default="cosine", choices=["cosine", "constant"],
+                    help="learning-rate schedule of that refinement")
     ap.add_argument("--refine-margin", type=float, default=2.0, help="logit margin of that refinement")
     ap.add_argument("--refine-eot", action="store_true",
                     help="refine on the clean images and through the training noise layers (one per step, in "
                          "turn; differentiable JPEG)")
-    ap.add_argument("--skip-init-eval", action="store_true",
-                    help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
-    ap.add_argument("--refine-schedule", default="cosine", choices=["cosine", "constant"],
-                    help="learning-rate schedule of that refinement")
     ap.add_argument("--refine-eot-every", type=int, default=1,
                     help="with --refine-eot, go through an attack on every n-th step only (the others are clean)")
-    ap.add_argument("--ft-half", action="store_true",
-                    help="round the fine-tuned encoders to float16 before their evaluation and also save them "
-                         "alone as k{k}.encoder_ft16.pt (half the size: fetchable for a CPU re-check)")
     ap.add_argument("--view-warp", action="store_true",
                     help="every training sample also goes through a random view warp (rotation, zoom, foreshortening)")
     ap.add_argument("--balance", type=float, default=0.0,
@@ -233,6 +236,8 @@ def main() -> None:
     ap.add_argument("--device", default=None)
     ap.add_argument("--amp", default="auto", choices=["auto", "on", "off"], help="bf16 autocast (auto: on CUDA)")
     args = ap.parse_args()
+    if args.refine_eot_every < 1:
+        ap.error("--refine-eot-every must be >= 1")
     device = torch.device(args.device if args.device else ("cuda" if torch.cuda.is_available() else "cpu"))
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True

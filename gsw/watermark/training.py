@@ -125,7 +125,7 @@ def random_crops(
 
 def embed(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor, psnr: float) -> torch.Tensor:
     """Watermark ``imgs`` [B,3,H,W] in [0,1]: residual rescaled per image to ``psnr`` dB, clamp (ST)."""
-    return clamp_st(imgs + scale_to_psnr(encoder(imgs, msgs).float(), psnr))
+    return embed_scaled(encoder, imgs, msgs, psnr)
 
 
 def _ramp(progress: float, frac: float) -> float:
@@ -357,7 +357,9 @@ class TemplateEncoder(torch.nn.Module):
     tiled pattern's resolution) reads the image (antialiased down to that resolution), the pattern and the
     broadcast message and adds a correction to the pattern: an image-agnostic pattern is read at most as well
     as one optimised tile per message (98 % of 64 bits on unseen photos, BENCHMARKS 5a), where optimising the
-    pixels of each image reads 99.7 %.  Its last layer starts at zero as well.
+    pixels of each image reads 99.7 %.  Its last layer starts at zero as well.  (Measured: no gain over 360 s
+    of fine-tuning at 64 bits, BENCHMARKS 5a item 5; :func:`gsw.watermark.refine.refine_residual` is what
+    adapts a residual to its image.)
     """
 
     REFINE_DEPTH = 6
