@@ -17,7 +17,6 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import platform
 import sys
@@ -32,12 +31,9 @@ import torch.nn.functional as F  # noqa: E402
 
 from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import psnr as psnr_db  # noqa: E402
-from watermark.training import MultiConfig, embed_scaled, load_images, make_encoder  # noqa: E402
+from watermark.refine import scale_to_psnr  # noqa: E402
+from watermark.training import embed_scaled, load_images, load_run_encoder  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
-
-
-def _rms(psnr: float) -> float:
-    return 10.0 ** (-psnr / 20.0)
 
 
 def _accuracy(dec, y: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
@@ -48,12 +44,7 @@ def _accuracy(dec, y: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def psnr_sweep(run: Path, k: int, photos: list[torch.Tensor], levels: list[float], msgs_per_photo: int = 4) -> dict:
-    meta = json.loads((run / f"k{k}.json").read_text())
-    fields = {f.name for f in dataclasses.fields(MultiConfig)}
-    cfg = MultiConfig(**{n: v for n, v in meta["config"].items() if n in fields})
-    enc = make_encoder(k, cfg)
-    enc.load_state_dict(torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)["encoder_ft"])
-    enc.eval()
+    enc, cfg = load_run_encoder(run, k)
     dec = load_decoder(k).decoder
     out = {}
     for level in levels:
@@ -79,13 +70,13 @@ def direct(k: int, photos: list[torch.Tensor], psnr: float, steps: int) -> dict:
         r = (torch.randn(x.shape, generator=gen) * 1e-3).requires_grad_(True)
         opt = torch.optim.Adam([r], lr=0.01)
         for _ in range(steps):
-            y = (x + r * (_rms(psnr) / r.pow(2).mean().sqrt().clamp_min(1e-12))).clamp(0, 1)
+            y = (x + scale_to_psnr(r, psnr)).clamp(0, 1)
             loss = F.binary_cross_entropy_with_logits(dec(ll_subband(y)), m)
             opt.zero_grad()
             loss.backward()
             opt.step()
         with torch.no_grad():
-            accs.append(float(_accuracy(dec, x + r * (_rms(psnr) / r.pow(2).mean().sqrt()), m)))
+            accs.append(float(_accuracy(dec, x + scale_to_psnr(r, psnr), m)))
     return {"bit_acc": sum(accs) / len(accs), "per_photo": accs, "photos": len(photos), "steps": steps}
 
 
@@ -95,7 +86,7 @@ def _tiled(tile: torch.Tensor, x: torch.Tensor, psnr: float) -> torch.Tensor:
     hs, ws = -(-h // 4), -(-w // 4)
     pat = tile.repeat(1, 1, -(-hs // t), -(-ws // t))[..., :hs, :ws]
     d = F.interpolate(pat, size=(hs * 4, ws * 4), mode="bilinear", align_corners=False)[..., :h, :w]
-    return x + d * (_rms(psnr) / d.pow(2).mean().sqrt().clamp_min(1e-12))
+    return x + scale_to_psnr(d, psnr)
 
 
 def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int, psnr: float, steps: int,

@@ -16,7 +16,6 @@ report from ``benchmarks/results/decoder.json``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -30,8 +29,8 @@ import torch  # noqa: E402
 from watermark import noise as N  # noqa: E402
 from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import HiddenDecoder  # noqa: E402
-from watermark.training import (WHITEN_EIG_FLOOR, MultiConfig, embed_scaled, fit_whitening_multi,  # noqa: E402
-                                image_bank, load_images, make_encoder)
+from watermark.training import (WHITEN_EIG_FLOOR, embed_scaled, fit_whitening_multi, image_bank,  # noqa: E402
+                                load_images, load_run_encoder)
 from watermark.whitening import WhiteningLayer  # noqa: E402
 from watermark.zoo import WEIGHTS_DIR, load_decoder, save_decoder  # noqa: E402
 
@@ -165,20 +164,12 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
     ``load_decoder``) on every val photo, messages drawn anew (seed 1000 + photo index), every training noise
     layer with the real codec; clean accuracy with a 95 % bootstrap interval over photos."""
     meta = json.loads((run / f"k{k}.json").read_text())
-    cfg = meta["config"]
-    fields = {f.name for f in dataclasses.fields(MultiConfig)}
-    enc = make_encoder(k, MultiConfig(**{n: v for n, v in cfg.items() if n in fields}))
-    src = run / f"k{k}.pt"
-    if not src.exists():  # the float16 copy of --ft-half runs (their full checkpoints can be too large to fetch)
-        src = run / f"k{k}.encoder_ft16.pt"
-    state = torch.load(src, map_location="cpu", weights_only=False)["encoder_ft"]
-    enc.load_state_dict({n: v.float() if v.is_floating_point() else v for n, v in state.items()})
-    enc.eval()
+    enc, cfg = load_run_encoder(run, k)
     dec = load_decoder(k).decoder
     attacks = dict(N.training_noise_layers("real"))
     per = {a: [] for a in attacks}
     for i, img in enumerate(val_images):
-        r = eval_attacks(lambda x, m: embed_scaled(enc, x, m, cfg["psnr_target"], cfg["enc_down"]), dec, [img],
+        r = eval_attacks(lambda x, m: embed_scaled(enc, x, m, cfg.psnr_target, cfg.enc_down), dec, [img],
                          attacks, k, msgs_per_image, seed=1000 + i)
         for a in attacks:
             per[a].append(r["bit_acc"][a])
@@ -186,8 +177,8 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
     boot = np.random.default_rng(0).choice(clean, (10000, len(clean))).mean(1)
     return {"bit_acc": {a: float(np.mean(v)) for a, v in per.items()}, "n": msgs_per_image * len(val_images),
             "identity_ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))], "device": "cpu",
-            "encoder": {"templates": cfg.get("templates"), "template_mlp": cfg.get("template_mlp"),
-                        "ft_s_total": meta.get("ft_s_total", cfg.get("ft_s")),
+            "encoder": {"templates": cfg.templates, "template_mlp": cfg.template_mlp,
+                        "ft_s_total": meta.get("ft_s_total", meta["config"].get("ft_s")),
                         "pair_on_gpu": meta["results"]["pair_raw_ft"]["bit_acc"]["identity"]}}
 
 

@@ -467,6 +467,27 @@ def make_encoder(num_bits: int, cfg: MultiConfig) -> HiddenEncoder | TemplateEnc
     return TemplateEncoder(enc, cfg.templates, mlp=cfg.template_mlp, refine=cfg.template_refine)
 
 
+def load_run_encoder(run: str | Path, num_bits: int, key: str = "encoder_ft") -> tuple[torch.nn.Module, MultiConfig]:
+    """The encoder ``key`` of a ``benchmarks/train_decoder.py`` run (CPU, eval mode) and the run's config.
+
+    Reads ``k{num_bits}.json`` for the architecture and the weights from ``k{num_bits}.pt``, or, for
+    ``encoder_ft``, from the float16 copy ``k{num_bits}.encoder_ft16.pt`` that ``--ft-half`` writes (the full
+    checkpoint can be too large to fetch from the GPU machine)."""
+    run = Path(run)
+    meta = json.loads((run / f"k{num_bits}.json").read_text())
+    fields = {f.name for f in dataclasses.fields(MultiConfig)}
+    cfg = MultiConfig(**{n: v for n, v in meta["config"].items() if n in fields})
+    src = run / f"k{num_bits}.pt"
+    if not src.exists() and key == "encoder_ft":
+        src = run / f"k{num_bits}.encoder_ft16.pt"
+    if not src.exists():
+        raise FileNotFoundError(f"{run}: neither k{num_bits}.pt nor a float16 encoder file")
+    state = torch.load(src, map_location="cpu", weights_only=False)[key]
+    enc = make_encoder(num_bits, cfg)
+    enc.load_state_dict({n: v.float() if v.is_floating_point() else v for n, v in state.items()})
+    return enc.eval(), cfg
+
+
 def embed_scaled(encoder: HiddenEncoder, imgs: torch.Tensor, msgs: torch.Tensor, psnr: float,
                  down: int = 1) -> torch.Tensor:
     """:func:`embed` with the encoder run on ``imgs`` downsampled by ``down`` (antialiased bilinear) and its
