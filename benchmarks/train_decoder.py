@@ -13,7 +13,8 @@
    the frozen whitened decoders (what ships) and evaluated again.
 4. ``k{k}.pt`` (encoder, decoder, whitening) and ``k{k}.json`` (config, logs, results) in ``--out``,
    written as soon as each stage ends; ``--deadline-s`` shortens the later stages to end in time;
-   ``--ft-half`` also writes the fine-tuned encoder alone in float16 (``k{k}.encoder_ft16.pt``).
+   ``--half`` rounds every encoder to float16 before it is evaluated and keeps only the last one in
+   ``k{k}.pt`` (small enough to fetch from the GPU machine and to ``--init`` the next run from).
 5. ``--refine-steps N``: the last encoders' residuals refined by N Adam steps against the frozen decoder
    (``gsw.watermark.refine.refine_residual``; ``--refine-eot``: also through the training noise layers) and
    evaluated like the pairs; with ``--ft-s 0 --init-encoder encoder_ft`` it refines an earlier fine-tune.
@@ -115,6 +116,9 @@ def load_init(run: Path, cfg: T.MultiConfig, encoder_key: str = "encoder") -> tu
     encs, decs = [], []
     for k in cfg.bits:
         blob = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
+        if encoder_key not in blob:
+            raise SystemExit(f"--init {run}: k{k}.pt has no {encoder_key!r} (a --half checkpoint keeps only its "
+                             f"last encoder: {[n for n in ('encoder', 'encoder_ft') if n in blob]})")
         enc = T.make_encoder(k, cfg)
         dec = T.HiddenDecoder(k, cfg.dec_blocks, cfg.channels, cfg.dec_norm)
         try:
@@ -147,6 +151,16 @@ def refined_embedder(args, encoder, decoder, whitening, cfg, steps: int, device)
                                amp=device.type == "cuda" and not args.refine_fp32, schedule=args.refine_schedule)
 
     return embed
+
+
+def encoder_state(encoder: torch.nn.Module, half: bool) -> dict[str, torch.Tensor]:
+    """The encoder's state dict, floating tensors in float16 when ``half`` (on the CPU)."""
+    return {n: (v.half() if half and v.is_floating_point() else v).cpu() for n, v in encoder.state_dict().items()}
+
+
+def to_half(encoder: torch.nn.Module) -> None:
+    """Round the encoder's weights to float16 in place (they stay float32 tensors)."""
+    encoder.load_state_dict(encoder_state(encoder, True))
 
 
 def shipped_whitening(decoder: torch.nn.Module, k: int) -> torch.nn.Module:
@@ -192,11 +206,13 @@ def main() -> None:
                     help="> 0: nonlinear message -> template branch of this width (added at zero to an --init)")
     ap.add_argument("--template-refine", type=int, default=0,
                     help="> 0: image-adaptive conv refiner of the template of this width (added at zero to an --init)")
+    ap.add_argument("--clean-chunk", action="store_true",
+                    help="in the joint training half of every batch is never attacked (it still sees the view warp)")
     ap.add_argument("--ft-clean-chunk", action="store_true",
                     help="in the encoder fine-tune half of every batch is never attacked (clean accuracy weighs more)")
-    ap.add_argument("--ft-half", action="store_true",
-                    help="round the fine-tuned encoders to float16 before their evaluation and also save them "
-                         "alone as k{k}.encoder_ft16.pt (half the size: fetchable for a CPU re-check)")
+    ap.add_argument("--half", action="store_true",
+                    help="round every encoder to float16 before its evaluation; k{k}.pt then keeps the decoder and "
+                         "whitening (float32) and only the last encoder (fine-tuned if any) in float16")
     ap.add_argument("--skip-init-eval", action="store_true",
                     help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
     ap.add_argument("--refine-steps", type=int, nargs="*", default=[],
@@ -260,9 +276,10 @@ def main() -> None:
                         enc_down=args.enc_down, dec_norm=args.dec_norm, templates=args.templates,
                         template_mlp=args.template_mlp, template_refine=args.template_refine,
                         view_warp=args.view_warp, balance=args.balance, balance_batch=args.balance_batch,
-                        freeze_bn=args.freeze_bn)
+                        freeze_bn=args.freeze_bn, clean_chunk=args.clean_chunk)
     encs0, decs0 = load_init(Path(args.init), cfg, args.init_encoder) if args.init else (None, None)
-    if args.init and args.train_s <= 0 and args.steps <= 0:
+    trained = not (args.init and args.train_s <= 0 and args.steps <= 0)
+    if not trained:
         st = {"encoders": [e.to(device).eval() for e in encs0], "decoders": [d.to(device).eval() for d in decs0],
               "step": 0, "elapsed": 0.0, "log": [], "val": [], "steps_per_s": 0.0}
     else:
@@ -273,6 +290,9 @@ def main() -> None:
         st["step"] += prev[cfg.bits[0]]["steps"]
         st["elapsed"] += prev[cfg.bits[0]]["train_elapsed_s"]
     encs, decs = st["encoders"], st["decoders"]
+    if args.half:
+        for e in encs:
+            to_half(e)
     log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")
     torch.backends.cudnn.benchmark = False  # evaluation sees many image sizes
     torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False  # whitening in float32
@@ -300,10 +320,12 @@ def main() -> None:
         for i, k in enumerate(cfg.bits):
             metas[k]["wall_s"] = time.perf_counter() - T0
             metas[k]["stage"] = stage
-            blob = {"stage": stage, "num_bits": k, "encoder": encs[i].state_dict(), "decoder": decs[i].state_dict(),
+            blob = {"stage": stage, "num_bits": k, "decoder": decs[i].state_dict(),
                     "whitening": whitens[i].state_dict(), "config": metas[k]["config"], "step": st["step"]}
+            if not (args.half and ft_encs is not None):
+                blob["encoder"] = encoder_state(encs[i], args.half)
             if ft_encs is not None:
-                blob["encoder_ft"] = ft_encs[i].state_dict()
+                blob["encoder_ft"] = encoder_state(ft_encs[i], args.half)
             torch.save(blob, out / f"k{k}.pt")
             (out / f"k{k}.json").write_text(json.dumps(metas[k], indent=1))
 
@@ -349,19 +371,16 @@ def main() -> None:
         torch.backends.cudnn.benchmark = False
         final = ft_encs = ft["encoders"]
         log(f"encoder fine-tune: {ft['step']} steps in {ft['elapsed']:.0f} s")
-        if args.ft_half:  # what is evaluated below is exactly what the float16 file holds
-            for i, (e, k) in enumerate(zip(ft_encs, cfg.bits)):
-                half = {n: (v.half() if v.is_floating_point() else v).cpu() for n, v in e.state_dict().items()}
-                e.load_state_dict(half)
-                torch.save({"num_bits": k, "config": metas[k]["config"], "encoder_ft": half},
-                           out / f"k{k}.encoder_ft16.pt")
+        if args.half:  # what is evaluated below is exactly what k{k}.pt holds
+            for e in ft_encs:
+                to_half(e)
         for i, k in enumerate(cfg.bits):
             metas[k]["ft_log"] = ft["log"]
             metas[k]["ft_steps"] = ft["step"]
             metas[k]["config"]["ft_s"] = round(ft["elapsed"], 1)
             metas[k]["config"].update(ft_lr=args.ft_lr, ft_view_warp=warp, ft_target=args.ft_target,
                                       ft_clean_chunk=args.ft_clean_chunk)
-            if args.init_encoder == "encoder_ft":  # chained fine-tunes: count the earlier ones too
+            if args.init_encoder == "encoder_ft" and not trained:  # chained fine-tunes: count the earlier ones too
                 before = prev[k]
                 metas[k]["ft_steps_total"] = ft["step"] + before.get("ft_steps_total", before.get("ft_steps", 0))
                 metas[k]["ft_s_total"] = round(ft["elapsed"] + before.get(
@@ -375,10 +394,10 @@ def main() -> None:
             metas[k]["results"][f"pair_{args.ft_target}_ft"] = r
             log(f"k={k} pair_{args.ft_target}_ft ({r['n']} pairs): "
                 + " ".join(f"{a}={v:.4f}" for a, v in r["bit_acc"].items()))
-    elif args.init_encoder == "encoder_ft":  # no new fine-tune: the init's counts stand
+    tuned = ft_encs is not None or (args.init_encoder == "encoder_ft" and not trained)
+    if ft_encs is None and tuned:  # no new fine-tune of the init's fine-tuned encoder: its counts stand
         for k in cfg.bits:
             metas[k].update({n: prev[k][n] for n in ("ft_steps", "ft_steps_total", "ft_s_total") if n in prev[k]})
-    tuned = ft_encs is not None or args.init_encoder == "encoder_ft"
     for steps in args.refine_steps:
         for i, k in enumerate(cfg.bits):
             r = eval_chunked(args, refined_embedder(args, final[i], decs[i], targets[i], cfg, steps, device),

@@ -173,18 +173,20 @@ def test_load_run_encoder_reads_full_and_float16_checkpoints(tmp_path):
     torch.manual_seed(3)
     enc = T.make_encoder(8, cfg).eval()
     meta = {"config": {**dataclasses.asdict(cfg), "num_bits": 8, "ft_s": 1.0}}
-    full, half = tmp_path / "full", tmp_path / "half"
-    for d in (full, half):
+    full, half, compact = tmp_path / "full", tmp_path / "half", tmp_path / "compact"
+    for d in (full, half, compact):
         d.mkdir()
         (d / "k8.json").write_text(json.dumps(meta))
     torch.save({"encoder_ft": enc.state_dict()}, full / "k8.pt")
     torch.save({"encoder_ft": {n: v.half() if v.is_floating_point() else v for n, v in enc.state_dict().items()}},
                half / "k8.encoder_ft16.pt")
+    torch.save({"encoder_ft": torch.load(half / "k8.encoder_ft16.pt")["encoder_ft"]}, compact / "k8.pt")  # --half
     x, m = torch.rand(2, 3, 32, 40), torch.randint(0, 2, (2, 8)).float()
     loaded, lcfg = T.load_run_encoder(full, 8)
     assert lcfg.template_mlp == 16 and lcfg.enc_down == 2 and not loaded.training
     with torch.no_grad():
         assert torch.equal(loaded(x, m), enc(x, m))
         assert torch.allclose(T.load_run_encoder(half, 8)[0](x, m), enc(x, m), atol=1e-2)  # float16 weights
+        assert torch.equal(T.load_run_encoder(compact, 8)[0](x, m), T.load_run_encoder(half, 8)[0](x, m))
     with pytest.raises(FileNotFoundError, match="neither k8.pt"):
         T.load_run_encoder(half, 8, key="encoder")

@@ -470,9 +470,9 @@ def make_encoder(num_bits: int, cfg: MultiConfig) -> HiddenEncoder | TemplateEnc
 def load_run_encoder(run: str | Path, num_bits: int, key: str = "encoder_ft") -> tuple[torch.nn.Module, MultiConfig]:
     """The encoder ``key`` of a ``benchmarks/train_decoder.py`` run (CPU, eval mode) and the run's config.
 
-    Reads ``k{num_bits}.json`` for the architecture and the weights from ``k{num_bits}.pt``, or, for
-    ``encoder_ft``, from the float16 copy ``k{num_bits}.encoder_ft16.pt`` that ``--ft-half`` writes (the full
-    checkpoint can be too large to fetch from the GPU machine)."""
+    Reads ``k{num_bits}.json`` for the architecture and the weights from ``k{num_bits}.pt`` (full, or a
+    ``--half`` checkpoint whose encoders are float16), or, for ``encoder_ft``, from a float16 file
+    ``k{num_bits}.encoder_ft16.pt`` beside the json (what ``--ft-half`` wrote before ``--half`` replaced it)."""
     run = Path(run)
     meta = json.loads((run / f"k{num_bits}.json").read_text())
     fields = {f.name for f in dataclasses.fields(MultiConfig)}
