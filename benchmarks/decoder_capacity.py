@@ -10,14 +10,22 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
    how many bits the decoder can read at all.
 3. ``tile``: one periodic tile per message (side ``--tile`` at LL2 resolution, tiled and upsampled as
    ``TemplateEncoder`` does), optimised on a few photos and read on unseen ones: an image-agnostic code.
+4. ``refine`` (``--checks refine``, GPU): the ``direct`` optimisation at scale and measured like a pre-training
+   pair: each photo's residual, from noise, refined by ``gsw.watermark.refine.refine_residual`` (cosine Adam,
+   margin loss, PSNR kept) for each ``--refine STEPS:EVERY`` (EVERY > 0: every EVERY-th step also goes through
+   the next training noise layer, ``GpuAttacks``, differentiable JPEG; 0: the clean loss only), then
+   ``eval_attacks`` over ``--refine-photos`` val photos x ``--refine-msgs`` messages with every training noise
+   layer (real JPEG). The results are written after each setting.
 
     python benchmarks/decoder_capacity.py --encoder-run out/decoders/A --out benchmarks/results/decoder_capacity.json
+    python benchmarks/decoder_capacity.py --checks refine --device cuda --refine 1000:4 1000:0 --out refine.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -30,9 +38,11 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from watermark.dwt import ll_subband  # noqa: E402
+from watermark.evaluation import eval_attacks  # noqa: E402
 from watermark.evaluation import psnr as psnr_db  # noqa: E402
-from watermark.refine import scale_to_psnr  # noqa: E402
-from watermark.training import embed_scaled, load_images, load_run_encoder  # noqa: E402
+from watermark.noise import training_noise_layers  # noqa: E402
+from watermark.refine import attack_cycle, refine_residual, scale_to_psnr  # noqa: E402
+from watermark.training import GpuAttacks, MultiConfig, embed_scaled, load_images, load_run_encoder  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
 
 
@@ -114,6 +124,33 @@ def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int,
             "side": side, "messages": messages, "steps": steps, "fit_photos": len(fit), "unseen_photos": len(unseen)}
 
 
+def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: int, msgs: int, lr: float,
+           margin: float, batch: int, device: torch.device) -> dict:
+    """Residuals from noise refined for ``steps`` against the shipped raw decoder, evaluated like a pair."""
+    dec = load_decoder(k).decoder.to(device).eval()
+    attack = attack_cycle(GpuAttacks(device, 11).apply, MultiConfig.noise_layers, every) if every else None
+    gen = torch.Generator(device=device).manual_seed(0)
+
+    def embed(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        r0 = torch.randn(x.shape, device=device, generator=gen)
+        return refine_residual(dec, x, r0, m, psnr, steps, lr, margin, attack, amp=device.type == "cuda")
+
+    t0 = time.perf_counter()
+    r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=1, device=device,
+                     images_per_batch=batch)
+    layers = {n: v for n, v in r["bit_acc"].items() if n != "identity"}
+    return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": "cosine",
+            "bf16": device.type == "cuda", "clean": r["bit_acc"]["identity"], "worst_layer": min(layers.values()),
+            "bit_acc": r["bit_acc"], "bit_acc_std": r["bit_acc_std"], "psnr": r["psnr"], "pairs": r["n"],
+            "photos": len(photos), "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def _write(path: str, res: dict) -> None:
+    tmp = f"{path}.tmp"
+    Path(tmp).write_text(json.dumps(res, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "bsds500"))
@@ -123,24 +160,58 @@ def main() -> None:
     ap.add_argument("--direct-photos", type=int, nargs=2, default=[6, 12], metavar=("K48", "K64"))
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--tile", type=int, default=16)
+    ap.add_argument("--checks", nargs="+", default=["direct", "tile"], choices=["direct", "tile", "refine"],
+                    help="checks to run (the PSNR sweep runs when --encoder-run is given)")
+    ap.add_argument("--device", default="cpu", help="device of the refine check (the others run on the CPU)")
+    ap.add_argument("--bits", type=int, default=64, help="bit length of the refine check")
+    ap.add_argument("--refine", nargs="+", default=["1000:4"], metavar="STEPS:EVERY",
+                    help="refine settings: Adam steps and attack period (0: clean loss only)")
+    ap.add_argument("--refine-photos", type=int, default=100)
+    ap.add_argument("--refine-msgs", type=int, default=4, help="messages per photo")
+    ap.add_argument("--refine-batch", type=int, default=25, help="photos refined together")
+    ap.add_argument("--refine-lr", type=float, default=0.3)
+    ap.add_argument("--refine-margin", type=float, default=2.0)
     ap.add_argument("--out", default=None, help="write the results as JSON here")
     args = ap.parse_args()
-    torch.set_num_threads(2)
+    try:
+        settings = [tuple(int(v) for v in s.split(":")) for s in args.refine]
+        assert all(len(t) == 2 and t[0] >= 0 and t[1] >= 0 for t in settings)
+    except (ValueError, AssertionError):
+        ap.error(f"--refine takes STEPS:EVERY pairs of integers >= 0, got {args.refine}")
+    device = torch.device(args.device)
+    if device.type == "cpu":
+        torch.set_num_threads(2)
     val = load_images(Path(args.data) / "val")
+    if not val:
+        raise SystemExit(f"no photos in {Path(args.data) / 'val'}")
     t0 = time.perf_counter()
     res: dict = {"machine": platform.processor() or platform.machine(), "torch": torch.__version__,
                  "psnr_target": 30.0}
+    if device.type == "cuda":
+        res["device"] = torch.cuda.get_device_name(device)
     if args.encoder_run:
         res["psnr_sweep"] = {str(k): psnr_sweep(Path(args.encoder_run), k, val[: args.sweep_photos],
                                                 args.psnr_levels) for k in (48, 64)}
         print(json.dumps(res["psnr_sweep"]), flush=True)
-    res["direct"] = {str(k): direct(k, val[:n], 30.0, args.steps) for k, n in zip((48, 64), args.direct_photos)}
-    print(json.dumps({k: v["bit_acc"] for k, v in res["direct"].items()}), flush=True)
-    res["tile_64"] = tile(64, val[:4], val[4:8], args.tile, 30.0, args.steps, messages=3)
-    print(json.dumps(res["tile_64"]), flush=True)
+    if "direct" in args.checks:
+        res["direct"] = {str(k): direct(k, val[:n], 30.0, args.steps) for k, n in zip((48, 64), args.direct_photos)}
+        print(json.dumps({k: v["bit_acc"] for k, v in res["direct"].items()}), flush=True)
+    if "tile" in args.checks:
+        res["tile_64"] = tile(64, val[:4], val[4:8], args.tile, 30.0, args.steps, messages=3)
+        print(json.dumps(res["tile_64"]), flush=True)
+    if "refine" in args.checks:
+        res[f"refine_{args.bits}"] = []
+        for steps, every in settings:
+            r = refine(args.bits, val[: args.refine_photos], 30.0, steps, every, args.refine_msgs, args.refine_lr,
+                       args.refine_margin, args.refine_batch, device)
+            res[f"refine_{args.bits}"].append(r)
+            print(f"refine {steps}:{every}  clean {r['clean']:.4f}  worst layer {r['worst_layer']:.4f}  "
+                  f"{json.dumps({n: round(v, 4) for n, v in r['bit_acc'].items()})}  {r['wall_s']} s", flush=True)
+            if args.out:
+                _write(args.out, res)
     res["wall_s"] = round(time.perf_counter() - t0, 1)
     if args.out:
-        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+        _write(args.out, res)
 
 
 if __name__ == "__main__":

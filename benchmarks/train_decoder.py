@@ -49,7 +49,7 @@ from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import bit_accuracy  # noqa: E402
 from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
-from watermark.refine import refine_residual  # noqa: E402
+from watermark.refine import attack_cycle, refine_residual  # noqa: E402
 from watermark.whitening import WhiteningLayer  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
 
@@ -136,18 +136,13 @@ def load_init(run: Path, cfg: T.MultiConfig, encoder_key: str = "encoder") -> tu
 
 def refined_embedder(args, encoder, decoder, whitening, cfg, steps: int, device):
     """(imgs, msgs) -> watermarked imgs: the encoder's residual refined against the decoder (+ whitening)."""
-    att = T.GpuAttacks(device, 11) if args.refine_eot else None
-    names = list(cfg.noise_layers)
-
-    def attack(y, step):
-        if step % args.refine_eot_every:
-            return None
-        return att.apply(names[(step // args.refine_eot_every) % len(names)], y, 1.0)
+    attack = (attack_cycle(T.GpuAttacks(device, 11).apply, cfg.noise_layers, args.refine_eot_every)
+              if args.refine_eot else None)
 
     def embed(x, m):
         return refine_residual(lambda ll: whitening(decoder(ll).float()), x,
                                T.encoder_residual(encoder, x, m, cfg.enc_down), m, cfg.psnr_target, steps,
-                               args.refine_lr, args.refine_margin, attack if att is not None else None,
+                               args.refine_lr, args.refine_margin, attack,
                                amp=device.type == "cuda" and not args.refine_fp32, schedule=args.refine_schedule)
 
     return embed

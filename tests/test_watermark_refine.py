@@ -9,7 +9,7 @@ from gsw.watermark import training as T
 from gsw.watermark.dwt import ll_subband
 from gsw.watermark.evaluation import psnr
 from gsw.watermark.hidden import HiddenDecoder, HiddenEncoder
-from gsw.watermark.refine import refine_residual, scale_to_psnr
+from gsw.watermark.refine import attack_cycle, refine_residual, scale_to_psnr
 
 
 def _decoder(k: int = 16) -> HiddenDecoder:
@@ -67,6 +67,25 @@ def test_refinement_goes_through_the_attack_each_step():
         refine_residual(_decoder(), x, torch.randn_like(x), m, psnr=30.0, steps=-1)
     with pytest.raises(ValueError, match="schedule must be one of"):
         refine_residual(_decoder(), x, torch.randn_like(x), m, psnr=30.0, schedule="linear")
+
+
+def test_attack_cycle_takes_the_attacks_in_turn_on_every_nth_step():
+    calls = []
+
+    def apply(name, y, strength):
+        calls.append((name, strength))
+        return y + 1.0
+
+    attack = attack_cycle(apply, ["a", "b", "c"], every=2)
+    y = torch.zeros(1, 3, 4, 4)
+    out = [attack(y, step) for step in range(8)]
+    assert [o is None for o in out] == [False, True] * 4  # odd steps stay clean
+    assert torch.equal(out[0], y + 1.0)
+    assert calls == [("a", 1.0), ("b", 1.0), ("c", 1.0), ("a", 1.0)]
+    with pytest.raises(ValueError, match="every must be >= 1"):
+        attack_cycle(apply, ["a"], every=0)
+    with pytest.raises(ValueError, match="names must not be empty"):
+        attack_cycle(apply, [])
 
 
 def test_embed_scaled_is_the_encoder_residual_at_the_psnr():

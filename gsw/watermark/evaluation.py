@@ -40,6 +40,18 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 
+def _same_size_groups(images: list[torch.Tensor], n: int) -> list[list[torch.Tensor]]:
+    """Images in groups of up to ``n`` of one size, each group in the order its images come (n = 1: in order)."""
+    groups: list[list[torch.Tensor]] = []
+    open_groups: dict[tuple[int, ...], list[torch.Tensor]] = {}
+    for img in images:
+        g = open_groups.setdefault(tuple(img.shape), [])
+        g.append(img)
+        if len(g) == n:
+            groups.append(open_groups.pop(tuple(img.shape)))
+    return groups + list(open_groups.values())
+
+
 @torch.no_grad()
 def eval_attacks(
     embed_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
@@ -50,6 +62,7 @@ def eval_attacks(
     msgs_per_image: int = 4,
     seed: int = 0,
     device: torch.device | str = "cpu",
+    images_per_batch: int = 1,
 ) -> dict[str, object]:
     """Embed random messages into every image (full size), attack, decode.
 
@@ -58,17 +71,23 @@ def eval_attacks(
         decode_fn: LL2 subband -> logits [B,k].
         images: uint8 tensors [3,H,W].
         attacks: name -> noise layer (used at ``strength`` 1; random layers draw from their range).
+        images_per_batch: up to this many images of the same size go through ``embed_fn`` and the attacks
+            together (``B = images_per_batch * msgs_per_image``; faster on a GPU, other random draws); 1
+            takes the images one by one, in order.
 
     Returns:
         ``{"bit_acc": {attack: mean}, "bit_acc_std": {...}, "psnr": mean PSNR of watermarked images,
         "n": number of (image, message) pairs}``.
     """
+    if images_per_batch < 1:
+        raise ValueError(f"images_per_batch must be >= 1, got {images_per_batch}")
     gen = torch.Generator().manual_seed(seed)
     accs: dict[str, list[torch.Tensor]] = {n: [] for n in attacks}
     psnrs = []
-    for img in images:
-        x = (img.to(device).float() / 255.0)[None].expand(msgs_per_image, -1, -1, -1).contiguous()
-        msgs = torch.randint(0, 2, (msgs_per_image, num_bits), generator=gen).float().to(device)
+    for group in _same_size_groups(images, images_per_batch):
+        x = torch.cat([(img.to(device).float() / 255.0)[None].expand(msgs_per_image, -1, -1, -1) for img in group])
+        msgs = torch.cat([torch.randint(0, 2, (msgs_per_image, num_bits), generator=gen) for _ in group])
+        msgs = msgs.float().to(device)
         x_w = embed_fn(x, msgs)
         x_w = (x_w.clamp(0, 1) * 255).round() / 255  # a saved 8-bit image
         psnrs.append(psnr(x_w, x).cpu())

@@ -22,14 +22,14 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
 
 from .dwt import ll_subband
 
-__all__ = ["SCHEDULES", "scale_to_psnr", "refine_residual"]
+__all__ = ["SCHEDULES", "scale_to_psnr", "attack_cycle", "refine_residual"]
 
 #: Learning-rate schedules of :func:`refine_residual`.
 SCHEDULES = ("cosine", "constant")
@@ -39,6 +39,30 @@ def scale_to_psnr(residual: torch.Tensor, psnr: float) -> torch.Tensor:
     """residual [B,3,H,W] rescaled per image to the RMS of ``psnr`` dB (images in [0, 1])."""
     rms = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
     return residual * (10.0 ** (-psnr / 20.0) / rms)
+
+
+def attack_cycle(
+    apply: Callable[[str, torch.Tensor, float], torch.Tensor], names: Sequence[str], every: int = 1
+) -> Callable[[torch.Tensor, int], torch.Tensor | None]:
+    """An ``attack`` for :func:`refine_residual`: the named attacks in turn, on every ``every``-th step.
+
+    Args:
+        apply: (name, images [B,3,H,W], strength) -> attacked images, differentiable (for instance
+            ``gsw.watermark.training.GpuAttacks(device, seed).apply``); called at strength 1.
+        names: the attacks, cycled in this order.
+        every: steps ``0, every, 2 every, ...`` go through the next attack; the others return None (clean).
+    """
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    if not names:
+        raise ValueError("names must not be empty")
+
+    def attack(y: torch.Tensor, step: int) -> torch.Tensor | None:
+        if step % every:
+            return None
+        return apply(names[(step // every) % len(names)], y, 1.0)
+
+    return attack
 
 
 def refine_residual(

@@ -1,0 +1,39 @@
+"""Evaluation helpers (gsw.watermark.evaluation): batched attack evaluation."""
+
+import pytest
+import torch
+
+from gsw.watermark.evaluation import eval_attacks
+from gsw.watermark.noise import GaussianBlur, Identity
+
+
+def test_eval_attacks_batches_same_size_images_without_changing_the_measurement():
+    g = torch.Generator().manual_seed(0)
+    sizes = [(32, 48), (32, 48), (48, 32), (32, 48), (48, 32)]
+    images = [torch.randint(0, 256, (3, *s), generator=g, dtype=torch.uint8) for s in sizes]
+    attacks = {"identity": Identity(), "blur": GaussianBlur(sigma=(0.5, 0.5), fixed=True)}
+    k = 16
+
+    def run(n):
+        shapes = []
+
+        def embed(x, m):
+            shapes.append(tuple(x.shape))
+            return x + 0.01  # every pair at the same PSNR
+
+        # a decoder that always reads 1: accuracy is the share of ones in the messages drawn
+        r = eval_attacks(embed, lambda ll: torch.ones(ll.shape[0], k), images, attacks, k, msgs_per_image=3,
+                         seed=5, images_per_batch=n)
+        return r, shapes
+
+    one, shapes1 = run(1)
+    two, shapes2 = run(2)
+    assert shapes1 == [(3, 3, *s) for s in sizes]  # one by one, in order
+    assert shapes2 == [(6, 3, 32, 48), (6, 3, 48, 32), (3, 3, 32, 48)]  # groups of one size
+    assert one["n"] == two["n"] == 15
+    # the same messages are drawn (assigned to other images): the same accuracy and PSNR
+    assert one["bit_acc"] == pytest.approx(two["bit_acc"])
+    assert 0.3 < one["bit_acc"]["identity"] < 0.7
+    assert one["psnr"] == pytest.approx(two["psnr"], abs=1e-4)
+    with pytest.raises(ValueError, match="images_per_batch must be >= 1"):
+        eval_attacks(lambda x, m: x, lambda ll: ll, images, attacks, k, images_per_batch=0)
