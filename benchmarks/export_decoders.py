@@ -32,7 +32,7 @@ from watermark.hidden import HiddenDecoder  # noqa: E402
 from watermark.training import (WHITEN_EIG_FLOOR, embed_scaled, fit_whitening_multi, image_bank,  # noqa: E402
                                 load_images, load_run_encoder)
 from watermark.whitening import WhiteningLayer  # noqa: E402
-from watermark.zoo import WEIGHTS_DIR, load_decoder, save_decoder  # noqa: E402
+from watermark.zoo import WEIGHTS_DIR, load_decoder, record_in_manifest, save_decoder  # noqa: E402
 
 
 def jpeg_fidelity(images: list[torch.Tensor], qualities=(90, 70, 50, 30)) -> dict:
@@ -75,11 +75,11 @@ def main() -> None:
     run = Path(args.run_dir)
     val_images = load_images(Path(args.data) / "val")
     train_images = load_images(Path(args.data) / "train") if args.refit_whitening else []
-    manifest = {"format": "torch.save dict {num_bits, arch, state_dict (float32), meta}; "
-                          "state_dict keys decoder.* (HiddenDecoder) and whitening.weight/bias",
-                "dwt": "bior4.4, 2 levels, periodization; decoder input = LL2 of images in [0,1]",
-                "files": {}}
+    out = Path(args.results)
     report = {"runs": {}, "cpu_recheck": {}}
+    if out.with_suffix(".json").exists():  # the bit lengths not exported now keep their report entries
+        old = json.loads(out.with_suffix(".json").read_text())
+        report = {key: {b: v for b, v in old.get(key, {}).items() if int(b) not in args.bits} for key in report}
     for k in args.bits:
         state = torch.load(run / f"k{k}.pt", map_location="cpu", weights_only=False)
         meta = json.loads((run / f"k{k}.json").read_text())
@@ -105,21 +105,19 @@ def main() -> None:
         prov = {"steps": meta["steps"], "train_s": round(meta["train_elapsed_s"]), "device": meta["device"],
                 "torch": meta["torch"], "data": "bsds500/train (200 photos), whitening on the same photos"}
         path = WEIGHTS_DIR / f"hidden_k{k}.pt"
-        sha = save_decoder(dec, wl, path, meta=prov)
-        manifest["files"][path.name] = {"num_bits": k, "sha256": sha, "bytes": path.stat().st_size, **prov}
+        save_decoder(dec, wl, path, meta=prov)
+        record_in_manifest(path, prov)  # the other bit lengths' entries stay
         keep = ("steps", "steps_per_s", "train_elapsed_s", "wall_s", "device", "torch", "python", "config", "args",
                 "results", "whitening_fit_samples", "num_train_images", "val_log", "train_log", "whitening_refit")
         report["runs"][str(k)] = {x: meta[x] for x in keep if x in meta}
-    (WEIGHTS_DIR / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     for k in args.bits:  # the exported files, through the public loader, on the CPU
         model = load_decoder(k)
         with torch.no_grad():
             report["cpu_recheck"][str(k)] = unbiasedness(model, val_images, k, 1000, seed=2)
     report["jpeg_fidelity"] = jpeg_fidelity(val_images)
-    out = Path(args.results)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(report, indent=1))
-    out.with_suffix(".md").write_text(markdown(report, args.bits))
+    out.with_suffix(".md").write_text(markdown(report, sorted(int(b) for b in report["runs"])))
     print(out.with_suffix(".md").read_text())
 
 

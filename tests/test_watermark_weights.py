@@ -8,7 +8,7 @@ from helpers import SHARED_DATA, require
 import torch
 
 from gsw.watermark import AVAILABLE_BITS, HiddenDecoder, WeightsError, WhiteningLayer, load_decoder, save_decoder
-from gsw.watermark.zoo import WEIGHTS_DIR, sha256_file
+from gsw.watermark.zoo import MANIFEST_HEADER, WEIGHTS_DIR, record_in_manifest, sha256_file
 
 DATA = SHARED_DATA
 
@@ -71,6 +71,26 @@ def test_user_weights_roundtrip_and_checks(tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a torch file")
     with pytest.raises(WeightsError, match="cannot read"):
         load_decoder(16, tmp_path / "junk.pt")
+
+
+def test_exporting_one_bit_length_keeps_the_others_in_the_manifest(tmp_path):
+    d = _copy_weights(tmp_path)
+    before = json.loads((d / "manifest.json").read_text())
+    assert {n: before[n] for n in MANIFEST_HEADER} == MANIFEST_HEADER  # the shipped header is the writer's
+    torch.manual_seed(0)
+    dec, wl = HiddenDecoder(32, num_blocks=2, channels=8).eval(), WhiteningLayer(32).fit(torch.randn(100, 32))
+    save_decoder(dec, wl, d / "hidden_k32.pt")  # a new 32-bit decoder, then its entry only
+    man = record_in_manifest(d / "hidden_k32.pt", {"device": "test"})
+    assert man == json.loads((d / "manifest.json").read_text())
+    assert list(man["files"]) == [f"hidden_k{k}.pt" for k in AVAILABLE_BITS]
+    assert man["files"]["hidden_k32.pt"]["device"] == "test"
+    assert man["files"]["hidden_k32.pt"]["sha256"] == sha256_file(d / "hidden_k32.pt")
+    assert man["files"]["hidden_k48.pt"] == before["files"]["hidden_k48.pt"]
+    with torch.no_grad():
+        ll = torch.rand(1, 3, 8, 8)
+        assert torch.allclose(load_decoder(32, weights_dir=d)(ll), wl(dec(ll)), atol=1e-5)  # the new one
+    load_decoder(48, weights_dir=d)  # the others still pass their integrity check
+    load_decoder(64, weights_dir=d)
 
 
 def test_manifest_matches_files():

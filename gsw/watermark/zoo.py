@@ -40,6 +40,7 @@ __all__ = [
     "WatermarkDecoder",
     "load_decoder",
     "save_decoder",
+    "record_in_manifest",
     "sha256_file",
     "weights_path",
 ]
@@ -162,6 +163,33 @@ def load_decoder(
         raise WeightsError(f"{path} does not match the decoder architecture: {e}") from e
     model.eval().requires_grad_(False)
     return model.to(device)
+
+
+MANIFEST_HEADER = {
+    "format": "torch.save dict {num_bits, arch, state_dict (float32), meta}; state_dict keys decoder.* "
+              "(HiddenDecoder) and whitening.weight/bias",
+    "dwt": "bior4.4, 2 levels, periodization; decoder input = LL2 of images in [0,1]",
+}
+
+
+def record_in_manifest(path: str | Path, provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Record a decoder file written by :func:`save_decoder` in its directory's ``manifest.json``.
+
+    The entry (sha256, size, bit length, ``provenance``) replaces any entry of the same name or bit length;
+    the other files' entries stay, so exporting one bit length keeps the others loadable.  The manifest is
+    written atomically.  Returns the new manifest."""
+    path = Path(path)
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    k = int(blob["num_bits"])
+    mpath = path.parent / MANIFEST
+    manifest = json.loads(mpath.read_text()) if mpath.exists() else {}
+    files = {n: e for n, e in manifest.get("files", {}).items() if n != path.name and e.get("num_bits") != k}
+    files[path.name] = {"num_bits": k, "sha256": sha256_file(path), "bytes": path.stat().st_size,
+                        **(provenance or {})}
+    manifest = {**MANIFEST_HEADER, "files": dict(sorted(files.items(), key=lambda e: e[1]["num_bits"]))}
+    with atomic_write(mpath, "w") as f:
+        f.write(json.dumps(manifest, indent=1) + "\n")
+    return manifest
 
 
 def atomic_torch_save(obj: Any, path: str | Path) -> None:
