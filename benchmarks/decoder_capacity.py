@@ -15,7 +15,8 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
    margin loss, PSNR kept) for each ``--refine STEPS:EVERY`` (EVERY > 0: every EVERY-th step also goes through
    the next training noise layer, ``GpuAttacks``, differentiable JPEG; 0: the clean loss only), then
    ``eval_attacks`` over ``--refine-photos`` val photos x ``--refine-msgs`` messages with every training noise
-   layer (real JPEG). The results are written after each setting.
+   layer (real JPEG), with each photo's clean accuracy and share of saturated (0 or 255) pixel values
+   (photo index: val photos sorted by file name). The results are written after each setting.
 
     python benchmarks/decoder_capacity.py --encoder-run out/decoders/A --out benchmarks/results/decoder_capacity.json
     python benchmarks/decoder_capacity.py --checks refine --device cuda --refine 1000:4 1000:0 --out refine.json
@@ -137,12 +138,18 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
 
     t0 = time.perf_counter()
     r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=1, device=device,
-                     images_per_batch=batch)
+                     images_per_batch=batch, per_image=True)
     layers = {n: v for n, v in r["bit_acc"].items() if n != "identity"}
+    clean = r["per_image"]["identity"]
+    errors = sorted(((1.0 - a) * k * msgs for a in clean), reverse=True)  # wrong bits per photo
     return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": "cosine",
             "bf16": device.type == "cuda", "clean": r["bit_acc"]["identity"], "worst_layer": min(layers.values()),
             "bit_acc": r["bit_acc"], "bit_acc_std": r["bit_acc_std"], "psnr": r["psnr"], "pairs": r["n"],
-            "photos": len(photos), "wall_s": round(time.perf_counter() - t0, 1)}
+            "photos": len(photos), "photos_all_bits_right": sum(a == 1.0 for a in clean),
+            "wrong_bits_share_of_worst_10_photos": sum(errors[:10]) / max(1e-9, sum(errors)),
+            "per_photo_clean": [round(a, 4) for a in clean],
+            "per_photo_saturated": [round(float(((p == 0) | (p == 255)).float().mean()), 4) for p in photos],
+            "wall_s": round(time.perf_counter() - t0, 1)}
 
 
 def _write(path: str, res: dict) -> None:

@@ -35,5 +35,17 @@ def test_eval_attacks_batches_same_size_images_without_changing_the_measurement(
     assert one["bit_acc"] == pytest.approx(two["bit_acc"])
     assert 0.3 < one["bit_acc"]["identity"] < 0.7
     assert one["psnr"] == pytest.approx(two["psnr"], abs=1e-4)
+    # per image, in the images' order however they were grouped: an oracle that reads the tall images'
+    # messages right and every bit of the wide ones wrong
+    for n in (1, 2):
+        sent = []
+
+        def embed_oracle(x, m):
+            sent.append((m * 2 - 1) * (1.0 if x.shape[-1] == 32 else -1.0))
+            return x
+
+        r = eval_attacks(embed_oracle, lambda ll: sent[-1], images, {"identity": Identity()}, k, msgs_per_image=3,
+                         seed=5, images_per_batch=n, per_image=True)
+        assert r["per_image"]["identity"] == [1.0 if s[1] == 32 else 0.0 for s in sizes]
     with pytest.raises(ValueError, match="images_per_batch must be >= 1"):
         eval_attacks(lambda x, m: x, lambda ll: ll, images, attacks, k, images_per_batch=0)

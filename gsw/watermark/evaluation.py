@@ -40,13 +40,14 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 
-def _same_size_groups(images: list[torch.Tensor], n: int) -> list[list[torch.Tensor]]:
-    """Images in groups of up to ``n`` of one size, each group in the order its images come (n = 1: in order)."""
-    groups: list[list[torch.Tensor]] = []
-    open_groups: dict[tuple[int, ...], list[torch.Tensor]] = {}
-    for img in images:
+def _same_size_groups(images: list[torch.Tensor], n: int) -> list[list[int]]:
+    """Indices of the images in groups of up to ``n`` of one size, each group in the order its images come
+    (n = 1: one by one, in order)."""
+    groups: list[list[int]] = []
+    open_groups: dict[tuple[int, ...], list[int]] = {}
+    for i, img in enumerate(images):
         g = open_groups.setdefault(tuple(img.shape), [])
-        g.append(img)
+        g.append(i)
         if len(g) == n:
             groups.append(open_groups.pop(tuple(img.shape)))
     return groups + list(open_groups.values())
@@ -63,6 +64,7 @@ def eval_attacks(
     seed: int = 0,
     device: torch.device | str = "cpu",
     images_per_batch: int = 1,
+    per_image: bool = False,
 ) -> dict[str, object]:
     """Embed random messages into every image (full size), attack, decode.
 
@@ -74,18 +76,21 @@ def eval_attacks(
         images_per_batch: up to this many images of the same size go through ``embed_fn`` and the attacks
             together (``B = images_per_batch * msgs_per_image``; faster on a GPU, other random draws); 1
             takes the images one by one, in order.
+        per_image: also return ``"per_image": {attack: [mean over the image's messages, in image order]}``.
 
     Returns:
         ``{"bit_acc": {attack: mean}, "bit_acc_std": {...}, "psnr": mean PSNR of watermarked images,
-        "n": number of (image, message) pairs}``.
+        "n": number of (image, message) pairs}`` (+ ``"per_image"``).
     """
     if images_per_batch < 1:
         raise ValueError(f"images_per_batch must be >= 1, got {images_per_batch}")
     gen = torch.Generator().manual_seed(seed)
     accs: dict[str, list[torch.Tensor]] = {n: [] for n in attacks}
-    psnrs = []
+    psnrs, order = [], []
     for group in _same_size_groups(images, images_per_batch):
-        x = torch.cat([(img.to(device).float() / 255.0)[None].expand(msgs_per_image, -1, -1, -1) for img in group])
+        order += group
+        x = torch.cat([(images[i].to(device).float() / 255.0)[None].expand(msgs_per_image, -1, -1, -1)
+                       for i in group])
         msgs = torch.cat([torch.randint(0, 2, (msgs_per_image, num_bits), generator=gen) for _ in group])
         msgs = msgs.float().to(device)
         x_w = embed_fn(x, msgs)
@@ -97,8 +102,12 @@ def eval_attacks(
             accs[name].append(bit_accuracy(decode_fn(ll_subband(y)).float(), msgs).cpu())
     out_acc = {n: float(torch.cat(v).mean()) for n, v in accs.items()}
     out_std = {n: float(torch.cat(v).std()) for n, v in accs.items()}
-    return {"bit_acc": out_acc, "bit_acc_std": out_std, "psnr": float(torch.cat(psnrs).mean()),
-            "n": len(images) * msgs_per_image}
+    out = {"bit_acc": out_acc, "bit_acc_std": out_std, "psnr": float(torch.cat(psnrs).mean()),
+           "n": len(images) * msgs_per_image}
+    if per_image:
+        rank = torch.tensor(order).argsort()  # position of each image in the order it was evaluated
+        out["per_image"] = {n: torch.cat(v).view(-1, msgs_per_image).mean(1)[rank].tolist() for n, v in accs.items()}
+    return out
 
 
 def _decoded_bits(decode_fn: Callable[[torch.Tensor], torch.Tensor], img: torch.Tensor,
