@@ -42,7 +42,7 @@ from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks  # noqa: E402
 from watermark.evaluation import psnr as psnr_db  # noqa: E402
 from watermark.noise import training_noise_layers  # noqa: E402
-from watermark.refine import attack_cycle, refine_residual, scale_to_psnr  # noqa: E402
+from watermark.refine import SCHEDULES, attack_cycle, refine_residual, scale_to_psnr  # noqa: E402
 from watermark.training import GpuAttacks, MultiConfig, embed_scaled, load_images, load_run_encoder  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
 
@@ -126,7 +126,7 @@ def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int,
 
 
 def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: int, msgs: int, lr: float,
-           margin: float, batch: int, device: torch.device) -> dict:
+           margin: float, batch: int, device: torch.device, schedule: str = "cosine") -> dict:
     """Residuals from noise refined for ``steps`` against the shipped raw decoder, evaluated like a pair."""
     dec = load_decoder(k).decoder.to(device).eval()
     attack = attack_cycle(GpuAttacks(device, 11).apply, MultiConfig.noise_layers, every) if every else None
@@ -134,7 +134,8 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
 
     def embed(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         r0 = torch.randn(x.shape, device=device, generator=gen)
-        return refine_residual(dec, x, r0, m, psnr, steps, lr, margin, attack, amp=device.type == "cuda")
+        return refine_residual(dec, x, r0, m, psnr, steps, lr, margin, attack, amp=device.type == "cuda",
+                               schedule=schedule)
 
     t0 = time.perf_counter()
     r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=1, device=device,
@@ -142,7 +143,7 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
     layers = {n: v for n, v in r["bit_acc"].items() if n != "identity"}
     clean = r["per_image"]["identity"]
     errors = sorted(((1.0 - a) * k * msgs for a in clean), reverse=True)  # wrong bits per photo
-    return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": "cosine",
+    return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": schedule,
             "bf16": device.type == "cuda", "clean": r["bit_acc"]["identity"], "worst_layer": min(layers.values()),
             "bit_acc": r["bit_acc"], "bit_acc_std": r["bit_acc_std"], "psnr": r["psnr"], "pairs": r["n"],
             "photos": len(photos), "photos_all_bits_right": sum(a == 1.0 for a in clean),
@@ -178,6 +179,7 @@ def main() -> None:
     ap.add_argument("--refine-batch", type=int, default=25, help="photos refined together")
     ap.add_argument("--refine-lr", type=float, default=0.3)
     ap.add_argument("--refine-margin", type=float, default=2.0)
+    ap.add_argument("--refine-schedule", default="cosine", choices=list(SCHEDULES))
     ap.add_argument("--out", default=None, help="write the results as JSON here")
     args = ap.parse_args()
     try:
@@ -210,7 +212,7 @@ def main() -> None:
         res[f"refine_{args.bits}"] = []
         for steps, every in settings:
             r = refine(args.bits, val[: args.refine_photos], 30.0, steps, every, args.refine_msgs, args.refine_lr,
-                       args.refine_margin, args.refine_batch, device)
+                       args.refine_margin, args.refine_batch, device, args.refine_schedule)
             res[f"refine_{args.bits}"].append(r)
             print(f"refine {steps}:{every}  clean {r['clean']:.4f}  worst layer {r['worst_layer']:.4f}  "
                   f"{json.dumps({n: round(v, 4) for n, v in r['bit_acc'].items()})}  {r['wall_s']} s", flush=True)
