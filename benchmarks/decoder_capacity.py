@@ -126,11 +126,11 @@ def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int,
 
 
 def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: int, msgs: int, lr: float,
-           margin: float, batch: int, device: torch.device, schedule: str = "cosine") -> dict:
+           margin: float, batch: int, device: torch.device, schedule: str = "cosine", seed: int = 1) -> dict:
     """Residuals from noise refined for ``steps`` against the shipped raw decoder, evaluated like a pair."""
     dec = load_decoder(k).decoder.to(device).eval()
     attack = attack_cycle(GpuAttacks(device, 11).apply, MultiConfig.noise_layers, every) if every else None
-    gen = torch.Generator(device=device).manual_seed(0)
+    gen = torch.Generator(device=device).manual_seed(seed - 1)
 
     def embed(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         r0 = torch.randn(x.shape, device=device, generator=gen)
@@ -138,12 +138,12 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
                                schedule=schedule)
 
     t0 = time.perf_counter()
-    r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=1, device=device,
+    r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=seed, device=device,
                      images_per_batch=batch, per_image=True)
     layers = {n: v for n, v in r["bit_acc"].items() if n != "identity"}
     clean = r["per_image"]["identity"]
     errors = sorted(((1.0 - a) * k * msgs for a in clean), reverse=True)  # wrong bits per photo
-    return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": schedule,
+    return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": schedule, "seed": seed,
             "bf16": device.type == "cuda", "clean": r["bit_acc"]["identity"], "worst_layer": min(layers.values()),
             "bit_acc": r["bit_acc"], "bit_acc_std": r["bit_acc_std"], "psnr": r["psnr"], "pairs": r["n"],
             "photos": len(photos), "photos_all_bits_right": sum(a == 1.0 for a in clean),
@@ -178,8 +178,9 @@ def main() -> None:
     ap.add_argument("--refine-msgs", type=int, default=4, help="messages per photo")
     ap.add_argument("--refine-batch", type=int, default=25, help="photos refined together")
     ap.add_argument("--refine-lr", type=float, default=0.3)
-    ap.add_argument("--refine-margin", type=float, default=2.0)
+    ap.add_argument("--refine-margin", type=float, default=0.0)
     ap.add_argument("--refine-schedule", default="cosine", choices=list(SCHEDULES))
+    ap.add_argument("--refine-seed", type=int, default=1, help="messages, attacks and starting noise")
     ap.add_argument("--out", default=None, help="write the results as JSON here")
     args = ap.parse_args()
     try:
@@ -212,7 +213,7 @@ def main() -> None:
         res[f"refine_{args.bits}"] = []
         for steps, every in settings:
             r = refine(args.bits, val[: args.refine_photos], 30.0, steps, every, args.refine_msgs, args.refine_lr,
-                       args.refine_margin, args.refine_batch, device, args.refine_schedule)
+                       args.refine_margin, args.refine_batch, device, args.refine_schedule, args.refine_seed)
             res[f"refine_{args.bits}"].append(r)
             print(f"refine {steps}:{every}  clean {r['clean']:.4f}  worst layer {r['worst_layer']:.4f}  "
                   f"{json.dumps({n: round(v, 4) for n, v in r['bit_acc'].items()})}  {r['wall_s']} s", flush=True)

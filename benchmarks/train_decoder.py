@@ -216,7 +216,7 @@ def main() -> None:
     ap.add_argument("--refine-lr", type=float, default=0.3, help="learning rate of that refinement")
     ap.add_argument("--refine-schedule", default="cosine", choices=["cosine", "constant"],
                     help="learning-rate schedule of that refinement")
-    ap.add_argument("--refine-margin", type=float, default=2.0, help="logit margin of that refinement")
+    ap.add_argument("--refine-margin", type=float, default=0.0, help="logit margin of that refinement")
     ap.add_argument("--refine-eot", action="store_true",
                     help="refine on the clean images and through the training noise layers (one per step, in "
                          "turn; differentiable JPEG)")
