@@ -8,7 +8,7 @@ transformations).
 
 The learned template encoders stop well below what the decoders can read at 64 bits (BENCHMARKS.md section 5a:
 96.0 % clean). With the shipped 64-bit decoder, 1,000 steps from noise with the margin at 0 and every 4th step
-through a training noise layer read 99.78 % of the bits clean with every layer >= 96.6 % (100 val photos x 4
+through a training noise layer read 99.78 % of the bits clean with every layer >= 96.7 % (100 val photos x 4
 messages, PSNR 30 dB); a margin of 2 capped the clean accuracy at 99.1-99.3 % however many steps ran.
 
 Example:
