@@ -10,16 +10,19 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
    how many bits the decoder can read at all.
 3. ``tile``: one periodic tile per message (side ``--tile`` at LL2 resolution, tiled and upsampled as
    ``TemplateEncoder`` does), optimised on a few photos and read on unseen ones: an image-agnostic code.
-4. ``refine`` (``--checks refine``, GPU): the ``direct`` optimisation at scale and measured like a pre-training
-   pair: each photo's residual, from noise, refined by ``gsw.watermark.refine.refine_residual`` (cosine Adam,
-   margin loss, PSNR kept) for each ``--refine STEPS:EVERY`` (EVERY > 0: every EVERY-th step also goes through
-   the next training noise layer, ``GpuAttacks``, differentiable JPEG; 0: the clean loss only), then
+4. ``refine`` (``--checks refine``, GPU): the optimisation encoder (``gsw.watermark.image.watermark_images``,
+   what ``gsw.embed_image`` runs) measured like a pre-training pair: each photo's residual, from noise, refined
+   by ``gsw.watermark.refine.refine_residual`` (cosine Adam, binary cross-entropy, PSNR ``--psnr`` kept) for
+   each ``--refine STEPS:EVERY`` (EVERY > 0: every EVERY-th step also goes through the next training noise
+   layer, ``GpuAttacks``, differentiable JPEG; 0: the clean loss only), against the raw decoder or, with
+   ``--decoder whitened``, the shipped decoder exactly as ``gsw.extract`` reads it, then
    ``eval_attacks`` over ``--refine-photos`` val photos x ``--refine-msgs`` messages with every training noise
    layer (real JPEG), with each photo's clean accuracy and share of saturated (0 or 255) pixel values
    (photo index: val photos sorted by file name). The results are written after each setting.
 
     python benchmarks/decoder_capacity.py --encoder-run out/decoders/A --out benchmarks/results/decoder_capacity.json
     python benchmarks/decoder_capacity.py --checks refine --device cuda --refine 1000:4 1000:0 --out refine.json
+    python benchmarks/decoder_capacity.py --checks refine --device cuda --bits 32 --decoder whitened --out k32.json
 """
 
 from __future__ import annotations
@@ -42,8 +45,9 @@ from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks  # noqa: E402
 from watermark.evaluation import psnr as psnr_db  # noqa: E402
 from watermark.noise import training_noise_layers  # noqa: E402
-from watermark.refine import SCHEDULES, attack_cycle, refine_residual, scale_to_psnr  # noqa: E402
-from watermark.training import GpuAttacks, MultiConfig, embed_scaled, load_images, load_run_encoder  # noqa: E402
+from watermark.image import watermark_images  # noqa: E402
+from watermark.refine import SCHEDULES, scale_to_psnr  # noqa: E402
+from watermark.training import embed_scaled, load_images, load_run_encoder  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
 
 
@@ -126,16 +130,18 @@ def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int,
 
 
 def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: int, msgs: int, lr: float,
-           margin: float, batch: int, device: torch.device, schedule: str = "cosine", seed: int = 1) -> dict:
-    """Residuals from noise refined for ``steps`` against the shipped raw decoder, evaluated like a pair."""
-    dec = load_decoder(k).decoder.to(device).eval()
-    attack = attack_cycle(GpuAttacks(device, 11).apply, MultiConfig.noise_layers, every) if every else None
-    gen = torch.Generator(device=device).manual_seed(seed - 1)
+           margin: float, batch: int, device: torch.device, schedule: str = "cosine", seed: int = 1,
+           whitened: bool = False) -> dict:
+    """The optimisation encoder (``gsw.watermark.image.watermark_images``: residuals from noise refined for
+    ``steps``) against the shipped raw or whitened decoder, evaluated like a pair."""
+    model = load_decoder(k).to(device).eval()
+    dec = model if whitened else model.decoder
+    batches = iter(range(10**9))
 
     def embed(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
-        r0 = torch.randn(x.shape, device=device, generator=gen)
-        return refine_residual(dec, x, r0, m, psnr, steps, lr, margin, attack, amp=device.type == "cuda",
-                               schedule=schedule)
+        return watermark_images(dec, x, m, psnr=psnr, steps=steps, attack_every=every, lr=lr,
+                                margin=margin, schedule=schedule, seed=1000 * seed + next(batches),
+                                amp=device.type == "cuda")
 
     t0 = time.perf_counter()
     r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=seed, device=device,
@@ -143,14 +149,24 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
     layers = {n: v for n, v in r["bit_acc"].items() if n != "identity"}
     clean = r["per_image"]["identity"]
     errors = sorted(((1.0 - a) * k * msgs for a in clean), reverse=True)  # wrong bits per photo
-    return {"steps": steps, "attack_every": every, "lr": lr, "margin": margin, "schedule": schedule, "seed": seed,
+    return {"bits": k, "decoder": "whitened" if whitened else "raw", "steps": steps, "attack_every": every,
+            "lr": lr, "margin": margin, "schedule": schedule, "seed": seed, "psnr_target": psnr,
             "bf16": device.type == "cuda", "clean": r["bit_acc"]["identity"], "worst_layer": min(layers.values()),
             "bit_acc": r["bit_acc"], "bit_acc_std": r["bit_acc_std"], "psnr": r["psnr"], "pairs": r["n"],
             "photos": len(photos), "photos_all_bits_right": sum(a == 1.0 for a in clean),
+            "photo_bootstrap_95": _bootstrap(clean, seed),
             "wrong_bits_share_of_worst_10_photos": sum(errors[:10]) / max(1e-9, sum(errors)),
             "per_photo_clean": [round(a, 4) for a in clean],
             "per_photo_saturated": [round(float(((p == 0) | (p == 255)).float().mean()), 4) for p in photos],
             "wall_s": round(time.perf_counter() - t0, 1)}
+
+
+def _bootstrap(per_photo: list[float], seed: int, n: int = 2000) -> list[float]:
+    """95 % bootstrap interval (over photos) of the mean of per-photo accuracies."""
+    a = torch.tensor(per_photo, dtype=torch.float64)
+    g = torch.Generator().manual_seed(seed)
+    means = a[torch.randint(0, len(a), (n, len(a)), generator=g)].mean(1).sort().values
+    return [float(means[int(0.025 * n)]), float(means[int(0.975 * n) - 1])]
 
 
 def _write(path: str, res: dict) -> None:
@@ -181,6 +197,9 @@ def main() -> None:
     ap.add_argument("--refine-margin", type=float, default=0.0)
     ap.add_argument("--refine-schedule", default="cosine", choices=list(SCHEDULES))
     ap.add_argument("--refine-seed", type=int, default=1, help="messages, attacks and starting noise")
+    ap.add_argument("--decoder", default="raw", choices=["raw", "whitened"],
+                    help="refine check against the raw decoder or the shipped whitened one (what gsw.extract reads)")
+    ap.add_argument("--psnr", type=float, default=30.0, help="PSNR (dB) of the watermarks (direct, tile, refine)")
     ap.add_argument("--out", default=None, help="write the results as JSON here")
     args = ap.parse_args()
     try:
@@ -196,7 +215,7 @@ def main() -> None:
         raise SystemExit(f"no photos in {Path(args.data) / 'val'}")
     t0 = time.perf_counter()
     res: dict = {"machine": platform.processor() or platform.machine(), "torch": torch.__version__,
-                 "psnr_target": 30.0}
+                 "psnr_target": args.psnr}
     if device.type == "cuda":
         res["device"] = torch.cuda.get_device_name(device)
     if args.encoder_run:
@@ -204,16 +223,17 @@ def main() -> None:
                                                 args.psnr_levels) for k in (48, 64)}
         print(json.dumps(res["psnr_sweep"]), flush=True)
     if "direct" in args.checks:
-        res["direct"] = {str(k): direct(k, val[:n], 30.0, args.steps) for k, n in zip((48, 64), args.direct_photos)}
+        res["direct"] = {str(k): direct(k, val[:n], args.psnr, args.steps) for k, n in zip((48, 64), args.direct_photos)}
         print(json.dumps({k: v["bit_acc"] for k, v in res["direct"].items()}), flush=True)
     if "tile" in args.checks:
-        res["tile_64"] = tile(64, val[:4], val[4:8], args.tile, 30.0, args.steps, messages=3)
+        res["tile_64"] = tile(64, val[:4], val[4:8], args.tile, args.psnr, args.steps, messages=3)
         print(json.dumps(res["tile_64"]), flush=True)
     if "refine" in args.checks:
         res[f"refine_{args.bits}"] = []
         for steps, every in settings:
-            r = refine(args.bits, val[: args.refine_photos], 30.0, steps, every, args.refine_msgs, args.refine_lr,
-                       args.refine_margin, args.refine_batch, device, args.refine_schedule, args.refine_seed)
+            r = refine(args.bits, val[: args.refine_photos], args.psnr, steps, every, args.refine_msgs,
+                       args.refine_lr, args.refine_margin, args.refine_batch, device, args.refine_schedule,
+                       args.refine_seed, whitened=args.decoder == "whitened")
             res[f"refine_{args.bits}"].append(r)
             print(f"refine {steps}:{every}  clean {r['clean']:.4f}  worst layer {r['worst_layer']:.4f}  "
                   f"{json.dumps({n: round(v, 4) for n, v in r['bit_acc'].items()})}  {r['wall_s']} s", flush=True)

@@ -9,7 +9,8 @@ Public API:
     - Shipped decoders: :func:`load_decoder` -> :class:`WatermarkDecoder` (32/48/64 bits, sha256-checked),
       :func:`save_decoder`, :class:`WeightsError`.
     - Noise layers: :mod:`gsw.watermark.noise`.
-    - Image-space embedding against a frozen decoder: :func:`refine_residual` (:mod:`gsw.watermark.refine`).
+    - Image-space embedding against a frozen decoder: :func:`watermark_images` (:mod:`gsw.watermark.image`),
+      built on :func:`refine_residual` (:mod:`gsw.watermark.refine`).
     - Metrics: :func:`bit_accuracy`, :func:`false_positive_threshold`.
 
 Example:
@@ -23,6 +24,7 @@ Example:
 from .dwt import LEVELS, MODE, WAVELET, dwt2, idwt2, ll_subband
 from .evaluation import false_positive_threshold
 from .hidden import HiddenDecoder, HiddenEncoder, bit_accuracy, bits_from_logits
+from .image import watermark_images
 from .refine import refine_residual
 from .whitening import WhiteningLayer, fit_whitening
 from .zoo import AVAILABLE_BITS, WatermarkDecoder, WeightsError, load_decoder, save_decoder
@@ -47,4 +49,5 @@ __all__ = [
     "load_decoder",
     "refine_residual",
     "save_decoder",
+    "watermark_images",
 ]

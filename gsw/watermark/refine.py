@@ -78,6 +78,7 @@ def refine_residual(
     attack: Callable[[torch.Tensor, int], torch.Tensor] | None = None,
     amp: bool = False,
     schedule: str = "cosine",
+    callback: Callable[[int, torch.Tensor], None] | None = None,
 ) -> torch.Tensor:
     """Refine ``residual`` so that ``decoder`` reads ``msgs`` from the watermarked images.
 
@@ -99,6 +100,8 @@ def refine_residual(
         amp: run the decoder under bfloat16 autocast (CUDA: about twice as fast; the result is still
             float32).
         schedule: ``"cosine"`` (lr decays to 0 over the steps) or ``"constant"``.
+        callback: called after every step with (step, loss) (a detached scalar tensor; reading it on a GPU
+            synchronises, so read it only when needed).
 
     Returns:
         [B,3,H,W] watermarked images in [0, 1] (not quantised).
@@ -125,4 +128,6 @@ def refine_residual(
             if schedule == "cosine":
                 opt.param_groups[0]["lr"] = lr * 0.5 * (1.0 + math.cos(math.pi * step / steps))
             opt.step()
+            if callback is not None:
+                callback(step, loss.detach())
     return (images + scale_to_psnr(r.detach(), psnr)).clamp(0.0, 1.0)
