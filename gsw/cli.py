@@ -15,6 +15,8 @@ from typing import Sequence
 
 import torch
 
+from gsw.watermark.evaluation import DETECTION_FPR
+
 
 def _positive_int(text: str) -> int:
     value = int(text)
@@ -118,7 +120,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         ("message", res.message_hex),
         ("bit accuracy, held-out views", f"{100 * mean(verdict.bit_accuracy):.2f} %"),
         ("bit accuracy, same views before embedding", f"{100 * mean(before.bit_accuracy):.2f} %"),
-        ("views with p <= 1e-6", f"{sum(p <= 1e-6 for p in verdict.p_values)} / {len(held_out)}"),
+        (f"views with p <= {DETECTION_FPR:g}", f"{sum(p <= DETECTION_FPR for p in verdict.p_values)} / {len(held_out)}"),
         ("combined p-value", f"{verdict.p_value:.2e}"),
         ("PSNR vs original render", f"{mean([q[0] for q in quality]):.2f} dB"),
         ("SSIM vs original render", f"{mean([q[1] for q in quality]):.4f}"),
@@ -200,7 +202,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
 
 
 def cmd_embed_image(args: argparse.Namespace) -> int:
-    """Watermarks a 2-D image; writes a new PNG atomically."""
+    """Watermarks a 2-D image; writes a new PNG atomically; exit status 1 if it is not detectable."""
     from gsw.data.images import read_image, write_image
     from gsw.image_watermark import ImageEmbedConfig, embed_image
 
@@ -227,6 +229,10 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     else:
         print(f"embedded {res.message_hex or summary['bits']} into {output}: PSNR {res.psnr:.2f} dB, "
               f"read back {100 * res.bit_accuracy:.2f} % of the bits (p = {res.p_value:.2e}) in {res.seconds:.1f} s")
+    if res.p_value > DETECTION_FPR:
+        print(f"gsw embed-image: warning: {output} is not detectable at p <= {DETECTION_FPR:g} (raise --steps or "
+              "lower --psnr)", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -529,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     ver.add_argument("--message", help="hex message")
     ver.add_argument("--key", help="secret key the message was derived from")
     ver.add_argument("--bits", type=_positive_int, default=32, choices=[32, 48, 64])
-    ver.add_argument("--fpr", type=float, default=1e-6, help="false-positive rate of the decision")
+    ver.add_argument("--fpr", type=float, default=DETECTION_FPR, help="false-positive rate of the decision")
     ver.add_argument("--json", action="store_true")
     ver.set_defaults(func=cmd_verify)
 

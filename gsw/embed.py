@@ -27,6 +27,7 @@ from gsw.messages import (MessageLike, as_message, binomial_p_value, fisher_comb
                           message_to_hex)
 from gsw.rasterize import rasterize
 from gsw.progress import Progress
+from gsw.watermark.evaluation import DETECTION_FPR
 
 
 @dataclass
@@ -315,7 +316,7 @@ class Verdict:
     p_values: list[float]
     p_value: float
 
-    def detected(self, fpr: float = 1e-6) -> bool:
+    def detected(self, fpr: float = DETECTION_FPR) -> bool:
         """Whether the combined p-value is at or below `fpr`."""
         return self.p_value <= fpr
 

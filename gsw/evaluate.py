@@ -30,9 +30,8 @@ from gsw.gaussians import Gaussians
 from gsw.messages import MessageLike, as_message
 from gsw.metrics import psnr, ssim
 from gsw.rasterize import rasterize
+from gsw.watermark.evaluation import DETECTION_FPR
 
-#: The false-positive rate of a detection.
-DETECTION_FPR = 1e-6
 
 
 @dataclass

@@ -101,6 +101,8 @@ def embed_image(image: Tensor, message: MessageLike = None, *, num_bits: int = 3
         device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     else:
         device = torch.device(cfg.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device {cfg.device!r} requested but no CUDA device is available")
     x = _check_image(image).to(device)[None]
     bits = as_message(message, num_bits, seed=cfg.seed if message is None else None)
     dec = _load_decoder(num_bits, decoder, device)

@@ -58,7 +58,10 @@ def test_bad_images_are_named(image, error, match):
 def test_bad_messages_and_settings_are_named():
     with pytest.raises(ValueError, match="expected 32"):
         gsw.embed_image(_photo(), [1, 0, 1], config=FAST, progress=False)
-    for cfg in (gsw.ImageEmbedConfig(steps=-1), gsw.ImageEmbedConfig(psnr=0.0)):
+    bad = [gsw.ImageEmbedConfig(steps=-1), gsw.ImageEmbedConfig(psnr=0.0)]
+    if not torch.cuda.is_available():
+        bad.append(gsw.ImageEmbedConfig(device="cuda"))
+    for cfg in bad:
         with pytest.raises(ValueError):
             gsw.embed_image(_photo(), config=cfg, progress=False)
 
@@ -80,3 +83,6 @@ def test_cli_embed_image_then_verify(tmp_path, capsys):
     assert main(["embed-image", str(src), "--output", str(tmp_path / "m.jpg")]) == 2
     assert main(["embed-image", str(tmp_path / "missing.png"), "--output", str(tmp_path / "x.png")]) == 2
     assert read_image(out).shape == (3, 96, 80)
+    weak = tmp_path / "weak.png"  # no optimisation: noise only, so the exit status says it is not detectable
+    assert main(["embed-image", str(src), "--output", str(weak), "--steps", "0", "--no-progress"]) == 1
+    assert "not detectable" in capsys.readouterr().err and weak.exists()

@@ -26,7 +26,11 @@ def binomial_tail(k: int, m: int) -> float:
     return sum(math.comb(k, i) for i in range(m, k + 1)) / 2.0**k
 
 
-def false_positive_threshold(k: int, fpr: float = 1e-6) -> int:
+#: The false-positive rate at which a copy counts as watermarked (``gsw verify``, ``Verdict.detected``).
+DETECTION_FPR = 1e-6
+
+
+def false_positive_threshold(k: int, fpr: float = DETECTION_FPR) -> int:
     """Smallest number of matching bits m with P(X >= m) <= fpr for an unmarked image (X ~ Bin(k, 1/2)).
 
     Returns ``k + 1`` (never reached) when even k of k matching bits is more likely than ``fpr``
