@@ -127,8 +127,16 @@ def _load_decoder(num_bits: int, decoder: torch.nn.Module | None, device: torch.
     if decoder is None:
         from gsw.watermark.zoo import load_decoder
 
-        decoder = load_decoder(num_bits)
-    return decoder.to(device).eval().requires_grad_(False)
+        return load_decoder(num_bits).to(device).eval().requires_grad_(False)
+    from gsw.watermark.dwt import ll_subband
+
+    decoder = decoder.to(device).eval().requires_grad_(False)
+    with torch.no_grad():  # a custom decoder must read num_bits from an LL2 subband
+        out = decoder(ll_subband(torch.zeros(1, 3, 64, 64, device=device)))
+    if out.dim() != 2 or out.shape[-1] != num_bits:
+        raise ValueError(f"the decoder outputs shape {list(out.shape)} for one image; expected [1, {num_bits}] "
+                         f"(num_bits={num_bits})")
+    return decoder
 
 
 def _sample_attack(gen: random.Random, attacks: dict, render: Tensor, tgen: torch.Generator) -> Tensor:

@@ -33,7 +33,6 @@ from gsw.rasterize import rasterize
 from gsw.watermark.evaluation import DETECTION_FPR
 
 
-
 @dataclass
 class Detection:
     """Bit accuracy (mean over views), share of views detected at :data:`DETECTION_FPR`, per-view p-values.

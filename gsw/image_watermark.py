@@ -25,7 +25,7 @@ from gsw.metrics import psnr
 from gsw.progress import Progress
 from gsw.watermark.image import ImageEmbedConfig
 
-__all__ = ["MIN_SIDE", "ImageEmbedConfig", "ImageEmbedResult", "embed_image"]  # ImageEmbedConfig: gsw.watermark.image
+__all__ = ["MIN_SIDE", "ImageEmbedConfig", "ImageEmbedResult", "embed_image"]
 
 #: Smallest image side accepted (the decoder reads the 4x smaller LL2 subband).
 MIN_SIDE = 32

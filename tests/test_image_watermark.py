@@ -55,6 +55,15 @@ def test_bad_images_are_named(image, error, match):
         gsw.embed_image(image, config=FAST, progress=False)
 
 
+def test_a_custom_decoder_of_another_length_is_named():
+    from gsw.watermark.hidden import HiddenDecoder
+
+    with pytest.raises(ValueError, match="expected \\[1, 32\\]"):
+        gsw.embed_image(_photo(), decoder=HiddenDecoder(16, num_blocks=1, channels=8), config=FAST, progress=False)
+    with pytest.raises(ValueError, match="expected \\[1, 32\\]"):
+        gsw.extract(_photo(), decoder=HiddenDecoder(16, num_blocks=1, channels=8))
+
+
 def test_bad_messages_and_settings_are_named():
     with pytest.raises(ValueError, match="expected 32"):
         gsw.embed_image(_photo(), [1, 0, 1], config=FAST, progress=False)
