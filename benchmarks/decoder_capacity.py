@@ -17,8 +17,9 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
    layer, ``GpuAttacks``, differentiable JPEG; 0: the clean loss only), against the raw decoder or, with
    ``--decoder whitened``, the shipped decoder exactly as ``gsw.extract`` reads it, then
    ``eval_attacks`` over ``--refine-photos`` val photos x ``--refine-msgs`` messages with every training noise
-   layer (real JPEG), with each photo's clean accuracy and share of saturated (0 or 255) pixel values
-   (photo index: val photos sorted by file name). The results are written after each setting.
+   layer (real JPEG; with ``--paper-attacks`` also the paper's fixed-strength attacks), with each photo's
+   clean accuracy and share of saturated (0 or 255) pixel values (photo index: val photos sorted by file
+   name). The results are written after each setting.
 
     python benchmarks/decoder_capacity.py --encoder-run out/decoders/A --out benchmarks/results/decoder_capacity.json
     python benchmarks/decoder_capacity.py --checks refine --device cuda --refine 1000:4 1000:0 --out refine.json
@@ -44,7 +45,7 @@ import torch.nn.functional as F  # noqa: E402
 from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import eval_attacks  # noqa: E402
 from watermark.evaluation import psnr as psnr_db  # noqa: E402
-from watermark.noise import training_noise_layers  # noqa: E402
+from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
 from watermark.image import watermark_images  # noqa: E402
 from watermark.refine import SCHEDULES, scale_to_psnr  # noqa: E402
 from watermark.training import embed_scaled, load_images, load_run_encoder  # noqa: E402
@@ -131,7 +132,7 @@ def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int,
 
 def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: int, msgs: int, lr: float,
            margin: float, batch: int, device: torch.device, schedule: str = "cosine", seed: int = 1,
-           whitened: bool = False) -> dict:
+           whitened: bool = False, paper: bool = False) -> dict:
     """The optimisation encoder (``gsw.watermark.image.watermark_images``: residuals from noise refined for
     ``steps``) against the shipped raw or whitened decoder, evaluated like a pair."""
     model = load_decoder(k).to(device).eval()
@@ -144,9 +145,11 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
                                 amp=device.type == "cuda")
 
     t0 = time.perf_counter()
-    r = eval_attacks(embed, dec, photos, training_noise_layers(), k, msgs, seed=seed, device=device,
+    training = training_noise_layers()
+    attacks = {**training, **paper_attacks()} if paper else training
+    r = eval_attacks(embed, dec, photos, attacks, k, msgs, seed=seed, device=device,
                      images_per_batch=batch, per_image=True)
-    layers = {n: v for n, v in r["bit_acc"].items() if n != "identity"}
+    layers = {n: v for n, v in r["bit_acc"].items() if n != "identity" and n in training}
     clean = r["per_image"]["identity"]
     errors = sorted(((1.0 - a) * k * msgs for a in clean), reverse=True)  # wrong bits per photo
     return {"bits": k, "decoder": "whitened" if whitened else "raw", "steps": steps, "attack_every": every,
@@ -200,6 +203,8 @@ def main() -> None:
     ap.add_argument("--decoder", default="raw", choices=["raw", "whitened"],
                     help="refine check against the raw decoder or the shipped whitened one (what gsw.extract reads)")
     ap.add_argument("--psnr", type=float, default=30.0, help="PSNR (dB) of the watermarks (direct, tile, refine)")
+    ap.add_argument("--paper-attacks", action="store_true",
+                    help="refine check: also the paper's fixed-strength attacks (worst_layer stays over training layers)")
     ap.add_argument("--out", default=None, help="write the results as JSON here")
     args = ap.parse_args()
     try:
@@ -233,7 +238,7 @@ def main() -> None:
         for steps, every in settings:
             r = refine(args.bits, val[: args.refine_photos], args.psnr, steps, every, args.refine_msgs,
                        args.refine_lr, args.refine_margin, args.refine_batch, device, args.refine_schedule,
-                       args.refine_seed, whitened=args.decoder == "whitened")
+                       args.refine_seed, whitened=args.decoder == "whitened", paper=args.paper_attacks)
             res[f"refine_{args.bits}"].append(r)
             print(f"refine {steps}:{every}  clean {r['clean']:.4f}  worst layer {r['worst_layer']:.4f}  "
                   f"{json.dumps({n: round(v, 4) for n, v in r['bit_acc'].items()})}  {r['wall_s']} s", flush=True)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from gsw.watermark.evaluation import eval_attacks
-from gsw.watermark.noise import GaussianBlur, Identity
+from gsw.watermark.noise import JPEG, Combined, Crop, GaussianBlur, Identity, Resize, draws_per_batch
 
 
 def test_eval_attacks_batches_same_size_images_without_changing_the_measurement():
@@ -49,3 +49,20 @@ def test_eval_attacks_batches_same_size_images_without_changing_the_measurement(
         assert r["per_image"]["identity"] == [1.0 if s[1] == 32 else 0.0 for s in sizes]
     with pytest.raises(ValueError, match="images_per_batch must be >= 1"):
         eval_attacks(lambda x, m: x, lambda ll: ll, images, attacks, k, images_per_batch=0)
+
+
+def test_every_pair_draws_its_own_strength():
+    assert draws_per_batch(Resize()) and draws_per_batch(Combined([Crop(), JPEG((90, 60))]))
+    assert not draws_per_batch(Resize((0.5, 0.5), fixed=True)) and not draws_per_batch(Identity())
+    g = torch.Generator().manual_seed(0)
+    images = [torch.randint(0, 256, (3, 64, 64), generator=g, dtype=torch.uint8) for _ in range(4)]
+    seen = []
+
+    def decode(ll):
+        seen.append(tuple(ll.shape))
+        return torch.ones(ll.shape[0], 8)
+
+    r = eval_attacks(lambda x, m: x, decode, images, {"resize": Resize(scale=(1.0, 0.5))}, 8, msgs_per_image=3,
+                     seed=1, images_per_batch=4)
+    assert r["n"] == 12 and len(seen) == 12 and all(s[0] == 1 for s in seen)  # one decode per pair
+    assert len(set(seen)) > 6  # scales drawn per pair, not one per batch of 12

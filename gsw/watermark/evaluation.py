@@ -15,7 +15,7 @@ import torch
 
 from .dwt import ll_subband
 from .hidden import bit_accuracy
-from .noise import NoiseLayer
+from .noise import NoiseLayer, draws_per_batch
 
 __all__ = ["false_positive_threshold", "binomial_tail", "psnr", "eval_attacks", "unbiasedness", "fair_max_dev",
            "max_dev_p_value"]
@@ -76,7 +76,8 @@ def eval_attacks(
         embed_fn: (imgs [B,3,H,W] in [0,1], msgs [B,k]) -> watermarked imgs.
         decode_fn: LL2 subband -> logits [B,k].
         images: uint8 tensors [3,H,W].
-        attacks: name -> noise layer (used at ``strength`` 1; random layers draw from their range).
+        attacks: name -> noise layer (used at ``strength`` 1; random layers draw from their range, once per
+            (image, message) pair, also the layers that draw one strength per batch in training).
         images_per_batch: up to this many images of the same size go through ``embed_fn`` and the attacks
             together (``B = images_per_batch * msgs_per_image``; faster on a GPU, other random draws); 1
             takes the images one by one, in order.
@@ -102,8 +103,13 @@ def eval_attacks(
         psnrs.append(psnr(x_w, x).cpu())
         for name, layer in attacks.items():
             layer.strength = 1.0
-            y = layer(x_w, generator=gen)
-            accs[name].append(bit_accuracy(decode_fn(ll_subband(y)).float(), msgs).cpu())
+            if draws_per_batch(layer):  # every pair its own draw (crop size, scale, blur sigma)
+                for i in range(x_w.shape[0]):
+                    y = layer(x_w[i : i + 1], generator=gen)
+                    accs[name].append(bit_accuracy(decode_fn(ll_subband(y)).float(), msgs[i : i + 1]).cpu())
+            else:
+                y = layer(x_w, generator=gen)
+                accs[name].append(bit_accuracy(decode_fn(ll_subband(y)).float(), msgs).cpu())
     out_acc = {n: float(torch.cat(v).mean()) for n, v in accs.items()}
     out_std = {n: float(torch.cat(v).std()) for n, v in accs.items()}
     out = {"bit_acc": out_acc, "bit_acc_std": out_std, "psnr": float(torch.cat(psnrs).mean()),

@@ -304,6 +304,13 @@ class Combined(NoiseLayer):
         return x
 
 
+def draws_per_batch(layer: NoiseLayer) -> bool:
+    """Whether ``layer`` (or a layer inside a :class:`Combined`) draws one random strength for a whole batch."""
+    if not layer.fixed and not layer.per_sample:
+        return True
+    return any(draws_per_batch(sub) for sub in getattr(layer, "layers", []))
+
+
 def training_noise_layers(jpeg_mode: str = "real_diffgrad") -> dict[str, NoiseLayer]:
     """The pre-training noise layers and their ranges (weakest -> strongest)."""
     return {
