@@ -18,7 +18,7 @@ from gsw.camera import Camera, orbit_cameras
 from gsw.data import load_dataset, load_inria_model
 from gsw.embed import EmbedConfig, EmbedResult, Extraction, Verdict, embed, extract, verify
 from gsw.gaussians import Gaussians
-from gsw.image_watermark import ImageEmbedConfig, ImageEmbedResult, embed_image
+from gsw.image_watermark import ImageEmbedConfig, ImageEmbedResult, embed_image, embed_images
 from gsw.io import load_gaussians, load_ply, load_splat, save_ply
 from gsw.rasterize import (
     ContributionOutput,
@@ -48,7 +48,7 @@ def build_info() -> dict[str, object]:
 __all__ = [
     "Camera", "ContributionOutput", "EmbedConfig", "EmbedResult", "Extraction", "Gaussians",
     "ImageEmbedConfig", "ImageEmbedResult", "RenderOutput", "Verdict", "__version__", "build_info",
-    "contribution", "embed", "embed_image", "extract",
+    "contribution", "embed", "embed_image", "embed_images", "extract",
     "load_dataset", "load_gaussians", "load_inria_model", "load_ply", "load_splat",
     "orbit_cameras", "rasterization", "rasterize", "save_ply", "verify",
 ]

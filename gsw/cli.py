@@ -202,36 +202,66 @@ def cmd_embed(args: argparse.Namespace) -> int:
 
 
 def cmd_embed_image(args: argparse.Namespace) -> int:
-    """Watermarks a 2-D image; writes a new PNG atomically; exit status 1 if it is not detectable."""
-    from gsw.data.images import read_image, write_image
-    from gsw.image_watermark import ImageEmbedConfig, embed_image
+    """Watermarks 2-D images; writes new PNGs atomically; exit status 1 if one is not detectable.
 
-    src, output = Path(args.image), Path(args.output)
-    if output.suffix.lower() != ".png":
-        raise ValueError(f"output {output} must be a .png (a lossy format would weaken the watermark before it ships)")
-    if output.resolve() == src.resolve():
-        raise ValueError(f"output {output} is the input; inputs are never overwritten")
-    if output.exists() and not args.force:
-        raise ValueError(f"output {output} exists; pass --force to replace it")
-    image = _read_images([src])[0]
+    One input: ``--output`` is the new .png file. Several: ``--output`` is a new folder that receives
+    ``<input stem>.png`` for each input (written into a temporary folder renamed into place).
+    """
+    from gsw.data.images import read_image, write_image
+    from gsw.image_watermark import ImageEmbedConfig, embed_images
+
+    sources, output = [Path(p) for p in args.images], Path(args.output)
+    single = len(sources) == 1
+    if single:
+        if output.suffix.lower() != ".png":
+            raise ValueError(f"output {output} must be a .png (a lossy format would weaken the watermark before "
+                             "it ships)")
+        if output.resolve() == sources[0].resolve():
+            raise ValueError(f"output {output} is the input; inputs are never overwritten")
+        if output.exists() and not args.force:
+            raise ValueError(f"output {output} exists; pass --force to replace it")
+        targets = [output]
+    else:
+        stems = [s.stem for s in sources]
+        if len(set(stems)) != len(stems):
+            raise ValueError("several inputs share a file name; their outputs (<name>.png) would collide")
+        targets = [output / f"{stem}.png" for stem in stems]
+    images = _read_images(sources)
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
-    res = embed_image(image, _message_arg(args), num_bits=args.bits, config=cfg, progress=not args.no_progress)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    write_image(output, res.image)
-    saved = read_image(output)
-    if not torch.equal(saved, res.image.cpu()):
-        raise RuntimeError(f"{output} does not hold the image that was verified")
-    summary = dict(image=str(output), message=res.message_hex, bits=res.message.int().tolist(),
-                   psnr=res.psnr, bit_accuracy=res.bit_accuracy, p_value=res.p_value, seconds=res.seconds)
+    tmp = None if single else _atomic_output_dir(output, sources, args.force)
+    try:
+        results = embed_images(images, _message_arg(args), num_bits=args.bits, config=cfg, batch_size=args.batch,
+                               progress=not args.no_progress)
+        if tmp is None:
+            output.parent.mkdir(parents=True, exist_ok=True)
+            write_image(output, results[0].image)
+        else:
+            for target, res in zip(targets, results):
+                write_image(tmp / target.name, res.image)
+            _publish(tmp, output)
+    except BaseException:
+        if tmp is not None:
+            import shutil
+
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for target, res in zip(targets, results):
+        if not torch.equal(read_image(target), res.image.cpu()):
+            raise RuntimeError(f"{target} does not hold the image that was verified")
+    rows = [dict(image=str(t), source=str(s), message=r.message_hex, psnr=r.psnr, bit_accuracy=r.bit_accuracy,
+                 p_value=r.p_value, seconds=r.seconds) for t, s, r in zip(targets, sources, results)]
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
+        json.dump(dict(message=results[0].message_hex, bits=results[0].message.int().tolist(),
+                       images=rows), sys.stdout, indent=2)
         print()
     else:
-        print(f"embedded {res.message_hex or summary['bits']} into {output}: PSNR {res.psnr:.2f} dB, "
-              f"read back {100 * res.bit_accuracy:.2f} % of the bits (p = {res.p_value:.2e}) in {res.seconds:.1f} s")
-    if res.p_value > DETECTION_FPR:
-        print(f"gsw embed-image: warning: {output} is not detectable at p <= {DETECTION_FPR:g} (raise --steps or "
-              "lower --psnr)", file=sys.stderr)
+        for r in rows:
+            print(f"embedded {r['message']} into {r['image']}: PSNR {r['psnr']:.2f} dB, read back "
+                  f"{100 * r['bit_accuracy']:.2f} % of the bits (p = {r['p_value']:.2e}) in {r['seconds']:.1f} s")
+    weak = [r["image"] for r in rows if r["p_value"] > DETECTION_FPR]
+    if weak:
+        print(f"gsw embed-image: warning: not detectable at p <= {DETECTION_FPR:g}: {', '.join(weak)} "
+              "(raise --steps or lower --psnr)", file=sys.stderr)
         return 1
     return 0
 
@@ -508,10 +538,12 @@ def build_parser() -> argparse.ArgumentParser:
     emb.add_argument("--json", action="store_true")
     emb.set_defaults(func=cmd_embed)
 
-    emi = sub.add_parser("embed-image", help="watermark a 2-D image (PNG out), readable by extract/verify")
-    emi.add_argument("image", help="input image (PNG, JPEG, ...; alpha is composited on black)")
-    emi.add_argument("--output", required=True, help="new .png file (never the input)")
-    emi.add_argument("--force", action="store_true", help="replace an existing output file")
+    emi = sub.add_parser("embed-image", help="watermark 2-D images (PNG out), readable by extract/verify")
+    emi.add_argument("images", nargs="+", help="input images (PNG, JPEG, ...; alpha is composited on black)")
+    emi.add_argument("--output", required=True,
+                     help="new .png file (one input) or new folder of <name>.png files (several); never an input")
+    emi.add_argument("--force", action="store_true", help="replace an existing output")
+    emi.add_argument("--batch", type=_positive_int, default=8, help="same-size images optimised together")
     emi.add_argument("--bits", type=_positive_int, default=32, choices=[32, 48, 64])
     emi.add_argument("--message", help="hex message (default: random)")
     emi.add_argument("--key", help="derive the message from a secret key")

@@ -279,14 +279,22 @@ class Extraction:
 ImageLike = Union[Tensor, Sequence[Tensor]]
 
 
-def _as_batch(images: ImageLike) -> Tensor:
+def _as_images(images: ImageLike) -> list[Tensor]:
+    """[1,3,H,W] tensors in [0, 1], one per image (sizes may differ)."""
     if isinstance(images, Tensor):
         batch = images.unsqueeze(0) if images.dim() == 3 else images
-    else:
-        batch = torch.stack(list(images))
-    if batch.dim() != 4 or batch.shape[1] != 3:
-        raise ValueError(f"expected [3,H,W] or [B,3,H,W] RGB images, got shape {list(batch.shape)}")
-    return batch.float().clamp(0, 1)
+        if batch.dim() != 4 or batch.shape[1] != 3:
+            raise ValueError(f"expected [3,H,W] or [B,3,H,W] RGB images, got shape {list(batch.shape)}")
+        return [img[None].float().clamp(0, 1) for img in batch]
+    out = []
+    for i, img in enumerate(images):
+        if not isinstance(img, Tensor) or img.dim() != 3 or img.shape[0] != 3:
+            shape = list(img.shape) if isinstance(img, Tensor) else type(img).__name__
+            raise ValueError(f"image {i}: expected a [3,H,W] RGB tensor, got {shape}")
+        out.append(img[None].float().clamp(0, 1))
+    if not out:
+        raise ValueError("no images given")
+    return out
 
 
 @torch.no_grad()
@@ -294,16 +302,18 @@ def extract(images: ImageLike, *, num_bits: int = 32, decoder: torch.nn.Module |
     """Reads the watermark bits from one or more images (e.g. screenshots of renders).
 
     Args:
-        images: [3, H, W], [B, 3, H, W] or a list of [3, H, W] RGB images in [0, 1].
+        images: [3, H, W], [B, 3, H, W] or a list of [3, H, W] RGB images in [0, 1] (sizes may differ).
         num_bits: message length of the decoder.
-        decoder: a custom decoder; default: the shipped one for `num_bits`.
+        decoder: a custom decoder (LL2 subband -> logits); default: the shipped one for `num_bits`.
 
     Returns:
         An :class:`Extraction`.
     """
-    batch = _as_batch(images)
-    dec = _load_decoder(num_bits, decoder, batch.device)
-    logits = torch.cat([dec.decode_image(batch[i:i + 1]) for i in range(batch.shape[0])])
+    from gsw.watermark.dwt import ll_subband
+
+    imgs = _as_images(images)
+    dec = _load_decoder(num_bits, decoder, imgs[0].device)
+    logits = torch.cat([dec(ll_subband(img)) for img in imgs])
     return Extraction((logits > 0).float(), logits)
 
 

@@ -121,3 +121,15 @@ def test_embed_with_train_time_model_and_image_attacks_runs(scene) -> None:
     res = embed(scene.gaussians, scene.cameras, num_bits=32, config=cfg, progress=False)
     assert len(res.history) == len(scene.cameras)
     assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)
+
+
+def test_extract_reads_images_of_different_sizes_one_by_one() -> None:
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(3, 64, 64, generator=g), torch.rand(3, 96, 80, generator=g)
+    both = extract([a, b], num_bits=32)
+    assert both.bits.shape == (2, 32)
+    assert torch.allclose(both.logits[0], extract(a).logits[0]) and torch.allclose(both.logits[1], extract(b).logits[0])
+    with pytest.raises(ValueError, match="image 1: expected a \\[3,H,W\\]"):
+        extract([a, torch.rand(4, 64, 64)])
+    with pytest.raises(ValueError, match="no images"):
+        extract([])

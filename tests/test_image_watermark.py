@@ -84,7 +84,8 @@ def test_cli_embed_image_then_verify(tmp_path, capsys):
             "--no-progress", "--json"]
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out)
-    assert src.read_bytes() == before and summary["bit_accuracy"] == 1.0
+    assert src.read_bytes() == before and summary["images"][0]["bit_accuracy"] == 1.0
+    assert summary["images"][0]["image"] == str(out) and len(summary["bits"]) == 32
     assert main(["verify", str(out), "--key", "studio"]) == 0
     assert main(["verify", str(src), "--key", "studio"]) == 1
     assert main(args) == 2 and "exists" in capsys.readouterr().err  # no silent overwrite
@@ -95,3 +96,41 @@ def test_cli_embed_image_then_verify(tmp_path, capsys):
     weak = tmp_path / "weak.png"  # no optimisation: noise only, so the exit status says it is not detectable
     assert main(["embed-image", str(src), "--output", str(weak), "--steps", "0", "--no-progress"]) == 1
     assert "not detectable" in capsys.readouterr().err and weak.exists()
+
+
+def test_embed_images_batches_same_size_images_and_keeps_the_order():
+    a, b, c = _photo(96, 80), _photo(64, 64), _photo(96, 80).flip(-1)
+    res = gsw.embed_images([a, b, c], "key:studio", config=FAST, batch_size=2, progress=False)
+    assert [r.image.shape for r in res] == [a.shape, b.shape, c.shape]
+    assert all(r.bit_accuracy == 1.0 and r.message_hex == res[0].message_hex for r in res)
+    # the first batch ([a, c], seed 0) is what embed_image's single-image batch would differ from, but a
+    # one-image call equals embed_image exactly
+    one = gsw.embed_images([b], "key:studio", config=FAST, progress=False)[0]
+    assert torch.equal(one.image, gsw.embed_image(b, "key:studio", config=FAST, progress=False).image)
+    with pytest.raises(ValueError, match="image 1: .*>= 32"):
+        gsw.embed_images([a, torch.rand(3, 8, 8)], config=FAST, progress=False)
+    with pytest.raises(ValueError, match="no images"):
+        gsw.embed_images([], config=FAST, progress=False)
+    with pytest.raises(ValueError, match="batch_size"):
+        gsw.embed_images([a], config=FAST, batch_size=0, progress=False)
+
+
+def test_cli_embed_image_several_inputs_write_a_new_folder(tmp_path, capsys):
+    srcs = []
+    for name, img in (("a", _photo()), ("b", _photo(64, 64))):
+        srcs.append(tmp_path / "in" / f"{name}.png")
+        srcs[-1].parent.mkdir(exist_ok=True)
+        write_image(srcs[-1], img)
+    out = tmp_path / "in" / "marked"  # a new folder beside the inputs is fine
+    args = ["embed-image", *map(str, srcs), "--output", str(out), "--key", "studio", "--steps", "40", "--psnr", "32",
+            "--no-progress", "--json"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in out.iterdir()) == ["a.png", "b.png"]
+    assert [r["bit_accuracy"] for r in summary["images"]] == [1.0, 1.0]
+    assert main(["verify", str(out / "a.png"), str(out / "b.png"), "--key", "studio"]) == 0  # two sizes
+    assert main(args) == 2 and "exists" in capsys.readouterr().err
+    # never over a folder that holds an input, even with --force; no temporary folders left behind
+    assert main([*args[:3], "--output", str(tmp_path / "in"), "--force", "--steps", "1"]) == 2
+    assert srcs[0].exists() and not [p for p in (tmp_path / "in").iterdir() if p.name.startswith(".")]
+    assert main(["embed-image", str(srcs[0]), str(tmp_path / "a.png"), "--output", str(tmp_path / "o")]) == 2
