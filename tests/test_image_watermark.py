@@ -103,8 +103,7 @@ def test_embed_images_batches_same_size_images_and_keeps_the_order():
     res = gsw.embed_images([a, b, c], "key:studio", config=FAST, batch_size=2, progress=False)
     assert [r.image.shape for r in res] == [a.shape, b.shape, c.shape]
     assert all(r.bit_accuracy == 1.0 and r.message_hex == res[0].message_hex for r in res)
-    # the first batch ([a, c], seed 0) is what embed_image's single-image batch would differ from, but a
-    # one-image call equals embed_image exactly
+    # one image through embed_images is exactly embed_image
     one = gsw.embed_images([b], "key:studio", config=FAST, progress=False)[0]
     assert torch.equal(one.image, gsw.embed_image(b, "key:studio", config=FAST, progress=False).image)
     with pytest.raises(ValueError, match="image 1: .*>= 32"):
