@@ -29,6 +29,7 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -43,7 +44,7 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from watermark.dwt import ll_subband  # noqa: E402
-from watermark.evaluation import eval_attacks  # noqa: E402
+from watermark.evaluation import bootstrap_ci95, eval_attacks  # noqa: E402
 from watermark.evaluation import psnr as psnr_db  # noqa: E402
 from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
 from watermark.image import watermark_images  # noqa: E402
@@ -137,7 +138,7 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
     ``steps``) against the shipped raw or whitened decoder, evaluated like a pair."""
     model = load_decoder(k).to(device).eval()
     dec = model if whitened else model.decoder
-    batches = iter(range(10**9))
+    batches = itertools.count()
 
     def embed(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         return watermark_images(dec, x, m, psnr=psnr, steps=steps, attack_every=every, lr=lr,
@@ -157,19 +158,11 @@ def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: i
             "bf16": device.type == "cuda", "clean": r["bit_acc"]["identity"], "worst_layer": min(layers.values()),
             "bit_acc": r["bit_acc"], "bit_acc_std": r["bit_acc_std"], "psnr": r["psnr"], "pairs": r["n"],
             "photos": len(photos), "photos_all_bits_right": sum(a == 1.0 for a in clean),
-            "photo_bootstrap_95": _bootstrap(clean, seed),
+            "photo_bootstrap_95": bootstrap_ci95(clean, seed=seed),
             "wrong_bits_share_of_worst_10_photos": sum(errors[:10]) / max(1e-9, sum(errors)),
             "per_photo_clean": [round(a, 4) for a in clean],
             "per_photo_saturated": [round(float(((p == 0) | (p == 255)).float().mean()), 4) for p in photos],
             "wall_s": round(time.perf_counter() - t0, 1)}
-
-
-def _bootstrap(per_photo: list[float], seed: int, n: int = 2000) -> list[float]:
-    """95 % bootstrap interval (over photos) of the mean of per-photo accuracies."""
-    a = torch.tensor(per_photo, dtype=torch.float64)
-    g = torch.Generator().manual_seed(seed)
-    means = a[torch.randint(0, len(a), (n, len(a)), generator=g)].mean(1).sort().values
-    return [float(means[int(0.025 * n)]), float(means[int(0.975 * n) - 1])]
 
 
 def _write(path: str, res: dict) -> None:

@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from watermark import noise as N  # noqa: E402
-from watermark.evaluation import eval_attacks, unbiasedness  # noqa: E402
+from watermark.evaluation import bootstrap_ci95, eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import HiddenDecoder  # noqa: E402
 from watermark.training import (WHITEN_EIG_FLOOR, embed_scaled, fit_whitening_multi, image_bank,  # noqa: E402
                                 load_images, load_run_encoder)
@@ -171,10 +171,8 @@ def cpu_pair_recheck(run: Path, k: int, val_images: list[torch.Tensor], msgs_per
                          attacks, k, msgs_per_image, seed=1000 + i)
         for a in attacks:
             per[a].append(r["bit_acc"][a])
-    clean = np.asarray(per["identity"])
-    boot = np.random.default_rng(0).choice(clean, (10000, len(clean))).mean(1)
     return {"bit_acc": {a: float(np.mean(v)) for a, v in per.items()}, "n": msgs_per_image * len(val_images),
-            "identity_ci95": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))], "device": "cpu",
+            "identity_ci95": bootstrap_ci95(per["identity"]), "device": "cpu",
             "encoder": {"templates": cfg.templates, "template_mlp": cfg.template_mlp,
                         "ft_s_total": meta.get("ft_s_total", meta["config"].get("ft_s")),
                         "pair_on_gpu": meta["results"]["pair_raw_ft"]["bit_acc"]["identity"]}}

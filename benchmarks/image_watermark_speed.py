@@ -24,6 +24,7 @@ sys.path.insert(0, str(ROOT / "gsw"))
 import torch  # noqa: E402
 
 from watermark.dwt import ll_subband  # noqa: E402
+from watermark.evaluation import same_size_groups  # noqa: E402
 from watermark.image import ImageEmbedConfig, watermark_images  # noqa: E402
 from watermark.training import load_images  # noqa: E402
 from watermark.zoo import load_decoder  # noqa: E402
@@ -40,10 +41,7 @@ def run(photos: list[torch.Tensor], k: int, cfg: ImageEmbedConfig, batch: int, d
     dec = load_decoder(k).to(device).eval().requires_grad_(False)
     gen = torch.Generator().manual_seed(cfg.seed)
     accs: list[float] = []
-    groups: dict[tuple[int, int], list[torch.Tensor]] = {}
-    for p in photos:
-        groups.setdefault(tuple(p.shape[1:]), []).append(p)
-    chunks = [g[i:i + batch] for g in groups.values() for i in range(0, len(g), batch)]
+    chunks = [[photos[i] for i in g] for g in same_size_groups(photos, batch)]
     warm_x = torch.stack(chunks[0]).to(device).float() / 255.0  # CUDA/cuDNN start-up, not timed
     watermark_images(dec, warm_x, torch.zeros(len(chunks[0]), k, device=device), psnr=cfg.psnr, steps=8,
                      attack_every=1, amp=device.type == "cuda")

@@ -25,10 +25,8 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _atomic_output_dir(output: Path, inputs: Sequence[Path], force: bool) -> Path:
-    """Checks an output folder and returns a fresh temporary sibling to write into."""
-    import tempfile
-
+def _check_output(output: Path, inputs: Sequence[Path], force: bool) -> None:
+    """Refuses an output (file or folder) that is, holds or lies inside an input, or exists without ``force``."""
     out = output.resolve()
     for src in inputs:
         src = src.resolve()
@@ -36,6 +34,14 @@ def _atomic_output_dir(output: Path, inputs: Sequence[Path], force: bool) -> Pat
             raise ValueError(f"output {output} overlaps the input {src}; inputs are never overwritten")
     if out.exists() and not force:
         raise ValueError(f"output {output} exists; pass --force to replace it")
+
+
+def _atomic_output_dir(output: Path, inputs: Sequence[Path], force: bool) -> Path:
+    """Checks an output folder and returns a fresh temporary sibling to write into."""
+    import tempfile
+
+    _check_output(output, inputs, force)
+    out = output.resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     return Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
 
@@ -216,10 +222,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
         if output.suffix.lower() != ".png":
             raise ValueError(f"output {output} must be a .png (a lossy format would weaken the watermark before "
                              "it ships)")
-        if output.resolve() == sources[0].resolve():
-            raise ValueError(f"output {output} is the input; inputs are never overwritten")
-        if output.exists() and not args.force:
-            raise ValueError(f"output {output} exists; pass --force to replace it")
+        _check_output(output, sources, args.force)
         targets = [output]
     else:
         stems = [s.stem for s in sources]

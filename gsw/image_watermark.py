@@ -112,6 +112,7 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
     """
     from gsw.embed import _load_decoder
     from gsw.watermark.dwt import ll_subband
+    from gsw.watermark.evaluation import same_size_groups
     from gsw.watermark.image import watermark_images
 
     cfg = config or ImageEmbedConfig()
@@ -137,10 +138,7 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
             raise type(err)(f"image {i}: {err}" if len(images) > 1 else str(err)) from None
     bits = as_message(message, num_bits, seed=cfg.seed if message is None else None)
     dec = _load_decoder(num_bits, decoder, device)
-    groups: dict[tuple[int, int], list[int]] = {}
-    for i, img in enumerate(checked):
-        groups.setdefault(tuple(img.shape[1:]), []).append(i)
-    chunks = [g[j : j + batch_size] for g in groups.values() for j in range(0, len(g), batch_size)]
+    chunks = same_size_groups(checked, batch_size)
     results: list[ImageEmbedResult | None] = [None] * len(checked)
     hex_message = message_to_hex(bits) if num_bits % 4 == 0 else ""
     with Progress(cfg.steps * len(chunks), "embed-image", enabled=progress) as bar:

@@ -66,3 +66,14 @@ def test_every_pair_draws_its_own_strength():
                      seed=1, images_per_batch=4)
     assert r["n"] == 12 and len(seen) == 12 and all(s[0] == 1 for s in seen)  # one decode per pair
     assert len(set(seen)) > 6  # scales drawn per pair, not one per batch of 12
+
+
+def test_bootstrap_interval_of_the_mean():
+    from gsw.watermark.evaluation import bootstrap_ci95
+
+    assert bootstrap_ci95([0.9] * 20) == pytest.approx([0.9, 0.9])
+    vals = torch.rand(200, generator=torch.Generator().manual_seed(0)).tolist()
+    lo, hi = bootstrap_ci95(vals)
+    mean = sum(vals) / len(vals)
+    assert lo < mean < hi and hi - lo < 0.1  # ~ +-1.96 * 0.29 / sqrt(200) = +-0.04
+    assert bootstrap_ci95(vals) == [lo, hi]  # seeded

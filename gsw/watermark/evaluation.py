@@ -8,7 +8,7 @@ Example:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -18,7 +18,7 @@ from .hidden import bit_accuracy
 from .noise import NoiseLayer, draws_per_batch
 
 __all__ = ["false_positive_threshold", "binomial_tail", "psnr", "eval_attacks", "unbiasedness", "fair_max_dev",
-           "max_dev_p_value"]
+           "max_dev_p_value", "same_size_groups", "bootstrap_ci95"]
 
 
 def binomial_tail(k: int, m: int) -> float:
@@ -38,13 +38,20 @@ def false_positive_threshold(k: int, fpr: float = DETECTION_FPR) -> int:
     return next((m for m in range(k + 1) if binomial_tail(k, m) <= fpr), k + 1)
 
 
+def bootstrap_ci95(values: Sequence[float], n: int = 10000, seed: int = 0) -> list[float]:
+    """95 % percentile-bootstrap interval of the mean of ``values`` (e.g. per-photo accuracies)."""
+    a = np.asarray(values, dtype=np.float64)
+    boot = np.random.default_rng(seed).choice(a, (n, len(a))).mean(1)
+    return [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
+
+
 def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Per-image PSNR (dB) of images in [0,1]: [B,...] -> [B]."""
     mse = (a.float() - b.float()).pow(2).flatten(1).mean(1)
     return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 
-def _same_size_groups(images: list[torch.Tensor], n: int) -> list[list[int]]:
+def same_size_groups(images: Sequence[torch.Tensor], n: int) -> list[list[int]]:
     """Indices of the images in groups of up to ``n`` of one size, each group in the order its images come
     (n = 1: one by one, in order)."""
     groups: list[list[int]] = []
@@ -92,7 +99,7 @@ def eval_attacks(
     gen = torch.Generator().manual_seed(seed)
     accs: dict[str, list[torch.Tensor]] = {n: [] for n in attacks}
     psnrs, order = [], []
-    for group in _same_size_groups(images, images_per_batch):
+    for group in same_size_groups(images, images_per_batch):
         order += group
         x = torch.cat([(images[i].to(device).float() / 255.0)[None].expand(msgs_per_image, -1, -1, -1)
                        for i in group])
