@@ -46,7 +46,7 @@ def run_single(n: int, width: int, height: int, sh_degree: int, repeats: int, re
     import torch
 
     from gsw.camera import Camera
-    from gsw.rasterize import contribution_from_projection, rasterize
+    from gsw.render.rasterize import contribution_from_projection, rasterize
     from gsw.scenes import frustum_scene
 
     cam = Camera.from_fov(0.8, width, height)
@@ -88,7 +88,7 @@ def run_single(n: int, width: int, height: int, sh_degree: int, repeats: int, re
     contrib()
     result["contribution_ms"] = 1e3 * _median([contrib() for _ in range(repeats)])
     if reference:
-        from gsw.reference import reference_rasterize
+        from gsw.render._reference import reference_rasterize
 
         def ref_forward():
             with torch.no_grad():

@@ -178,7 +178,7 @@ def bench_config(n: int, width: int, height: int, reps: int, warmup: int, use_gs
 def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int) -> dict[str, float]:
     """Median ms of each op of the gsw pipeline (forward and backward), timed separately."""
     from gsw import _C
-    from gsw.rasterize import _camera_args
+    from gsw.render.rasterize import _camera_args
 
     ca = _camera_args(cam)
     W, H = cam.width, cam.height

@@ -10,9 +10,9 @@ Three checks on bsds500/val photos at full size, each against the shipped *raw* 
    how many bits the decoder can read at all.
 3. ``tile``: one periodic tile per message (side ``--tile`` at LL2 resolution, tiled and upsampled as
    ``TemplateEncoder`` does), optimised on a few photos and read on unseen ones: an image-agnostic code.
-4. ``refine`` (``--checks refine``, GPU): the optimisation encoder (``gsw.watermark.image.watermark_images``,
+4. ``refine`` (``--checks refine``, GPU): the optimisation encoder (``gsw.mark.refine.watermark_images``,
    what ``gsw.embed_image`` runs) measured like a pre-training pair: each photo's residual, from noise, refined
-   by ``gsw.watermark.refine.refine_residual`` (cosine Adam, binary cross-entropy, PSNR ``--psnr`` kept) for
+   by ``gsw.mark.refine.refine_residual`` (cosine Adam, binary cross-entropy, PSNR ``--psnr`` kept) for
    each ``--refine STEPS:EVERY`` (EVERY > 0: every EVERY-th step also goes through the next training noise
    layer, ``GpuAttacks``, differentiable JPEG; 0: the clean loss only), against the raw decoder or, with
    ``--decoder whitened``, the shipped decoder exactly as ``gsw.extract`` reads it, then
@@ -134,7 +134,7 @@ def tile(k: int, fit: list[torch.Tensor], unseen: list[torch.Tensor], side: int,
 def refine(k: int, photos: list[torch.Tensor], psnr: float, steps: int, every: int, msgs: int, lr: float,
            margin: float, batch: int, device: torch.device, schedule: str = "cosine", seed: int = 1,
            whitened: bool = False, paper: bool = False) -> dict:
-    """The optimisation encoder (``gsw.watermark.image.watermark_images``: residuals from noise refined for
+    """The optimisation encoder (``gsw.mark.refine.watermark_images``: residuals from noise refined for
     ``steps``) against the shipped raw or whitened decoder, evaluated like a pair."""
     model = load_decoder(k).to(device).eval()
     dec = model if whitened else model.decoder

@@ -32,14 +32,14 @@ def _mean(xs):
 def main() -> int:
     import gsw
     from gsw.data import load_inria_model, load_nerf_synthetic
-    from gsw.embed import EmbedConfig, embed, verify
-    from gsw.fgd import PRUNE_THRESHOLD, fgd_prune
-    from gsw.losses import LossWeights
-    from gsw.metrics import psnr, ssim
+    from gsw.mark.embed import EmbedConfig, embed, verify
+    from gsw.mark.fgd import PRUNE_THRESHOLD, fgd_prune
+    from gsw.mark.loss import LossWeights
+    from gsw.metrics.image import psnr, ssim
     from gsw.train import resolve_device
-    from gsw.watermark.evaluation import unbiasedness
-    from gsw.watermark.lpips import lpips
-    from gsw.watermark.zoo import load_decoder
+    from gsw.decoder.pretrain.evaluation import unbiasedness
+    from gsw.metrics.lpips import lpips
+    from gsw.decoder.zoo import load_decoder
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=str(ROOT / "build" / "train_lego" / "train_lego_model"))

@@ -4,7 +4,7 @@ Every (method, bits, seed) cell embeds into the INRIA model folder with the NeRF
 (../shared/data/lego at the model's resolution, white background) and is evaluated on the held-out views (every
 8th): bit accuracy and TPR / empirical FPR at 1e-6, clean and under the image and model attacks, robustness
 curves, PSNR/SSIM/LPIPS against the original renders, time, FPS and storage. Defaults: the paper's grid (every
-method of `gsw.grid.METHODS` at 32/48/64 bits, seeds 0-2, 8 epochs). The cells stay in `build/eval_grid/<tag>/`
+method of `gsw.eval.grid.METHODS` at 32/48/64 bits, seeds 0-2, 8 epochs). The cells stay in `build/eval_grid/<tag>/`
 (git-ignored; rerun the same command to resume) and the summary goes to `benchmarks/results/<tag>.{json,md}`.
 
 Usage:
@@ -27,7 +27,7 @@ LEGO_SIZE = 800  # NeRF-synthetic image size
 
 
 def parse_args() -> argparse.Namespace:
-    from gsw.grid import GridSpec
+    from gsw.eval.grid import GridSpec
 
     default = GridSpec()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -41,7 +41,7 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--message-weight", type=float, default=None,
                     help="weight of the message BCE term for every method (default: LossWeights.message)")
     ap.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks),
-                    help="keys of gsw.attacks.MODEL_ATTACKS or VIEW_MODEL_ATTACKS (finetune)")
+                    help="keys of gsw.attacks.ops.MODEL_ATTACKS or VIEW_MODEL_ATTACKS (finetune)")
     ap.add_argument("--lpips", default="alex", choices=["vgg", "alex", "none"], help="LPIPS term of the embedding loss")
     ap.add_argument("--metric-lpips", default="vgg", choices=["vgg", "alex", "none"], help="LPIPS of the report")
     ap.add_argument("--train-views", type=int, default=None, help="evenly spaced embedding views (default: all 87)")
@@ -55,7 +55,7 @@ def parse_args() -> argparse.Namespace:
 
 def main() -> int:
     import gsw
-    from gsw.grid import GridSpec, load_grid_scene, lpips_loss_overrides, run_grid
+    from gsw.eval.grid import GridSpec, load_grid_scene, lpips_loss_overrides, run_grid
     from gsw.train import resolve_device
 
     args = parse_args()

@@ -269,7 +269,7 @@ def markdown(rep: dict, bits: list[int]) -> str:
         f0 = next(res[k][fn] for k in bits if fn in res[k])
         rf = f0["refine"]
         lines += ["", f"The fine-tuned encoder's residual refined by {rf['steps']} Adam steps against the frozen "
-                      f"decoder (`gsw.watermark.refine.refine_residual`: lr {rf['lr']} "
+                      f"decoder (`gsw.mark.refine.refine_residual`: lr {rf['lr']} "
                       f"{rf.get('schedule', 'constant')}, logit margin {rf['margin']}, "
                       f"PSNR kept at {f0['psnr']:.1f} dB"
                       + ((", loss on the clean image and through one training noise layer "

@@ -1,6 +1,6 @@
 """Speed of the image watermark (``gsw.embed_image``'s optimisation) per photo, on CPU or CUDA.
 
-Times ``gsw.watermark.image.watermark_images`` with ``ImageEmbedConfig``'s defaults (or the given settings) on
+Times ``gsw.mark.refine.watermark_images`` with ``ImageEmbedConfig``'s defaults (or the given settings) on
 bsds500/val photos at full size (481x321 or 321x481), one photo at a time (what ``gsw embed-image`` does) and
 in batches (throughput), against the shipped whitened decoder, and records the bit accuracy read back after
 8-bit rounding. Runs without the compiled extension (it imports ``gsw/watermark`` only), so it also runs on a

@@ -1,6 +1,6 @@
 """Pre-train, whiten and evaluate the HiDDeN watermark decoders, all bit lengths in one process.
 
-1. ``gsw.watermark.training.train_multi``: one encoder/decoder pair per bit length (``--bits``), all fed
+1. ``gsw.decoder.pretrain.training.train_multi``: one encoder/decoder pair per bit length (``--bits``), all fed
    the same batches of random crops (+ flips) of the training photos, which stay on the device; device-only
    attacks (kornia's differentiable JPEG); curriculum: no attacks and a strong watermark (``--psnr-start``)
    for the first ``--clean-frac`` of the run, then the attacks ramp in and the PSNR tightens to ``--psnr``.
@@ -16,7 +16,7 @@
    ``--half`` rounds every encoder to float16 before it is evaluated and keeps only the last one in
    ``k{k}.pt`` (small enough to fetch from the GPU machine and to ``--init`` the next run from).
 5. ``--refine-steps N``: the last encoders' residuals refined by N Adam steps against the frozen decoder
-   (``gsw.watermark.refine.refine_residual``; ``--refine-eot``: also through the training noise layers) and
+   (``gsw.mark.refine.refine_residual``; ``--refine-eot``: also through the training noise layers) and
    evaluated like the pairs; with ``--ft-s 0 --init-encoder encoder_ft`` it refines an earlier fine-tune.
 
 ``--init DIR`` continues from the ``k{k}.pt`` of an earlier run (its encoder and decoder; a warm restart with
@@ -212,7 +212,7 @@ def main() -> None:
                     help="skip the evaluation before the fine-tune (pair, unbiasedness): for chained fine-tunes")
     ap.add_argument("--refine-steps", type=int, nargs="*", default=[],
                     help="also evaluate the fine-tuned pair with the encoder's residual refined for this many Adam "
-                         "steps against the decoder (gsw.watermark.refine.refine_residual); one evaluation each")
+                         "steps against the decoder (gsw.mark.refine.refine_residual); one evaluation each")
     ap.add_argument("--refine-lr", type=float, default=0.3, help="learning rate of that refinement")
     ap.add_argument("--refine-schedule", default="cosine", choices=["cosine", "constant"],
                     help="learning-rate schedule of that refinement")

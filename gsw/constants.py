@@ -8,8 +8,9 @@ Example:
 
 from __future__ import annotations
 
-import torch  # noqa: F401  (loads libc10 before the extension)
-from gsw._C import constants as _constants
+from gsw._ext import _C
+
+_constants = _C.constants
 
 TILE_SIZE: int = int(_constants["TILE_SIZE"])
 NEAR_PLANE: float = float(_constants["NEAR_PLANE"])

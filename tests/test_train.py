@@ -12,9 +12,9 @@ import torch
 import gsw
 from gsw.data.loaders import load_inria_model
 from gsw.io.ply import load_ply
-from gsw.rasterize import rasterize
+from gsw.render.rasterize import rasterize
 from gsw.scenes import default_scene
-from gsw.train.cli import add_train_parser, config_from_args
+from gsw.cli.train import add_train_parser, config_from_args
 from gsw.train.optim import GaussianAdam
 from gsw.progress import Progress
 from gsw.train.trainer import TrainConfig, _State, init_box, random_init, resolve_device, train

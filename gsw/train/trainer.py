@@ -1,4 +1,4 @@
-"""The INRIA 3D Gaussian Splatting training recipe on :func:`gsw.rasterize.rasterize`.
+"""The INRIA 3D Gaussian Splatting training recipe on :func:`gsw.render.rasterize.rasterize`.
 
 Recipe (Kerbl et al. 2023, ``graphdeco-inria/gaussian-splatting``), every number a :class:`TrainConfig` field:
 
@@ -54,8 +54,8 @@ from gsw.camera import Camera
 from gsw.constants import SH_C0, SH_COLOR_OFFSET
 from gsw.data.loaders import Dataset, save_inria_model, scene_extent
 from gsw.gaussians import Gaussians, sh_degree_to_num_coeffs
-from gsw.metrics import psnr, ssim
-from gsw.rasterize import rasterize
+from gsw.metrics.image import psnr, ssim
+from gsw.render.rasterize import rasterize
 from gsw.train.optim import GaussianAdam
 from gsw.progress import Progress
 

@@ -1,0 +1,380 @@
+"""Differentiable rasterization: thin torch.autograd wrappers around the C++/CUDA kernels.
+
+Two autograd stages, as in gsplat:
+
+1. :func:`project` — per-Gaussian EWA projection + SH colour (`means2d`, `conics`, `depths`,
+   `colors`, `opacities`, `radii`);
+2. :func:`blend` — tile binning and front-to-back alpha blending into an image.
+
+:func:`rasterize` composes them for a :class:`~gsw.gaussians.Gaussians` and a
+:class:`~gsw.camera.Camera`; :func:`contribution` computes per-Gaussian blending weights under
+a weight map; :func:`rasterization` is a gsplat-style functional entry point.
+
+Frames: world coordinates for Gaussians; cameras are world-to-camera (OpenCV axes: x right,
+y down, z forward); 2-D means are pixels in the `K p` frame, pixel (i, j) has its centre at
+(i + 0.5, j + 0.5). Images are channel-major `[3, H, W]`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from gsw._ext import _C
+
+if TYPE_CHECKING:
+    from gsw.camera import Camera
+    from gsw.gaussians import Gaussians
+
+TileBins = _C.TileBins
+
+
+def _camera_args(camera: Camera) -> dict[str, Any]:
+    return dict(viewmat=camera.viewmat, fx=float(camera.fx), fy=float(camera.fy),
+                cx=float(camera.cx), cy=float(camera.cy), width=int(camera.width),
+                height=int(camera.height))
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, opacity_logits, sh, sh_degree, cam):  # type: ignore[override]
+        ins = [t.contiguous() for t in (means, quats, log_scales, opacity_logits, sh)]
+        radii, means2d, conics, depths, colors, opacities = _C.project_forward(
+            *ins, sh_degree=sh_degree, **cam)
+        ctx.sh_degree, ctx.cam = sh_degree, cam
+        ctx.save_for_backward(*ins, radii, conics, colors, opacities)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, colors, opacities, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_means2d, v_conics, v_depths, v_colors, v_opacities, _v_radii):  # type: ignore[override]
+        means, quats, log_scales, opacity_logits, sh, radii, conics, colors, opacities = ctx.saved_tensors
+        grads = _C.project_backward(
+            means, quats, log_scales, opacity_logits, sh, sh_degree=ctx.sh_degree, **ctx.cam,
+            radii=radii, conics=conics, colors=colors, opacities=opacities,
+            v_means2d=v_means2d.contiguous(), v_conics=v_conics.contiguous(),
+            v_depths=v_depths.contiguous(), v_colors=v_colors.contiguous(),
+            v_opacities=v_opacities.contiguous())
+        return (*grads, None, None)
+
+
+class _Blend(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, depths, background, bins, width, height):  # type: ignore[override]
+        ins = [t.contiguous() for t in (means2d, conics, colors, opacities, depths, background)]
+        image, alpha, depth, final_T, n_contrib = _C.rasterize_forward(
+            *ins, bins=bins, width=width, height=height)
+        ctx.bins, ctx.width, ctx.height = bins, width, height
+        ctx.save_for_backward(*ins, final_T, n_contrib)
+        ctx.mark_non_differentiable(final_T, n_contrib)
+        # Unused outputs (usually alpha and depth) get no zero-filled [1, H, W] cotangents: the kernels
+        # treat a missing v_alpha / v_depth as zero.
+        ctx.set_materialize_grads(False)
+        return image, alpha, depth, final_T, n_contrib
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_image, v_alpha, v_depth, _v_t, _v_n):  # type: ignore[override]
+        means2d, conics, colors, opacities, depths, background, final_T, n_contrib = ctx.saved_tensors
+        if v_image is None:
+            v_image = torch.zeros((3, ctx.height, ctx.width), dtype=means2d.dtype, device=means2d.device)
+        grads = _C.rasterize_backward(
+            means2d, conics, colors, opacities, depths, background, bins=ctx.bins,
+            width=ctx.width, height=ctx.height, final_T=final_T, n_contrib=n_contrib,
+            v_image=v_image.contiguous(), v_alpha=None if v_alpha is None else v_alpha.contiguous(),
+            v_depth=None if v_depth is None else v_depth.contiguous())
+        v_background = None
+        if ctx.needs_input_grad[5]:
+            v_background = (v_image * final_T.unsqueeze(0)).sum(dim=(1, 2))
+        return (*grads, v_background, None, None, None)
+
+
+@dataclass
+class Projection:
+    """Per-Gaussian screen-space quantities of one camera.
+
+    Attributes:
+        means2d: [N, 2] projected centres in pixels (`K p` frame). Differentiable; call
+            `means2d.retain_grad()` before backward to read the screen-space gradient used for
+            densification.
+        conics: [N, 3] inverse of the dilated 2-D covariance, (a, b, c) of [[a, b], [b, c]].
+        depths: [N] view-space z.
+        colors: [N, 3] view-dependent RGB.
+        opacities: [N] activated opacity.
+        radii: [N] int32 screen radius in pixels; 0 means culled.
+    """
+
+    means2d: Tensor
+    conics: Tensor
+    depths: Tensor
+    colors: Tensor
+    opacities: Tensor
+    radii: Tensor
+
+    @property
+    def visible(self) -> Tensor:
+        """[N] bool: Gaussians that touch at least one tile."""
+        return self.radii > 0
+
+
+def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
+            camera: Camera, sh_degree: int) -> Projection:
+    """Projects Gaussians into a camera (differentiable).
+
+    Args:
+        means: [N, 3] world positions.
+        quats: [N, 4] rotations (w, x, y, z), unnormalised.
+        log_scales: [N, 3] log standard deviations.
+        opacity_logits: [N] opacity logits.
+        sh: [N, K, 3] SH coefficients, or [N, 3] RGB colours when `sh_degree == -1`.
+        camera: the camera.
+        sh_degree: active SH degree in 0..3 (uses the first (d+1)^2 coefficients), or -1.
+
+    Returns:
+        The :class:`Projection`.
+    """
+    out = _Project.apply(means, quats, log_scales, opacity_logits, sh, int(sh_degree),
+                         _camera_args(camera))
+    return Projection(*out)
+
+
+def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
+    """Sorts projected Gaussians into 16x16 tiles, front to back (not differentiable)."""
+    return _C.bin_gaussians(proj.means2d.detach().contiguous(), proj.radii,
+                            proj.depths.detach().contiguous(), int(width), int(height))
+
+
+def blend(proj: Projection, bins: TileBins, width: int, height: int,
+          background: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Alpha-blends projected Gaussians front to back (differentiable).
+
+    Returns:
+        image [3, H, W], alpha [1, H, W], depth [1, H, W] (sum of w_i z_i), final_T [H, W],
+        n_contrib [H, W] int32.
+    """
+    return _Blend.apply(proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths,
+                        background, bins, int(width), int(height))
+
+
+@dataclass
+class RenderOutput:
+    """Result of :func:`rasterize`.
+
+    Attributes:
+        image: [3, H, W] RGB, background composited.
+        alpha: [1, H, W] accumulated opacity.
+        depth: [1, H, W] alpha-weighted depth sum (use :attr:`expected_depth` for the mean).
+        final_T: [H, W] transmittance left after the last splat.
+        n_contrib: [H, W] int32, 1 + index of the last blended splat in the pixel's tile list.
+        projection: per-Gaussian screen-space quantities (`means2d` carries the screen-space
+            gradient).
+        bins: the tile binning, reusable by :func:`contribution_from_projection`.
+    """
+
+    image: Tensor
+    alpha: Tensor
+    depth: Tensor
+    final_T: Tensor
+    n_contrib: Tensor
+    projection: Projection
+    bins: TileBins
+
+    @property
+    def radii(self) -> Tensor:
+        """[N] int32 pixel radii (0 = culled)."""
+        return self.projection.radii
+
+    @property
+    def means2d(self) -> Tensor:
+        """[N, 2] projected centres in pixels."""
+        return self.projection.means2d
+
+    @property
+    def visible(self) -> Tensor:
+        """[N] bool mask of Gaussians on screen."""
+        return self.projection.visible
+
+    @property
+    def expected_depth(self) -> Tensor:
+        """[1, H, W] depth / alpha (0 where nothing was blended)."""
+        return torch.where(self.alpha > 0, self.depth / self.alpha.clamp_min(torch.finfo(self.alpha.dtype).tiny),
+                           torch.zeros_like(self.depth))
+
+
+def _background(background: Tensor | tuple[float, float, float] | None, like: Tensor) -> Tensor:
+    if background is None:
+        return torch.zeros(3, dtype=like.dtype, device=like.device)
+    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device)
+    if bg.shape != (3,):
+        raise ValueError(f"background must have shape [3], got {list(bg.shape)}")
+    return bg
+
+
+def _resolve_sh_degree(gaussians: Gaussians, sh_degree: int | None) -> int:
+    if sh_degree is None:
+        return gaussians.sh_degree
+    if not 0 <= sh_degree <= gaussians.sh_degree:
+        raise ValueError(f"sh_degree={sh_degree} is outside 0..{gaussians.sh_degree} "
+                         "(the degree stored in the Gaussians)")
+    return sh_degree
+
+
+def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = None,
+              background: Tensor | tuple[float, float, float] | None = None,
+              colors: Tensor | None = None, validate: bool = True) -> RenderOutput:
+    """Renders Gaussians from a camera; differentiable w.r.t. every Gaussian parameter.
+
+    Args:
+        gaussians: the scene (world frame).
+        camera: world-to-camera pinhole camera (OpenCV axes).
+        sh_degree: SH degree to evaluate (default: all stored coefficients).
+        background: [3] RGB composited behind the splats (default black).
+        colors: optional [N, 3] per-Gaussian RGB that replaces the SH colour (a "colour
+            override"; differentiable).
+        validate: raise a ValueError naming the field if any parameter is NaN/Inf (one pass
+            over the parameters; on CUDA it synchronises, so hot loops may turn it off).
+
+    Returns:
+        A :class:`RenderOutput` with image [3, H, W], alpha, depth and per-Gaussian data.
+
+    Example:
+        >>> from gsw.scenes import random_gaussians
+        >>> from gsw.camera import Camera
+        >>> g = random_gaussians(100, seed=0)
+        >>> cam = Camera.look_at((0., -4., 0.), (0., 0., 0.), (0., 0., 1.), 0.8, 64, 48)
+        >>> rasterize(g, cam).image.shape
+        torch.Size([3, 48, 64])
+    """
+    if validate:
+        gaussians.check_finite()
+    if colors is not None:
+        n = gaussians.means.shape[0]
+        if colors.shape != (n, 3):
+            raise ValueError(f"colors must have shape [{n}, 3], got {list(colors.shape)}")
+        sh, degree = colors.to(gaussians.means.dtype), -1
+    else:
+        sh, degree = gaussians.sh, _resolve_sh_degree(gaussians, sh_degree)
+    proj = project(gaussians.means, gaussians.quats, gaussians.log_scales,
+                   gaussians.opacity_logits, sh, camera, degree)
+    bins = bin_gaussians(proj, camera.width, camera.height)
+    image, alpha, depth, final_T, n_contrib = blend(
+        proj, bins, camera.width, camera.height, _background(background, gaussians.means))
+    return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, bins)
+
+
+@dataclass
+class ContributionOutput:
+    """Result of :func:`contribution`.
+
+    Attributes:
+        values: [N, C] `sum_p weights[c, p] * alpha_i(p) * T_i(p)` (the gradient of
+            `sum(weights * image)` w.r.t. a per-Gaussian colour override, for C = 3).
+        hits: [N] int32 number of pixels where Gaussian i was blended.
+        max_weight: [N] largest blending weight `alpha_i(p) T_i(p)` over pixels.
+        radii: [N] int32 pixel radii (0 = culled).
+    """
+
+    values: Tensor
+    hits: Tensor
+    max_weight: Tensor
+    radii: Tensor
+
+
+def contribution_from_projection(proj: Projection, bins: TileBins, weights: Tensor,
+                                 width: int, height: int) -> ContributionOutput:
+    """Per-Gaussian contribution for an already projected and binned view (no gradient)."""
+    w = weights.detach().to(proj.means2d.dtype).contiguous()
+    values, hits, max_weight = _C.contribution(
+        proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(),
+        proj.opacities.detach().contiguous(), bins=bins, width=int(width), height=int(height),
+        weights=w)
+    return ContributionOutput(values, hits, max_weight, proj.radii)
+
+
+@torch.no_grad()
+def contribution(gaussians: Gaussians, camera: Camera, weights: Tensor) -> ContributionOutput:
+    """Per-Gaussian, per-channel contribution of the blending weights under a weight map.
+
+    `V[i, c] = sum_p weights[c, p] * alpha_i(p) * T_i(p)`, computed with the forward traversal
+    of the rasterizer (same culling, skipping and early termination).
+
+    Args:
+        gaussians: the scene.
+        camera: the view.
+        weights: [C, H, W] per-pixel weights (any C >= 1), H and W of the camera.
+
+    Returns:
+        A :class:`ContributionOutput`.
+    """
+    if weights.dim() != 3 or tuple(weights.shape[1:]) != (camera.height, camera.width):
+        raise ValueError(f"weights must have shape [C, {camera.height}, {camera.width}], "
+                         f"got {list(weights.shape)}")
+    zeros = torch.zeros_like(gaussians.means)
+    proj = project(gaussians.means, gaussians.quats, gaussians.log_scales,
+                   gaussians.opacity_logits, zeros, camera, -1)
+    bins = bin_gaussians(proj, camera.width, camera.height)
+    return contribution_from_projection(proj, bins, weights.to(gaussians.means.device), camera.width,
+                                        camera.height)
+
+
+def rasterization(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
+                  viewmats: Tensor, Ks: Tensor, width: int, height: int, *,
+                  sh_degree: int | None = None, backgrounds: Tensor | None = None,
+                  ) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """gsplat-style functional entry point (drop-in for `gsplat.rasterization` basics).
+
+    Args:
+        means: [N, 3] world positions.
+        quats: [N, 4] rotations (w, x, y, z), unnormalised.
+        scales: [N, 3] activated (linear) scales.
+        opacities: [N] activated opacities in [0, 1].
+        colors: [N, K, 3] SH coefficients when `sh_degree` is given, else [N, 3] RGB.
+        viewmats: [C, 4, 4] world-to-camera matrices (OpenCV).
+        Ks: [C, 3, 3] intrinsics.
+        width: image width.
+        height: image height.
+        sh_degree: SH degree, or None for direct colours.
+        backgrounds: optional [C, 3] background colours.
+
+    Returns:
+        (render_colors [C, H, W, 3], render_alphas [C, H, W, 1], meta) where meta holds
+        per-camera `radii` [C, N], `means2d` [C, N, 2], `depths` [C, N] and
+        `render_depths` [C, H, W, 1] (alpha-weighted depth sums).
+    """
+    from gsw.camera import Camera  # local import: camera imports nothing from here
+
+    if viewmats.dim() != 3 or Ks.dim() != 3 or viewmats.shape[0] != Ks.shape[0]:
+        raise ValueError(f"viewmats [C,4,4] and Ks [C,3,3] must agree, got {list(viewmats.shape)} "
+                         f"and {list(Ks.shape)}")
+    if sh_degree is None:
+        sh, degree = colors, -1
+    else:
+        sh, degree = colors, int(sh_degree)
+    log_scales = torch.log(scales)
+    # The blending stage takes activated opacities directly; the projection's logit input is
+    # a placeholder whose output is replaced below.
+    dummy_logits = torch.zeros_like(opacities)
+    imgs, alphas, depth_maps, radii, m2d, depths = [], [], [], [], [], []
+    for c in range(viewmats.shape[0]):
+        K = Ks[c]
+        cam = Camera(viewmat=viewmats[c], fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]),
+                     cy=float(K[1, 2]), width=int(width), height=int(height))
+        proj = project(means, quats, log_scales, dummy_logits, sh, cam, degree)
+        proj.opacities = opacities
+        bins = bin_gaussians(proj, width, height)
+        bg = _background(None if backgrounds is None else backgrounds[c], means)
+        image, alpha, depth, _, _ = blend(proj, bins, width, height, bg)
+        imgs.append(image.permute(1, 2, 0))
+        alphas.append(alpha.permute(1, 2, 0))
+        depth_maps.append(depth.permute(1, 2, 0))
+        radii.append(proj.radii)
+        m2d.append(proj.means2d)
+        depths.append(proj.depths)
+    meta = dict(radii=torch.stack(radii), means2d=torch.stack(m2d), depths=torch.stack(depths),
+                render_depths=torch.stack(depth_maps), width=width, height=height)
+    return torch.stack(imgs), torch.stack(alphas), meta

@@ -1,0 +1,135 @@
+"""gsw.embed / extract / verify on the built-in scene (small and fast)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gsw.mark.embed import EmbedConfig, embed, extract, verify
+from gsw.mark.loss import LossWeights
+from gsw.scenes import default_scene
+
+
+EPOCHS = 20
+
+
+@pytest.fixture(scope="module")
+def scene():
+    # 96x96: the decoder reads the LL2 subband (24x24 here); at 64x64 (16x16) 32 bits plateau near 93 %
+    return default_scene(width=96, height=96, n_cameras=6, detail=0.5)
+
+
+@pytest.fixture(scope="module")
+def result(scene):
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=EPOCHS, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    before = scene.gaussians.clone()
+    res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=cfg,
+                progress=False)
+    # the input model is never modified
+    for name, t in before.parameters().items():
+        assert torch.equal(t, scene.gaussians.parameters()[name]), name
+    return res
+
+
+def test_embed_result_structure(scene, result) -> None:
+    assert result.message_hex == "c0ffee42" and result.message.shape == (32,)
+    assert result.prune is not None and result.split is not None
+    n_in = len(scene.gaussians)
+    assert len(result.gaussians) == n_in - result.prune.num_removed + result.split.num_split
+    assert len(result.bit_accuracy) == len(result.psnr) == len(scene.cameras)
+    assert len(result.history) == EPOCHS * len(scene.cameras)
+    assert {"renders", "fgd", "finetune", "evaluate", "total"} <= set(result.timings)
+    # positions are frozen by default; FGD children aside, kept Gaussians did not move
+    assert not result.gaussians.means.requires_grad
+
+
+def test_embedding_raises_bit_accuracy(scene, result) -> None:
+    bg = tuple(float(v) for v in scene.background)
+    before = verify((scene.gaussians, scene.cameras), result.message, background=bg)
+    after = verify((result.gaussians, scene.cameras), result.message, background=bg)
+    assert sum(after.bit_accuracy) / 6 >= 0.95  # the issue's end-to-end target on a tiny CPU scene
+    assert sum(after.bit_accuracy) / 6 >= sum(before.bit_accuracy) / 6 + 0.3
+    assert after.p_value < before.p_value
+    assert min(result.psnr) > 28.0
+
+
+def test_extract_and_verify_images(scene, result) -> None:
+    from gsw.render.rasterize import rasterize
+
+    bg = tuple(float(v) for v in scene.background)
+    imgs = [rasterize(result.gaussians, c, background=bg).image.clamp(0, 1) for c in scene.cameras]
+    ext = extract(imgs)
+    assert ext.bits.shape == (6, 32) and ext.logits.shape == (6, 32)
+    v = verify(imgs, result.message_hex)
+    assert v.matches == [int((b == result.message).sum()) for b in ext.bits]
+    assert v.bit_accuracy == [m / 32 for m in v.matches]
+    with pytest.raises(ValueError, match="RGB"):
+        extract(torch.rand(2, 64, 64))
+    with pytest.raises(ValueError, match="num_bits"):
+        verify(imgs, "key:secret")
+
+
+def test_bad_inputs(scene) -> None:
+    with pytest.raises(ValueError, match="camera"):
+        embed(scene.gaussians, [], progress=False)
+    with pytest.raises(ValueError, match="expected 32"):
+        embed(scene.gaussians, scene.cameras, message=[0, 1, 1], progress=False)
+    bad = scene.gaussians.clone()
+    bad.means[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="means"):
+        embed(bad, scene.cameras, progress=False)
+
+
+def test_bad_attack_settings(scene) -> None:
+    with pytest.raises(ValueError, match="model_attacks"):
+        embed(scene.gaussians, scene.cameras, config=EmbedConfig(model_attacks=1.5), progress=False)
+    with pytest.raises(ValueError, match="attacks"):
+        embed(scene.gaussians, scene.cameras, config=EmbedConfig(attacks=-0.1), progress=False)
+    with pytest.raises(ValueError, match="model_noise"):
+        embed(scene.gaussians, scene.cameras, config=EmbedConfig(model_noise=-1.0), progress=False)
+
+
+def test_train_time_model_attack_is_differentiable_and_spares_positions(scene) -> None:
+    import random
+
+    from gsw.mark.embed import _perturbed
+
+    g = scene.gaussians.clone()
+    sh = g.sh.clone().requires_grad_()
+    g = type(g)(g.means, g.log_scales, g.quats, g.opacity_logits, sh)
+    seen = set()
+    for seed in range(8):
+        out = _perturbed(g, random.Random(seed), torch.Generator().manual_seed(seed), 0.1)
+        assert torch.equal(out.means, g.means)
+        if torch.equal(out.log_scales, g.log_scales):  # the SH-degree-0 variant
+            assert (out.sh[:, 1:] == 0).all() and torch.equal(out.sh[:, :1], g.sh[:, :1])
+            seen.add("sh0")
+        else:  # parameter noise of std 0.1 on everything but the positions
+            for name in ("log_scales", "quats", "opacity_logits", "sh"):
+                assert abs(float((getattr(out, name) - getattr(g, name)).std()) - 0.1) < 0.01, name
+            seen.add("noise")
+        (grad,) = torch.autograd.grad(out.sh.sum(), sh)
+        assert grad[:, :1].eq(1).all()  # the clean colour receives the gradient through the attack
+    assert seen == {"sh0", "noise"}
+
+
+def test_embed_with_train_time_model_and_image_attacks_runs(scene) -> None:
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, fgd=False,
+                      attacks=1.0, model_attacks=1.0)
+    res = embed(scene.gaussians, scene.cameras, num_bits=32, config=cfg, progress=False)
+    assert len(res.history) == len(scene.cameras)
+    assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)
+
+
+def test_extract_reads_images_of_different_sizes_one_by_one() -> None:
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(3, 64, 64, generator=g), torch.rand(3, 96, 80, generator=g)
+    both = extract([a, b], num_bits=32)
+    assert both.bits.shape == (2, 32)
+    assert torch.allclose(both.logits[0], extract(a).logits[0]) and torch.allclose(both.logits[1], extract(b).logits[0])
+    with pytest.raises(ValueError, match="image 1: expected a \\[3,H,W\\]"):
+        extract([a, torch.rand(4, 64, 64)])
+    with pytest.raises(ValueError, match="no images"):
+        extract([])

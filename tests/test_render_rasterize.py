@@ -1,0 +1,373 @@
+"""The C++ CPU kernels against the pure-PyTorch reference, gradcheck, contribution, edge cases."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+from helpers import SHARED_DATA, require
+import torch
+
+import gsw
+from gsw.camera import Camera
+from gsw.gaussians import Gaussians
+from gsw.render.rasterize import bin_gaussians, blend, contribution, project, rasterization, rasterize
+from gsw.render._reference import reference_contribution, reference_rasterize
+from gsw.scenes import frustum_scene, random_gaussians
+
+FIXTURE = SHARED_DATA / "ply" / "sh3_fixture" / "point_cloud.ply"
+
+
+def make_camera(width: int = 40, height: int = 30, *, distance: float = 3.0, dtype=torch.float32,
+                cx: float | None = None, cy: float | None = None, fov_x: float = 0.9) -> Camera:
+    cam = Camera.look_at((0.3, -distance, 0.4), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), fov_x, width, height)
+    if cx is not None or cy is not None:
+        cam = Camera(viewmat=cam.viewmat, fx=cam.fx, fy=cam.fy, cx=cam.cx if cx is None else cx,
+                     cy=cam.cy if cy is None else cy, width=width, height=height)
+    return Camera(viewmat=cam.viewmat.to(dtype), fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy,
+                  width=cam.width, height=cam.height)
+
+
+def ref_render(g: Gaussians, cam: Camera, sh_degree: int, background: torch.Tensor):
+    return reference_rasterize(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam.viewmat,
+                               cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, sh_degree,
+                               background)
+
+
+def assert_forward_matches(g: Gaussians, cam: Camera, *, sh_degree: int | None = None,
+                           background=(0.0, 0.0, 0.0), atol: float = 1e-5) -> None:
+    degree = g.sh_degree if sh_degree is None else sh_degree
+    bg = torch.tensor(background, dtype=g.dtype)
+    out = rasterize(g, cam, sh_degree=degree, background=bg)
+    ref = ref_render(g, cam, degree, bg)
+    assert torch.equal(out.radii, ref.projection.radii)
+    assert (out.image - ref.image).abs().max().item() <= atol
+    assert (out.alpha - ref.alpha).abs().max().item() <= atol
+    assert (out.depth - ref.depth).abs().max().item() <= atol * max(1.0, float(out.depth.abs().max()))
+    assert (out.final_T - ref.final_T).abs().max().item() <= atol
+    vis = out.visible
+    assert torch.allclose(out.means2d[vis], ref.projection.means2d[vis], atol=1e-4, rtol=1e-5)
+    assert torch.equal(out.n_contrib, ref.n_contrib)
+
+
+# ----------------------------------------------------------------------------------------- forward
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_forward_matches_reference_random(sh_degree: int, seed: int) -> None:
+    g = random_gaussians(120, sh_degree=sh_degree, seed=seed, extent=0.8, scale_range=(0.02, 0.15))
+    assert_forward_matches(g, make_camera())
+
+
+@pytest.mark.parametrize("size", [(16, 16), (17, 33), (50, 21), (1, 1), (64, 48)])
+def test_forward_sizes_not_multiple_of_16(size: tuple[int, int]) -> None:
+    g = random_gaussians(80, sh_degree=1, seed=3, extent=0.8)
+    assert_forward_matches(g, make_camera(*size))
+
+
+def test_forward_background_and_off_centre_principal_point() -> None:
+    g = random_gaussians(60, sh_degree=2, seed=4, extent=0.5, opacity_range=(0.05, 0.5))
+    assert_forward_matches(g, make_camera(37, 29, cx=11.3, cy=20.1), background=(0.2, 0.5, 0.9))
+
+
+def test_forward_lower_sh_degree_than_stored() -> None:
+    g = random_gaussians(60, sh_degree=3, seed=5)
+    assert_forward_matches(g, make_camera(), sh_degree=1)
+
+
+def test_empty_scene_is_background() -> None:
+    g = Gaussians.empty(sh_degree=2)
+    out = rasterize(g, make_camera(21, 13), background=(0.1, 0.2, 0.3))
+    assert out.image.shape == (3, 13, 21)
+    assert torch.allclose(out.image, torch.tensor([0.1, 0.2, 0.3]).view(3, 1, 1).expand(3, 13, 21))
+    assert out.alpha.abs().max() == 0 and out.n_contrib.max() == 0
+
+
+def test_everything_culled_behind_camera_and_at_near_plane() -> None:
+    from gsw.constants import NEAR_PLANE
+
+    cam = make_camera()
+    g = random_gaussians(30, sh_degree=0, seed=6, extent=0.2)
+    # Put everything behind the camera, and a few at the near plane.
+    cam_pos = cam.center.to(g.dtype)
+    forward = cam.R[2].to(g.dtype)
+    g.means = cam_pos - forward * torch.linspace(0.1, 2.0, 30).unsqueeze(1)
+    g.means[:5] = cam_pos + forward * (NEAR_PLANE - 1e-4)  # just inside the culled side
+    out = rasterize(g, cam, background=(1.0, 1.0, 1.0))
+    assert int(out.visible.sum()) == 0
+    assert torch.all(out.image == 1.0)
+    assert_forward_matches(g, cam, background=(1.0, 1.0, 1.0))
+
+
+def test_near_plane_straddling_and_off_screen() -> None:
+    from gsw.constants import NEAR_PLANE
+
+    cam = make_camera(48, 32)
+    g = random_gaussians(80, sh_degree=1, seed=7, extent=0.6)
+    forward = cam.R[2].to(g.dtype)
+    right = cam.R[0].to(g.dtype)
+    g.means[:10] = cam.center.to(g.dtype) + forward * (NEAR_PLANE + torch.linspace(-0.05, 0.05, 10)).unsqueeze(1)
+    g.means[10:20] = g.means[10:20] + right * 5.0  # far off-screen to the side
+    assert_forward_matches(g, cam)
+
+
+def test_tile_border_straddling_splats() -> None:
+    # Splats centred exactly on tile borders (pixel 16, 32 ...) in a 64x48 image.
+    cam = make_camera(64, 48)
+    n = 12
+    px = torch.tensor([16.0, 32.0, 48.0, 16.0, 32.0, 48.0] * 2)
+    py = torch.tensor([16.0] * 6 + [32.0] * 6)
+    depth = torch.linspace(2.5, 3.5, n)
+    pts_cam = torch.stack([(px - cam.cx) / cam.fx * depth, (py - cam.cy) / cam.fy * depth, depth], 1)
+    means = (pts_cam - cam.t.float()) @ cam.R.float()  # camera -> world: R^T (p - t)
+    g = random_gaussians(n, sh_degree=0, seed=8, scale_range=(0.03, 0.08))
+    g.means = means.contiguous()
+    assert_forward_matches(g, cam)
+
+
+def test_degenerate_flat_and_huge_gaussians_and_zero_opacity() -> None:
+    g = random_gaussians(60, sh_degree=2, seed=9, extent=0.7)
+    g.log_scales[:10, 2] = -30.0  # flat discs
+    g.log_scales[10:15] = torch.tensor([1.5, 1.2, 1.0])  # huge: cover the whole image
+    g.log_scales[15:20, :2] = -30.0  # needles
+    g.opacity_logits[20:30] = -1e4  # opacity exactly zero after the sigmoid
+    assert_forward_matches(g, make_camera(41, 27))
+
+
+def test_sh_fixture_renders_without_nan() -> None:
+    g = gsw.load_ply(require(FIXTURE, "shared data"))
+    center = g.means.median(dim=0).values
+    cams = gsw.orbit_cameras(center.tolist(), 3.0, 3, width=96, height=80)
+    for cam in cams:
+        out = rasterize(g, cam)
+        assert torch.isfinite(out.image).all() and torch.isfinite(out.depth).all()
+        assert int(out.visible.sum()) > 0
+
+
+def test_deterministic_across_runs_and_thread_counts() -> None:
+    g = frustum_scene(3000, make_camera(96, 80), sh_degree=1, seed=1)
+    cam = make_camera(96, 80)
+    params = [t.requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
+
+    def run() -> list[torch.Tensor]:
+        for p in params:
+            p.grad = None
+        out = rasterize(g, cam)
+        (out.image * torch.linspace(0, 1, 96)).sum().backward()
+        return [out.image.detach()] + [p.grad.clone() for p in params]
+
+    threads = torch.get_num_threads()
+    first = run()
+    try:
+        torch.set_num_threads(1)
+        single = run()
+    finally:
+        torch.set_num_threads(threads)
+    again = run()
+    for a, b, c in zip(first, single, again):
+        assert torch.equal(a, b) and torch.equal(a, c)
+
+
+# ----------------------------------------------------------------------------------------- backward
+
+
+def _loss_fn(cam: Camera, sh_degree: int, W: int, H: int, dtype):
+    gen = torch.Generator().manual_seed(11)
+    wi = torch.randn(3, H, W, generator=gen, dtype=dtype)
+    wa = torch.randn(1, H, W, generator=gen, dtype=dtype)
+    wd = torch.randn(1, H, W, generator=gen, dtype=dtype)
+
+    def loss(means, quats, log_scales, logits, sh, bg, *, use_ref=False):
+        if use_ref:
+            out = reference_rasterize(means, quats, log_scales, logits, sh, cam.viewmat, cam.fx,
+                                      cam.fy, cam.cx, cam.cy, W, H, sh_degree, bg)
+        else:
+            out = rasterize(Gaussians(means, log_scales, quats, logits, sh), cam,
+                            sh_degree=sh_degree, background=bg)
+        return (out.image * wi).sum() + (out.alpha * wa).sum() + (out.depth * wd).sum()
+
+    return loss
+
+
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_gradcheck_float64(sh_degree: int) -> None:
+    W, H = 18, 14
+    cam = make_camera(W, H, dtype=torch.float64, cx=8.3, cy=7.9)
+    g = random_gaussians(5, sh_degree=sh_degree, seed=12, extent=0.4, scale_range=(0.08, 0.2),
+                         opacity_range=(0.2, 0.7), dtype=torch.float64)
+    bg = torch.tensor([0.1, 0.3, 0.2], dtype=torch.float64, requires_grad=True)
+    loss = _loss_fn(cam, sh_degree, W, H, torch.float64)
+    inputs = tuple(t.clone().requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)) + (bg,)
+    assert torch.autograd.gradcheck(loss, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1, 3])
+def test_float32_gradients_match_reference_autograd(sh_degree: int) -> None:
+    W, H = 36, 28
+    cam = make_camera(W, H)
+    g = random_gaussians(40, sh_degree=sh_degree, seed=13 + sh_degree, extent=0.6,
+                         scale_range=(0.03, 0.15))
+    loss = _loss_fn(cam, sh_degree, W, H, torch.float32)
+    bg = torch.tensor([0.2, 0.1, 0.4])
+    grads = []
+    for use_ref in (False, True):
+        inputs = [t.clone().requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+        b = bg.clone().requires_grad_()
+        loss(*inputs, b, use_ref=use_ref).backward()
+        grads.append([t.grad for t in inputs] + [b.grad])
+    names = ["means", "quats", "log_scales", "opacity_logits", "sh", "background"]
+    for name, ours, ref in zip(names, *grads):
+        rel = (ours - ref).norm() / ref.norm().clamp_min(1e-12)
+        assert rel.item() <= 1e-4, f"{name}: relative error {rel.item():.2e}"
+
+
+@pytest.mark.parametrize("outputs", [("image",), ("alpha",), ("depth",), ("alpha", "depth")])
+def test_gradients_when_only_some_outputs_are_used(outputs: tuple[str, ...]) -> None:
+    # Unused outputs reach the backward as None (no zero-filled cotangents): it must treat them as zero.
+    W, H = 22, 17
+    cam = make_camera(W, H, dtype=torch.float64)
+    g = random_gaussians(12, sh_degree=1, seed=5, extent=0.5, scale_range=(0.05, 0.15), dtype=torch.float64)
+    gen = torch.Generator().manual_seed(3)
+    w = {name: torch.randn(c, H, W, generator=gen, dtype=torch.float64)
+         for name, c in (("image", 3), ("alpha", 1), ("depth", 1))}
+    bg = torch.tensor([0.2, 0.1, 0.4], dtype=torch.float64)
+    grads = []
+    for use_ref in (False, True):
+        inputs = [t.clone().requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+        if use_ref:
+            out = reference_rasterize(*inputs, cam.viewmat, cam.fx, cam.fy, cam.cx, cam.cy, W, H, 1, bg)
+        else:
+            out = rasterize(Gaussians(inputs[0], inputs[2], inputs[1], inputs[3], inputs[4]), cam, sh_degree=1,
+                            background=bg)
+        sum((getattr(out, name) * w[name]).sum() for name in outputs).backward()
+        grads.append([torch.zeros_like(t) if t.grad is None else t.grad for t in inputs])  # unused -> None
+    for ours, ref in zip(*grads):
+        assert (ours - ref).norm() <= 1e-8 * ref.norm().clamp_min(1e-12), f"{outputs}: {ours} vs {ref}"
+    assert any(t.abs().sum() > 0 for t in grads[0])  # the loss does reach the Gaussians
+
+
+def test_screen_space_gradient_is_exposed() -> None:
+    cam = make_camera()
+    g = random_gaussians(50, sh_degree=0, seed=14, extent=0.6)
+    g.means.requires_grad_()
+    out = rasterize(g, cam)
+    out.means2d.retain_grad()
+    out.image.sum().backward()
+    grad2d = out.means2d.grad
+    assert grad2d is not None and grad2d.shape == (50, 2)
+    assert grad2d[out.visible].abs().sum() > 0 and grad2d[~out.visible].abs().sum() == 0
+
+
+# ----------------------------------------------------------------------------------------- contribution
+
+
+@pytest.mark.parametrize("channels", [1, 3, 5])
+def test_contribution_is_gradient_of_colour_override(channels: int) -> None:
+    W, H = 45, 31
+    cam = make_camera(W, H)
+    g = random_gaussians(150, sh_degree=1, seed=15, extent=0.7)
+    weights = torch.rand(channels, H, W, generator=torch.Generator().manual_seed(2))
+    res = contribution(g, cam, weights)
+    assert res.values.shape == (150, channels)
+    for c in range(channels):
+        colors = torch.zeros(150, 3, requires_grad=True)
+        out = rasterize(g, cam, colors=colors)
+        (out.image[0] * weights[c]).sum().backward()
+        expected = colors.grad[:, 0]
+        assert torch.allclose(res.values[:, c], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_contribution_weights_sum_to_alpha_and_match_reference() -> None:
+    W, H = 40, 30
+    cam = make_camera(W, H)
+    g = random_gaussians(120, sh_degree=0, seed=16, extent=0.7)
+    out = rasterize(g, cam)
+    ones = contribution(g, cam, torch.ones(1, H, W))
+    # Per pixel: weights of all contributors sum to alpha; summed over pixels here, and per
+    # pixel with one-hot weight maps on a few pixels.
+    assert torch.allclose(ones.values.sum(), out.alpha.sum(), rtol=1e-5)
+    for (y, x) in [(0, 0), (15, 20), (29, 39), (7, 33)]:
+        onehot = torch.zeros(1, H, W)
+        onehot[0, y, x] = 1.0
+        assert torch.allclose(contribution(g, cam, onehot).values.sum(), out.alpha[0, y, x], atol=1e-6)
+    p = out.projection
+    weights = torch.rand(2, H, W, generator=torch.Generator().manual_seed(3))
+    V, hits, max_w = reference_contribution(p.means2d, p.conics, p.opacities, p.depths, p.radii, W, H, weights)
+    ours = contribution(g, cam, weights)
+    assert torch.allclose(ours.values, V, atol=1e-5, rtol=1e-5)
+    assert torch.equal(ours.hits, hits)
+    assert torch.allclose(ours.max_weight, max_w, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------- APIs and errors
+
+
+def test_gsplat_style_rasterization_matches_rasterize() -> None:
+    cams = [make_camera(32, 24), make_camera(32, 24, distance=4.0)]
+    g = random_gaussians(60, sh_degree=2, seed=17, extent=0.6)
+    viewmats = torch.stack([c.viewmat.float() for c in cams])
+    Ks = torch.stack([c.K.float() for c in cams])
+    colors, alphas, meta = rasterization(g.means, g.quats, g.scales, g.opacities, g.sh, viewmats, Ks,
+                                         32, 24, sh_degree=2)
+    assert colors.shape == (2, 24, 32, 3) and alphas.shape == (2, 24, 32, 1)
+    for i, cam in enumerate(cams):
+        out = rasterize(g, cam)
+        assert torch.allclose(colors[i], out.image.permute(1, 2, 0), atol=1e-5)
+        assert torch.equal(meta["radii"][i], out.radii)
+    # Direct colours, and gradients reach the activated parameters.
+    opac = g.opacities.clone().requires_grad_()
+    rgb = torch.rand(60, 3, requires_grad=True)
+    colors, _, _ = rasterization(g.means, g.quats, g.scales, opac, rgb, viewmats, Ks, 32, 24)
+    colors.sum().backward()
+    assert opac.grad.abs().sum() > 0 and rgb.grad.abs().sum() > 0
+
+
+def test_bad_inputs_name_the_argument() -> None:
+    from gsw import _C
+
+    g = random_gaussians(10, sh_degree=1, seed=18)
+    cam = make_camera()
+    with pytest.raises(RuntimeError, match="quats"):
+        project(g.means, g.quats[:, :3].contiguous(), g.log_scales, g.opacity_logits, g.sh, cam, 1)
+    with pytest.raises(RuntimeError, match="log_scales.*dtype"):
+        project(g.means, g.quats, g.log_scales.double(), g.opacity_logits, g.sh, cam, 1)
+    with pytest.raises(RuntimeError, match="sh_degree"):
+        project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 4)
+    with pytest.raises(RuntimeError, match="sh"):
+        project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 2)  # needs 9 coeffs
+    with pytest.raises(ValueError, match="sh_degree"):
+        rasterize(g, cam, sh_degree=3)
+    with pytest.raises(ValueError, match="weights"):
+        contribution(g, cam, torch.ones(1, 5, 5))
+    bad = g.clone()
+    bad.opacity_logits[3] = float("nan")
+    with pytest.raises(ValueError, match="opacity_logits: 1 of 10"):
+        rasterize(bad, cam)
+    with pytest.raises(ValueError, match="background"):
+        rasterize(g, cam, background=(1.0, 0.0))
+    proj = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 1)
+    bins = bin_gaussians(proj, cam.width, cam.height)
+    with pytest.raises(RuntimeError, match="bins"):
+        blend(proj, bins, cam.width + 16, cam.height, torch.zeros(3))
+    with pytest.raises(RuntimeError, match="fx"):
+        _C.project_forward(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, 1, cam.viewmat,
+                           -1.0, 1.0, 0.0, 0.0, 10, 10)
+
+
+def test_build_info_reports_backends() -> None:
+    info = gsw.build_info()
+    assert {"compiler", "openmp", "threads", "cuda", "version", "torch"} <= set(info)
+    assert info["threads"] >= 1 and info["version"] == gsw.__version__
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or shutil.which("readelf") is None
+                    or not gsw.build_info()["compiler"].startswith("GNU"), reason="needs Linux, GCC and readelf")
+def test_extension_uses_the_shared_libstdcxx() -> None:
+    # A private static libstdc++ inside the module crashed torch's error formatting (see CMakeLists.txt).
+    from gsw import _C
+
+    dynamic = subprocess.run(["readelf", "-d", _C.__file__], capture_output=True, text=True, check=True).stdout
+    assert "libstdc++.so" in dynamic
