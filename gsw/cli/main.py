@@ -594,6 +594,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_train_parser(sub).set_defaults(func=run_train)
 
+    from gsw.cli.registry import register as register_registry_commands
+
+    register_registry_commands(sub)
+
     render = sub.add_parser("render", help="render a .ply/.splat model to PNGs")
     render.add_argument("model", help="INRIA point_cloud.ply or .splat file")
     render.add_argument("--cameras", help="INRIA cameras.json (default: an orbit)")

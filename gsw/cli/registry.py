@@ -1,0 +1,166 @@
+"""``gsw keys list|show`` (the registry of issued marks) and ``gsw identify`` (who leaked this?).
+
+Messages are secrets: no command prints one unless asked with ``--show-secret``. Exit status of
+``gsw identify``: 0 when a recipient is identified, 1 when nobody is, 2 on an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from gsw.stats import DETECTION_FPR
+
+__all__ = ["register", "cmd_keys_list", "cmd_keys_show", "cmd_identify"]
+
+_REGISTRY_HELP = ("registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw/registry.sqlite, "
+                  "i.e. ~/.local/share/gsw/registry.sqlite)")
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _open(args: argparse.Namespace):
+    from gsw.registry import open_registry
+
+    return open_registry(args.registry, create=False)
+
+
+def _print_json(obj: Any) -> None:
+    json.dump(obj, sys.stdout, indent=2)
+    print()
+
+
+def _short(text: str | None, n: int = 12) -> str:
+    return "-" if text is None else text[:n]
+
+
+def _describe(mark, show_secret: bool) -> list[tuple[str, str]]:
+    size = "-" if mark.width is None else f"{mark.width}x{mark.height}"
+    bg = "-" if mark.background is None else ", ".join(f"{v:g}" for v in mark.background)
+    rows = [("id", str(mark.id)), ("label", mark.label), ("bits", str(mark.num_bits)),
+            ("decoder sha256", mark.decoder_sha256), ("model hash", mark.model_hash or "-"),
+            ("resolution", size), ("background", bg), ("created (UTC)", mark.created),
+            ("gsw version", mark.gsw_version)]
+    if show_secret:
+        rows.insert(3, ("message", mark.message_hex))
+    return rows
+
+
+def cmd_keys_list(args: argparse.Namespace) -> int:
+    """Lists the registered marks (messages only with --show-secret)."""
+    with _open(args) as reg:
+        marks = reg.list()
+    if args.json:
+        _print_json([m.to_dict(args.show_secret) for m in marks])
+        return 0
+    header = ["id", "label", "bits", "decoder", "model", "created (UTC)"] + (["message"] if args.show_secret else [])
+    rows = [[str(m.id), m.label, str(m.num_bits), _short(m.decoder_sha256), _short(m.model_hash, 20), m.created]
+            + ([m.message_hex] if args.show_secret else []) for m in marks]
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    for r in [header, *rows]:
+        print("  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip())
+    print(f"{len(marks)} mark{'s' * (len(marks) != 1)} in {reg.path}")
+    return 0
+
+
+def cmd_keys_show(args: argparse.Namespace) -> int:
+    """Shows one mark by id or label (its message only with --show-secret)."""
+    with _open(args) as reg:
+        mark = reg.get(args.mark)
+    if args.json:
+        _print_json(mark.to_dict(args.show_secret))
+        return 0
+    rows = _describe(mark, args.show_secret)
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k:<{width}}  {v}")
+    return 0
+
+
+def cmd_identify(args: argparse.Namespace) -> int:
+    """Tests images or video frames against every registered mark; exit 0 when someone is identified."""
+    from gsw.io.video import load_named_images_or_video
+    from gsw.mark.identify import identify
+
+    if not 0.0 < args.fpr < 1.0:
+        raise ValueError(f"--fpr must lie in (0, 1), got {args.fpr}")
+    with _open(args) as reg:
+        marks = reg.list()
+        path = reg.path
+    if not marks:
+        raise ValueError(f"registry {path} holds no marks")
+    named = load_named_images_or_video(args.inputs, args.frames, every=args.every)
+    device = None if args.device == "auto" else args.device
+    if args.device == "auto":
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else None
+    result = identify([img for _, img in named], marks, fpr=args.fpr, device=device)
+    if args.json:
+        out = result.to_dict(args.show_secret)
+        out["images"] = [name for name, _ in named]
+        _print_json(out)
+    else:
+        _print_identification(result, len(named), args.top)
+    return 0 if result.identified else 1
+
+
+def _print_identification(result, num_images: int, top: int) -> None:
+    tested = len(result.results)
+    print(f"tested {tested} mark{'s' * (tested != 1)} on {num_images} image{'s' * (num_images != 1)} "
+          f"(family-wise false-positive rate {result.fpr:g}, Holm)")
+    if result.skipped:
+        print(f"skipped {len(result.skipped)} mark(s) whose decoder is not available: "
+              f"{', '.join(m.label for m in result.skipped[:5])}{' ...' if len(result.skipped) > 5 else ''}")
+    for r in result.results[:max(top, len(result.identified))]:
+        verdict = "IDENTIFIED" if r.identified else "          "
+        print(f"{verdict}  {r.mark.label}  (id {r.mark.id}, {r.mark.num_bits} bits): adjusted p = "
+              f"{r.adjusted_p_value:.2e}, best image {100 * r.best_bit_accuracy:.1f} % of the bits")
+    if result.identified:
+        print(f"identified: {', '.join(result.recipients)}")
+    else:
+        print("nobody identified")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``keys`` (``list``, ``show``) and ``identify`` to the ``gsw`` command's subparsers."""
+    keys = subparsers.add_parser("keys", help="the registry of issued marks (list, show)",
+                                 description="The registry of issued marks: which recipient got which message. "
+                                 "Messages are secret and printed only with --show-secret.")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True)
+    lst = keys_sub.add_parser("list", help="list the registered marks")
+    lst.set_defaults(func=cmd_keys_list)
+    show = keys_sub.add_parser("show", help="show one mark")
+    show.add_argument("mark", help="the mark's id or recipient label")
+    show.set_defaults(func=cmd_keys_show)
+    for p in (lst, show):
+        p.add_argument("--registry", help=_REGISTRY_HELP)
+        p.add_argument("--json", action="store_true", help="print JSON only")
+        p.add_argument("--show-secret", action="store_true", help="also print the secret messages")
+
+    idf = subparsers.add_parser("identify", help="name the recipient whose mark images or a video carry "
+                                "(exit 0 = identified, 1 = nobody)",
+                                description="Decodes the images (or frames of videos) once and tests every "
+                                "registered mark; a recipient is identified when the Holm-adjusted p-value over "
+                                "all registered marks is at most --fpr.")
+    idf.add_argument("inputs", nargs="+", metavar="IMAGE|VIDEO", help="image files and/or video files "
+                     "(.mp4, .mkv, .webm, .mov, ...; videos need PyAV), taken together as one source")
+    idf.add_argument("--registry", help=_REGISTRY_HELP)
+    idf.add_argument("--frames", type=_positive_int, default=16,
+                     help="frames read per video, spread evenly (default %(default)s)")
+    idf.add_argument("--every", type=_positive_int, default=None,
+                     help="read every K-th frame of a video instead of --frames")
+    idf.add_argument("--fpr", type=float, default=DETECTION_FPR,
+                     help="family-wise false-positive rate over all registered marks (default %(default)g)")
+    idf.add_argument("--device", default="auto", help="where to decode: auto, cpu or cuda (default auto)")
+    idf.add_argument("--top", type=int, default=3, help="candidates shown besides the identified (default 3)")
+    idf.add_argument("--show-secret", action="store_true", help="include messages in --json output")
+    idf.add_argument("--json", action="store_true", help="print JSON only")
+    idf.set_defaults(func=cmd_identify)
