@@ -113,8 +113,12 @@ def test_missing_file_without_create(tmp_path) -> None:
 
 
 _WRITER = """
-import sys
+import os, sys, time
+import gsw.mark.message  # the heavy imports before the start signal, so the two writers overlap
 from gsw.registry import open_registry
+print("ready", flush=True)
+while not os.path.exists(sys.argv[3]):
+    time.sleep(0.005)
 with open_registry(sys.argv[1]) as reg:
     for i in range(20):
         reg.add(f"{sys.argv[2]}-{i}", f"{sys.argv[2]}{i:07x}", decoder_sha256="ab" * 32)
@@ -122,11 +126,14 @@ with open_registry(sys.argv[1]) as reg:
 
 
 def test_two_processes_writing_at_once_both_land(tmp_path) -> None:
-    path = tmp_path / "reg.sqlite"
+    path, go = tmp_path / "reg.sqlite", tmp_path / "go"
     open_registry(path).close()
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    procs = [subprocess.Popen([sys.executable, "-c", _WRITER, str(path), tag], env=env, stderr=subprocess.PIPE,
-                              text=True) for tag in ("a", "b")]
+    procs = [subprocess.Popen([sys.executable, "-c", _WRITER, str(path), tag, str(go)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for tag in ("a", "b")]
+    for p in procs:
+        assert p.stdout.readline().strip() == "ready", p.communicate()[1]
+    go.touch()  # both start writing now
     for p in procs:
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err

@@ -1,0 +1,183 @@
+"""Identification of recipients: p-value per mark, Holm over marks, truly marked images, 1,000 marks."""
+
+from __future__ import annotations
+
+import random
+import time
+
+import numpy as np
+import pytest
+import torch
+
+import gsw.mark
+from gsw.mark.identify import _holm, _mark_p_value, identify
+from gsw.mark.image import ImageEmbedConfig, embed_image
+from gsw.mark.message import random_message
+from gsw.registry import Mark, open_registry, shipped_decoder_sha256
+from gsw.stats import binomial_p_value
+
+BITS = 48
+
+
+def test_mark_p_value_is_bonferroni_over_frames() -> None:
+    message = torch.tensor([1.0, 0.0] * 16)
+    frames = torch.stack([message.clone() for _ in range(3)])
+    frames[0, :10] = 1 - frames[0, :10]  # 22 of 32 right
+    frames[1, :2] = 1 - frames[1, :2]  # 30 of 32 right (the best)
+    frames[2, :20] = 1 - frames[2, :20]  # 12 of 32 right
+    assert _mark_p_value(frames, message) == pytest.approx(3 * binomial_p_value(30, 32))
+    assert _mark_p_value(frames[:1], message) == pytest.approx(binomial_p_value(22, 32))
+    assert _mark_p_value(frames[2:], message) == pytest.approx(binomial_p_value(12, 32))
+    assert _mark_p_value(frames[2:].expand(40, -1), message) == 1.0  # capped
+    # near-duplicate frames add no evidence: repeating the best frame only raises the bound
+    assert _mark_p_value(frames[1:2].expand(10, -1), message) > _mark_p_value(frames[1:2], message)
+
+
+def test_holm_adjustment() -> None:
+    assert _holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
+    assert _holm([0.3, 0.3]) == pytest.approx([0.6, 0.6])
+    assert _holm([]) == []
+
+
+class _CoinDecoder(torch.nn.Module):
+    """A decoder that reads fair coins whatever the image: the null hypothesis made exact."""
+
+    def __init__(self, k: int, seed: int) -> None:
+        super().__init__()
+        self.k, self.gen = k, torch.Generator().manual_seed(seed)
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        return torch.randn(ll.shape[0], self.k, generator=self.gen)
+
+
+def test_family_wise_false_positive_rate_holds_under_the_null() -> None:
+    """Unmarked sources (coin-flip bits) against 50 marks: P(anyone identified) stays <= fpr."""
+    k, fpr, trials, sha = 16, 0.05, 300, "ee" * 32
+    messages = random.Random(0).sample(range(2**k), 50)
+    marks = [Mark(id=i + 1, label=f"m{i}", message_hex=f"{m:04x}", num_bits=k, decoder_sha256=sha, model_hash=None,
+                  width=None, height=None, background=None, created="t", gsw_version="v")
+             for i, m in enumerate(messages)]
+    decoders = {sha: _CoinDecoder(k, seed=1)}
+    image = torch.zeros(3, 32, 32)
+    runs = [identify(image, marks, fpr=fpr, decoders=decoders) for _ in range(trials)]
+    hits = sum(bool(r.identified) for r in runs)
+    assert hits / trials <= fpr + 3 * (fpr * (1 - fpr) / trials) ** 0.5
+    # without the correction over marks the same sources would name someone most of the time
+    uncorrected = sum(any(m.p_value <= fpr for m in r.results) for r in runs)
+    assert uncorrected / trials > 0.5
+
+
+@pytest.fixture(scope="module")
+def marked(tmp_path_factory):
+    """A registry of 5 recipients (48 bits, shipped decoder) and a 64x64 image truly marked for 'carol'."""
+    path = tmp_path_factory.mktemp("reg") / "reg.sqlite"
+    sha = shipped_decoder_sha256(BITS)
+    with open_registry(path) as reg:
+        for i, name in enumerate(["alice", "bob", "carol", "dave", "erin"]):
+            reg.add(name, random_message(BITS, seed=100 + i), decoder_sha256=sha, width=64, height=64)
+        carol = reg.get("carol")
+    g = torch.Generator().manual_seed(0)
+    cover = 0.25 + 0.5 * torch.rand(3, 64, 64, generator=g)
+    res = embed_image(cover, carol.message, num_bits=BITS, progress=False,
+                      config=ImageEmbedConfig(steps=40, attack_every=0, psnr=32.0, device="cpu"))
+    assert res.bit_accuracy == 1.0, "the fixture's image is not fully marked"
+    return path, cover, res.image
+
+
+def test_marked_image_names_its_recipient_and_no_one_else(marked) -> None:
+    path, _, image = marked
+    with open_registry(path, create=False) as reg:
+        found = identify(image, reg)
+    assert found.recipients == ["carol"]
+    assert len(found.results) == 5 and found.num_images == 1 and not found.skipped
+    best = found.identified[0]
+    assert best.matches == [BITS] and best.adjusted_p_value <= found.fpr
+    assert best.adjusted_p_value == pytest.approx(5 * binomial_p_value(BITS, BITS))
+    assert all(not r.identified and r.adjusted_p_value > found.fpr for r in found.results[1:])
+    assert "message_hex" not in str(found.to_dict()) and found.to_dict()["recipients"] == ["carol"]
+
+
+def test_unmarked_image_names_nobody(marked) -> None:
+    path, cover, _ = marked
+    with open_registry(path, create=False) as reg:
+        found = identify([cover, cover.flip(-1)], reg)
+    assert found.identified == [] and found.recipients == []
+    assert len(found.results) == 5 and all(r.adjusted_p_value > found.fpr for r in found.results)
+
+
+def test_marked_video_frames_name_the_recipient(marked, tmp_path) -> None:
+    av = pytest.importorskip("av")
+    from gsw.io.video import load_images_or_video
+
+    path, cover, image = marked
+    video = tmp_path / "leak.mkv"
+    frames = [cover, image, image, cover]  # the marked copy appears in the middle of the clip
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("ffv1", rate=4)
+        stream.width, stream.height, stream.pix_fmt = 64, 64, "bgr0"  # lossless
+        for f in frames:
+            arr = np.ascontiguousarray((f * 255).round().to(torch.uint8).permute(1, 2, 0).numpy())
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(arr, format="rgb24")))
+        container.mux(stream.encode())
+    with open_registry(path, create=False) as reg:
+        found = identify(load_images_or_video([video], frames=None), reg)
+    assert found.recipients == ["carol"] and found.num_images == 4
+    assert found.identified[0].matches[1:3] == [BITS, BITS]
+
+
+def test_a_thousand_marks_decode_once_and_stay_correct(marked, tmp_path, monkeypatch) -> None:
+    _, cover, image = marked
+    sha = shipped_decoder_sha256(BITS)
+    path = tmp_path / "big.sqlite"
+    with open_registry(path) as reg:
+        with open_registry(marked[0], create=False) as small:
+            carol = small.get("carol")
+        reg.add_many([dict(label=f"recipient-{i}", message=random_message(BITS, seed=10_000 + i),
+                           decoder_sha256=sha) for i in range(999)])
+        reg.add("carol", carol.message, decoder_sha256=sha)
+        assert len(reg) == 1000
+        calls = []
+        real_extract = gsw.mark.extract
+
+        def counting_extract(*args, **kwargs):
+            calls.append(kwargs.get("num_bits"))
+            return real_extract(*args, **kwargs)
+
+        monkeypatch.setattr(gsw.mark, "extract", counting_extract)
+        start = time.perf_counter()
+        found = identify([image, cover], reg)
+        seconds = time.perf_counter() - start
+        nobody = identify([cover], reg)
+    assert calls == [BITS, BITS]  # one decoding pass of the images per call, not one per mark
+    assert found.recipients == ["carol"] and len(found.results) == 1000
+    assert found.identified[0].adjusted_p_value == pytest.approx(1000 * 2 * binomial_p_value(BITS, BITS))
+    assert nobody.recipients == []
+    assert seconds < 20.0, f"identifying 2 images against 1,000 marks took {seconds:.1f} s"
+
+
+def test_marks_of_unknown_decoders_are_skipped_and_custom_decoders_used(marked) -> None:
+    path, _, image = marked
+    with open_registry(path, create=False) as reg:
+        marks = reg.list()
+    from dataclasses import replace
+
+    foreign = replace(marks[0], id=99, label="foreign", decoder_sha256="12" * 32)
+    found = identify(image, [*marks, foreign])
+    assert [m.label for m in found.skipped] == ["foreign"] and len(found.results) == 5
+    assert found.recipients == ["carol"]
+    # the same decoder given under the foreign sha256: now the foreign mark is tested too
+    from gsw.decoder import load_decoder
+
+    found = identify(image, [*marks, foreign], decoders={"12" * 32: load_decoder(BITS)})
+    assert not found.skipped and len(found.results) == 6
+
+
+def test_bad_arguments(marked) -> None:
+    path, _, image = marked
+    with open_registry(path, create=False) as reg:
+        with pytest.raises(ValueError, match="fpr must lie in"):
+            identify(image, reg, fpr=0.0)
+        with pytest.raises(ValueError, match="no images"):
+            identify([], reg)
+        with pytest.raises(ValueError, match="expected a \\[3,H,W\\]"):
+            identify([torch.rand(1, 64, 64)], reg)
