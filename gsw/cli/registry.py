@@ -97,12 +97,11 @@ def cmd_identify(args: argparse.Namespace) -> int:
     if not marks:
         raise ValueError(f"registry {path} holds no marks")
     named = load_named_images_or_video(args.inputs, args.frames, every=args.every)
-    device = None if args.device == "auto" else args.device
-    if args.device == "auto":
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else None
-    result = identify([img for _, img in named], marks, fpr=args.fpr, device=device)
+    result = identify([img for _, img in named], marks, fpr=args.fpr, device=_device(args.device))
+    if not result.results:
+        shas = sorted({m.decoder_sha256[:12] for m in result.skipped})
+        raise ValueError(f"none of the {len(marks)} registered marks can be tested: their decoders "
+                         f"({', '.join(shas)}) are not the shipped ones")
     if args.json:
         out = result.to_dict(args.show_secret)
         out["images"] = [name for name, _ in named]
@@ -110,6 +109,21 @@ def cmd_identify(args: argparse.Namespace) -> int:
     else:
         _print_identification(result, len(named), args.top)
     return 0 if result.identified else 1
+
+
+def _device(name: str) -> str | None:
+    """None (decode where the images are: the CPU) or a usable CUDA device."""
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else None
+    if name == "cpu":
+        return None
+    if not name.startswith("cuda"):
+        raise ValueError(f"--device must be auto, cpu or cuda[:N], got {name!r}")
+    if not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: no CUDA device is available")
+    return name
 
 
 def _print_identification(result, num_images: int, top: int) -> None:

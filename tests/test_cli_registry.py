@@ -1,0 +1,135 @@
+"""`gsw keys list|show` and `gsw identify`: secrets stay hidden, JSON only, exit statuses 0/1/2.
+
+These tests exercise the command line; whether a truly watermarked image is identified is tested in
+test_mark_identify.py. Here the recipient's message is whatever the shipped decoder reads from a given
+image, so that image carries the mark exactly, without an optimisation run.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gsw.cli.main import main
+from gsw.data.images import read_image, write_image
+from gsw.mark import extract
+from gsw.mark.message import message_to_hex, random_message
+from gsw.registry import open_registry, shipped_decoder_sha256
+
+BITS = 48
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory) -> tuple[Path, Path, Path, str]:
+    """(registry, the image carrying 'carol', another image, carol's message hex)."""
+    folder = tmp_path_factory.mktemp("cli")
+    g = torch.Generator().manual_seed(3)
+    write_image(folder / "leak.png", torch.rand(3, 64, 64, generator=g))
+    write_image(folder / "other.png", torch.rand(3, 64, 64, generator=g))
+    carol = message_to_hex(extract(read_image(folder / "leak.png"), num_bits=BITS).bits[0])
+    sha = shipped_decoder_sha256(BITS)
+    with open_registry(folder / "reg.sqlite") as reg:
+        reg.add_many([dict(label=name, message=random_message(BITS, seed=i), decoder_sha256=sha)
+                      for i, name in enumerate(["alice", "bob"])])
+        reg.add("carol", carol, decoder_sha256=sha, width=64, height=64, background=(0, 0, 0))
+    return folder / "reg.sqlite", folder / "leak.png", folder / "other.png", carol
+
+
+def test_keys_list_hides_messages_unless_asked(setup, capsys) -> None:
+    reg, _, _, carol = setup
+    assert main(["keys", "list", "--registry", str(reg)]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in ("alice", "bob", "carol")) and "3 marks" in out
+    assert carol not in out
+    assert main(["keys", "list", "--registry", str(reg), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)  # JSON only
+    assert [r["label"] for r in rows] == ["alice", "bob", "carol"] and all("message_hex" not in r for r in rows)
+    assert carol not in json.dumps(rows)
+    assert main(["keys", "list", "--registry", str(reg), "--show-secret"]) == 0
+    assert carol in capsys.readouterr().out
+
+
+def test_keys_show_by_id_or_label(setup, capsys) -> None:
+    reg, _, _, carol = setup
+    assert main(["keys", "show", "carol", "--registry", str(reg)]) == 0
+    out = capsys.readouterr().out
+    assert "carol" in out and "64x64" in out and carol not in out
+    assert main(["keys", "show", "3", "--registry", str(reg), "--json", "--show-secret"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["label"] == "carol" and shown["message_hex"] == carol and shown["width"] == 64
+    assert main(["keys", "show", "zed", "--registry", str(reg)]) == 2
+    assert "no mark with label 'zed'" in capsys.readouterr().err
+
+
+def test_identify_exit_statuses_and_json(setup, capsys) -> None:
+    reg, leak, other, carol = setup
+    assert main(["identify", str(leak), "--registry", str(reg)]) == 0
+    out = capsys.readouterr().out
+    assert "IDENTIFIED  carol" in out and "identified: carol" in out and carol not in out
+    assert main(["identify", str(leak), "--registry", str(reg), "--json"]) == 0
+    found = json.loads(capsys.readouterr().out)  # JSON only
+    assert found["recipients"] == ["carol"] and found["marks_tested"] == 3 and found["images"] == [str(leak)]
+    assert carol not in json.dumps(found)
+    assert main(["identify", str(other), "--registry", str(reg), "--json"]) == 1
+    assert json.loads(capsys.readouterr().out)["recipients"] == []
+    assert main(["identify", str(other), "--registry", str(reg)]) == 1
+    assert "nobody identified" in capsys.readouterr().out
+
+
+def test_identify_reads_videos(setup, tmp_path, capsys) -> None:
+    av = pytest.importorskip("av")
+    reg, leak, other, _ = setup
+    video = tmp_path / "clip.mkv"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("ffv1", rate=5)
+        stream.width, stream.height, stream.pix_fmt = 64, 64, "bgr0"  # lossless
+        for path in (other, leak, other):
+            arr = np.ascontiguousarray((read_image(path) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy())
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(arr, format="rgb24")))
+        container.mux(stream.encode())
+    assert main(["identify", str(video), "--frames", "3", "--registry", str(reg), "--json"]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert found["recipients"] == ["carol"] and found["images"] == [f"{video}#{i}" for i in range(3)]
+
+
+def test_identify_errors_exit_2_and_name_the_file(setup, tmp_path, capsys) -> None:
+    reg, leak, _, _ = setup
+    broken = tmp_path / "broken.mp4"
+    broken.write_text("not a video\n" * 20)
+    assert main(["identify", str(broken), "--registry", str(reg)]) == 2
+    assert f"{broken} is not a readable video" in capsys.readouterr().err
+    missing = tmp_path / "none.sqlite"
+    assert main(["identify", str(leak), "--registry", str(missing)]) == 2
+    assert f"no mark registry at {missing}" in capsys.readouterr().err
+    assert not missing.exists()  # reading never creates a registry
+    corrupt = tmp_path / "corrupt.sqlite"
+    corrupt.write_bytes(b"\x00garbage" * 300)
+    assert main(["keys", "list", "--registry", str(corrupt)]) == 2
+    assert f"{corrupt} is not a gsw registry" in capsys.readouterr().err
+    empty = tmp_path / "empty.sqlite"
+    open_registry(empty).close()
+    assert main(["identify", str(leak), "--registry", str(empty)]) == 2
+    assert "holds no marks" in capsys.readouterr().err
+    assert main(["identify", str(leak), "--registry", str(reg), "--fpr", "2"]) == 2
+
+
+def test_registry_from_the_environment(setup, monkeypatch, capsys) -> None:
+    reg, leak, _, _ = setup
+    monkeypatch.setenv("GSW_REGISTRY", str(reg))
+    assert main(["identify", str(leak), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["recipients"] == ["carol"]
+
+
+def test_identify_refuses_marks_it_cannot_test(setup, tmp_path, capsys) -> None:
+    _, leak, _, _ = setup
+    foreign = tmp_path / "foreign.sqlite"
+    with open_registry(foreign) as reg:
+        reg.add("zoe", "0123abcd", decoder_sha256="12" * 32)
+    assert main(["identify", str(leak), "--registry", str(foreign)]) == 2
+    assert "none of the 1 registered marks can be tested" in capsys.readouterr().err
+    assert main(["identify", str(leak), "--registry", str(foreign), "--device", "tpu"]) == 2
+    assert "--device must be auto, cpu or cuda" in capsys.readouterr().err
