@@ -33,6 +33,12 @@ __all__ = [
 _MISSING = object()
 
 
+def _show(value: Any) -> str:
+    """``repr(value)`` and its type, shortened for messages."""
+    text = repr(value)
+    return f"{text[:60]}...{text[-10:]}" if len(text) > 80 else text
+
+
 class CameraFileError(ValueError):
     """A camera file (INRIA ``cameras.json``) is unreadable, malformed or has a field of the wrong type."""
 
@@ -74,6 +80,16 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def _is_finite_number(value: Any) -> bool:
+    """An int or float (not a bool) that converts to a finite float (``10**400`` does not)."""
+    if not _is_number(value):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond the float range
+        return False
+
+
 def json_number(obj: dict, key: str, context: str, default: Any = _MISSING, *,
                 error: type[ValueError] = CameraFileError, positive: bool = False) -> Any:
     """``obj[key]`` as a finite float (booleans, strings, lists and ``null`` are errors).
@@ -94,9 +110,9 @@ def json_number(obj: dict, key: str, context: str, default: Any = _MISSING, *,
             raise error(f"{context}: missing field {key!r}")
         return default
     value = obj[key]
-    if not _is_number(value) or not math.isfinite(value) or (positive and value <= 0):
+    if not _is_finite_number(value) or (positive and value <= 0):
         kind = "a positive finite number" if positive else "a finite number"
-        raise error(f"{context}: field {key!r} must be {kind}, got {value!r} ({type(value).__name__})")
+        raise error(f"{context}: field {key!r} must be {kind}, got {_show(value)} ({type(value).__name__})")
     return float(value)
 
 
@@ -121,8 +137,8 @@ def json_integer(obj: dict, key: str, context: str, default: Any = _MISSING, *,
             raise error(f"{context}: missing field {key!r}")
         return default
     value = obj[key]
-    if not _is_number(value) or not math.isfinite(value) or value != int(value):
-        raise error(f"{context}: field {key!r} must be an integer, got {value!r} ({type(value).__name__})")
+    if not _is_finite_number(value) or value != int(value):
+        raise error(f"{context}: field {key!r} must be an integer, got {_show(value)} ({type(value).__name__})")
     if not low <= value <= high:
         raise error(f"{context}: field {key!r} = {int(value)} is outside {low}..{high}")
     return int(value)
@@ -137,12 +153,12 @@ def json_matrix(value: Any, shape: tuple[int, ...], name: str, context: str, *,
     """
     def check(v: Any, dims: tuple[int, ...]) -> bool:
         if not dims:
-            return _is_number(v) and math.isfinite(v)
+            return _is_finite_number(v)
         return isinstance(v, list) and len(v) == dims[0] and all(check(x, dims[1:]) for x in v)
 
     if not check(value, shape):
         text = "x".join(map(str, shape))
-        raise error(f"{context}: field {name!r} must be a {text} list of finite numbers, got {value!r}"[:500])
+        raise error(f"{context}: field {name!r} must be a {text} list of finite numbers, got {_show(value)}")
     return torch.tensor(value, dtype=torch.float64)
 
 
@@ -171,7 +187,7 @@ def camera_from_inria(entry: Any, context: str = "INRIA camera entry") -> Camera
         json_integer(entry, "id", context, low=-(2**63), high=2**63 - 1)
     name = entry.get("img_name", "")
     if not isinstance(name, str):
-        raise CameraFileError(f"{context}: field 'img_name' must be a string, got {name!r}")
+        raise CameraFileError(f"{context}: field 'img_name' must be a string, got {_show(name)}")
     width, height = json_integer(entry, "width", context), json_integer(entry, "height", context)
     c2w = torch.eye(4, dtype=torch.float64)
     c2w[:3, :3] = json_matrix(entry["rotation"], (3, 3), "rotation", context)

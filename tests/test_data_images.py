@@ -170,3 +170,20 @@ def test_size_limit_is_checked_before_decoding(tmp_path):
     data = png_bytes(np.zeros((1, 1), np.uint8), 8, 0, size=(20000, 1))
     with pytest.raises(ImageError, match=rf"x.png: image is 20000x1; sides must be in 1..{MAX_IMAGE_SIZE} pixels"):
         _read(tmp_path, data)
+
+
+@pytest.mark.parametrize("bit_depth", [1, 2, 4, 8])
+def test_grayscale_colour_key_at_every_bit_depth(tmp_path, bit_depth):
+    """Pillow keeps a 2/4-bit tRNS key raw while it rescales the pixels; the key must hit the right pixels."""
+    top = 2**bit_depth - 1
+    a = np.array([[0, 1, top, 1, 0]])
+    img = _read(tmp_path, png_bytes(a, bit_depth, 0, trns=struct.pack(">H", 1)))
+    assert img.shape == (4, 1, 5)
+    np.testing.assert_array_equal(img[3, 0].numpy(), (a[0] != 1).astype(np.float32))
+
+
+def test_16_bit_rgb_colour_key_is_rejected_by_name(tmp_path):
+    a = np.array([[[0, 0, 0], [256, 256, 256]]])
+    with pytest.raises(ImageError, match="16-bit RGB PNG with a tRNS colour key is not supported"):
+        _read(tmp_path, png_bytes(a, 16, 2, trns=struct.pack(">HHH", 256, 256, 256)))
+    assert _read(tmp_path, png_bytes(a, 16, 2)).shape == (3, 1, 2)  # without the key: fine

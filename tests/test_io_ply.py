@@ -384,3 +384,13 @@ def test_empty_model_is_an_error_unless_allowed(tmp_path):
         load_gaussians(tmp_path / "e.ply")
     g = load_ply(tmp_path / "e.ply", allow_empty=True)
     assert len(g) == 0 and g.sh_degree == 2
+
+
+def test_ascii_last_line_must_end(tmp_path):
+    """A cut in the last number of an ASCII file still parses as a number: the missing line break reveals it."""
+    g = make(2, 0)
+    path = write_ply(tmp_path / "a.ply", inria_columns(g, normals=False), fmt="ascii")
+    text = path.read_text()
+    (tmp_path / "cut.ply").write_text(text[:-3])
+    with pytest.raises(PlyError, match="cut.ply: truncated ASCII PLY data: the last record line has no line break"):
+        load_ply(tmp_path / "cut.ply")

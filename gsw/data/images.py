@@ -3,7 +3,9 @@
 :func:`read_image` reads every common PNG/JPEG pixel format at its full range: 1/2/4/8-bit and 16-bit
 grayscale (``"I;16"``: divided by 65535, not clipped at 255), grayscale + alpha, palette (with or without
 ``tRNS`` transparency), RGB and RGBA at 8 or 16 bits (Pillow keeps the top 8 bits of 16-bit colour),
-CMYK and YCbCr JPEGs. Other pixel formats (32-bit integer ``"I"``, float ``"F"``, ``"LAB"``, ...) are
+CMYK and YCbCr JPEGs. ``tRNS`` colour keys of 2/4-bit grayscale are applied at the right scale (Pillow
+compares the raw key with rescaled pixels); 16-bit RGB with a colour key is rejected (Pillow keeps only
+8 bits, so the key cannot be matched). Other pixel formats (32-bit integer ``"I"``, float ``"F"``, ``"LAB"``, ...) are
 rejected by name, as are images larger than :data:`gsw.camera.MAX_IMAGE_SIZE` on a side (before decoding).
 """
 
@@ -44,6 +46,16 @@ def _sixteen_bit(im) -> np.ndarray:
     return np.stack(channels, axis=-1)
 
 
+def _png_colour_key(im, path: Path) -> None:
+    """Fix or reject the ``tRNS`` colour keys Pillow misreads (it keeps the raw key, not the pixels' scale)."""
+    rawmode = im.tile[0][3] if im.format == "PNG" and "transparency" in im.info and im.tile else None
+    if rawmode in ("L;2", "L;4"):  # pixels are scaled to 0..255, the key is not
+        im.info["transparency"] = int(im.info["transparency"]) * (255 // (2 ** int(rawmode[-1]) - 1))
+    elif rawmode in ("RGB;16B", "RGB;16"):
+        raise ImageError(f"{path}: 16-bit RGB PNG with a tRNS colour key is not supported (Pillow keeps only "
+                         "the top 8 bits of each sample, so the key cannot be matched)")
+
+
 def read_image(path: str | os.PathLike) -> Tensor:
     """Reads an image file (Pillow) at its full range (see the module docstring for the pixel formats).
 
@@ -71,6 +83,7 @@ def read_image(path: str | os.PathLike) -> Tensor:
             width, height = im.size
             if not (1 <= width <= MAX_IMAGE_SIZE and 1 <= height <= MAX_IMAGE_SIZE):
                 raise ImageError(f"{path}: image is {width}x{height}; sides must be in 1..{MAX_IMAGE_SIZE} pixels")
+            _png_colour_key(im, path)
             if im.mode in _SIXTEEN_BIT:
                 arr = _sixteen_bit(im)
             elif im.mode in _EIGHT_BIT:

@@ -226,7 +226,8 @@ def _read_binary(f, header: _Header, vertex_index: int, path: Path) -> np.ndarra
 
 def _read_ascii(f, header: _Header, vertex_index: int, path: Path) -> np.ndarray:
     f.seek(header.num_bytes)
-    lines = f.read().splitlines()
+    raw = f.read()
+    lines = raw.splitlines()
     skip = sum(e.count for e in header.elements[:vertex_index])
     total = sum(e.count for e in header.elements)
     vertex = header.elements[vertex_index]
@@ -242,6 +243,8 @@ def _read_ascii(f, header: _Header, vertex_index: int, path: Path) -> np.ndarray
             f"{path}: {len(extra)} lines of trailing data after the {total} record lines the header declares "
             f"(element vertex {vertex.count}): the header's vertex count does not match the data"
         )
+    if total and not raw.rstrip(b" \t\x0b\x0c").endswith((b"\n", b"\r")):
+        raise PlyError(f"{path}: truncated ASCII PLY data: the last record line has no line break")
     num_props = len(vertex.properties)
     tokens = [row.split() for row in rows]
     wrong = next((i for i, t in enumerate(tokens) if len(t) != num_props), None)
