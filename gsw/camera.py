@@ -25,7 +25,6 @@ Example:
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence, Union
 
