@@ -8,6 +8,10 @@ Conventions (see ``GUIDE.md`` section 3):
   ``cx = W / 2, cy = H / 2`` (the NeRF/Blender and gsplat convention, equal to the INRIA rasterizer's).
 - A camera-space point ``(x, y, z)`` projects to ``u = fx * x / z + cx``, ``v = fy * y / z + cy``.
 - Field-of-view angles are in radians unless the argument name ends in ``_deg``.
+- Image sides are ``1..MAX_IMAGE_SIZE`` pixels (checked here, before a renderer allocates anything).
+
+Camera files (INRIA ``cameras.json``) are read and written by :mod:`gsw.camera_io`;
+``load_inria_cameras`` and ``save_inria_cameras`` stay importable from here.
 
 Example:
     >>> import math, torch
@@ -20,20 +24,20 @@ Example:
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence, Union
 
 import torch
 from torch import Tensor
 
-from gsw._atomic import atomic_write
-
 __all__ = [
     "Camera", "orbit_cameras", "stack_viewmats", "stack_Ks", "load_inria_cameras", "save_inria_cameras",
+    "MAX_IMAGE_SIZE",
 ]
+
+MAX_IMAGE_SIZE = 16384
+"""Largest accepted image width or height, pixels (a 16384 x 16384 float RGB render is 3 GiB)."""
 
 _ORTHO_TOL = 1e-4
 _OPENGL_TO_OPENCV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
@@ -114,20 +118,18 @@ class Camera:
             raise ValueError(f"Camera.viewmat rotation is not orthonormal (max |R R^T - I| = {err:.2e})")
         if float(torch.linalg.det(r)) < 0:
             raise ValueError("Camera.viewmat rotation has determinant -1 (a reflection, not a rotation)")
-        for name in ("fx", "fy"):
+        for name in ("fx", "fy", "cx", "cy"):
             value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"Camera.{name} must be a positive finite number, got {value!r}")
-            setattr(self, name, float(value))
-        for name in ("cx", "cy"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"Camera.{name} must be a finite number, got {value!r}")
+            positive = name in ("fx", "fy")
+            if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+                    or (positive and value <= 0)):
+                kind = "a positive finite number" if positive else "a finite number"
+                raise ValueError(f"Camera.{name} must be {kind}, got {value!r}")
             setattr(self, name, float(value))
         for name in ("width", "height"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"Camera.{name} must be a positive int, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_IMAGE_SIZE:
+                raise ValueError(f"Camera.{name} must be an int in 1..{MAX_IMAGE_SIZE}, got {value!r}")
 
     # ------------------------------------------------------------------ derived quantities
     @property
@@ -274,67 +276,16 @@ class Camera:
 
     @classmethod
     def from_inria(cls, entry: dict[str, Any]) -> "Camera":
-        """A camera from one entry of an INRIA ``cameras.json``.
+        """A camera from one INRIA ``cameras.json`` entry; see :func:`gsw.camera_io.camera_from_inria`."""
+        from gsw.camera_io import camera_from_inria  # noqa: PLC0415 - camera_io imports this module
 
-        Args:
-            entry: ``{"id", "img_name", "width", "height", "position" [3], "rotation" [3][3], "fx", "fy"}``;
-                ``rotation`` is the camera-to-world rotation (rows), ``position`` the camera centre.
-
-        Returns:
-            The camera (float64 ``viewmat``, ``name = img_name``; ``cx = W / 2``, ``cy = H / 2``
-            unless the entry carries the optional ``cx`` / ``cy`` keys written by :meth:`to_inria`).
-        """
-        if not isinstance(entry, dict):
-            raise ValueError(f"INRIA camera entry must be an object, got {type(entry).__name__}")
-        missing = [k for k in ("width", "height", "position", "rotation", "fx", "fy") if k not in entry]
-        if missing:
-            raise ValueError(f"INRIA camera entry lacks {', '.join(missing)}")
-        rot = torch.as_tensor(entry["rotation"], dtype=torch.float64)
-        pos = torch.as_tensor(entry["position"], dtype=torch.float64)
-        if rot.shape != (3, 3) or pos.shape != (3,):
-            raise ValueError(
-                f"INRIA camera: rotation must be 3x3 and position 3, got {list(rot.shape)}, {list(pos.shape)}"
-            )
-        c2w = torch.eye(4, dtype=torch.float64)
-        c2w[:3, :3] = rot
-        c2w[:3, 3] = pos
-        width, height = int(entry["width"]), int(entry["height"])
-        return cls._from_c2w(
-            c2w,
-            fx=float(entry["fx"]),
-            fy=float(entry["fy"]),
-            cx=float(entry.get("cx", width / 2.0)),
-            cy=float(entry.get("cy", height / 2.0)),
-            width=width,
-            height=height,
-            name=str(entry.get("img_name", "")),
-        )
+        return camera_from_inria(entry)
 
     def to_inria(self, id: int) -> dict[str, Any]:  # noqa: A002 - the JSON key
-        """This camera as an INRIA ``cameras.json`` entry (inverse of :meth:`from_inria`).
+        """This camera as an INRIA ``cameras.json`` entry; see :func:`gsw.camera_io.camera_to_inria`."""
+        from gsw.camera_io import camera_to_inria  # noqa: PLC0415
 
-        Args:
-            id: the entry's ``id``.
-
-        Returns:
-            ``{"id", "img_name", "width", "height", "position", "rotation", "fy", "fx"}`` with plain Python
-            numbers, plus ``cx`` / ``cy`` when the principal point is off-centre (INRIA's format assumes
-            the centre; its tools ignore the extra keys, :meth:`from_inria` reads them back).
-        """
-        c2w = self.c2w.detach().double().cpu()
-        off_centre = (abs(self.cx - self.width / 2.0) > 1e-6 * self.width
-                      or abs(self.cy - self.height / 2.0) > 1e-6 * self.height)
-        return {
-            "id": id,
-            "img_name": self.name,
-            "width": self.width,
-            "height": self.height,
-            "position": c2w[:3, 3].tolist(),
-            "rotation": c2w[:3, :3].tolist(),
-            "fy": self.fy,
-            "fx": self.fx,
-            **({"cx": self.cx, "cy": self.cy} if off_centre else {}),
-        }
+        return camera_to_inria(self, id)
 
     @classmethod
     def look_at(
@@ -526,29 +477,10 @@ def stack_Ks(  # noqa: N802
     )
 
 
-def load_inria_cameras(path: str | os.PathLike) -> list[Camera]:
-    """Read an INRIA ``cameras.json`` (a list of entries, see :meth:`Camera.from_inria`).
+def __getattr__(name: str) -> Any:
+    """``load_inria_cameras`` / ``save_inria_cameras`` live in :mod:`gsw.camera_io` (imported on first use)."""
+    if name in ("load_inria_cameras", "save_inria_cameras"):
+        from gsw import camera_io  # noqa: PLC0415
 
-    Args:
-        path: the JSON file.
-
-    Returns:
-        The cameras, in file order.
-    """
-    with open(path, encoding="utf-8") as f:
-        entries = json.load(f)
-    if not isinstance(entries, list):
-        raise ValueError(f"{path}: expected a JSON list of camera entries")
-    return [Camera.from_inria(e) for e in entries]
-
-
-def save_inria_cameras(cameras: Sequence[Camera], path: str | os.PathLike) -> None:
-    """Write cameras as an INRIA ``cameras.json`` (ids ``0..C-1``), atomically.
-
-    Args:
-        cameras: the cameras.
-        path: destination file.
-    """
-    entries = [cam.to_inria(i) for i, cam in enumerate(cameras)]
-    with atomic_write(path, "w") as f:
-        json.dump(entries, f, indent=1)
+        return getattr(camera_io, name)
+    raise AttributeError(f"module 'gsw.camera' has no attribute {name!r}")

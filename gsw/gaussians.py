@@ -26,7 +26,10 @@ from typing import Sequence, Union
 import torch
 from torch import Tensor
 
-__all__ = ["Gaussians", "cat_gaussians", "sh_degree_to_num_coeffs", "num_coeffs_to_sh_degree"]
+__all__ = [
+    "Gaussians", "cat_gaussians", "sh_degree_to_num_coeffs", "num_coeffs_to_sh_degree", "rgb_to_sh_dc",
+    "sh_dc_to_rgb",
+]
 
 _MAX_DEGREE = 3
 
@@ -66,6 +69,37 @@ def num_coeffs_to_sh_degree(num_coeffs: int) -> int:
         if (d + 1) ** 2 == num_coeffs:
             return d
     raise ValueError(f"number of SH coefficients must be 1, 4, 9 or 16 (degree 0..3), got {num_coeffs}")
+
+
+def sh_dc_to_rgb(f_dc: Tensor) -> Tensor:
+    """View-independent colour of a DC SH coefficient: ``rgb = SH_COLOR_OFFSET + SH_C0 * f_dc``.
+
+    The one implementation of this conversion (the constants come from the compiled extension,
+    :mod:`gsw.constants`, imported on first call so that this module imports without it).
+
+    Args:
+        f_dc: ``[..., 3]`` DC coefficients (``sh[:, 0]``), any float dtype/device.
+
+    Returns:
+        ``[..., 3]`` RGB, same dtype/device, not clamped.
+    """
+    from gsw.constants import SH_C0, SH_COLOR_OFFSET  # noqa: PLC0415 - needs the compiled extension
+
+    return SH_COLOR_OFFSET + SH_C0 * f_dc
+
+
+def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
+    """Inverse of :func:`sh_dc_to_rgb`: ``f_dc = (rgb - SH_COLOR_OFFSET) / SH_C0``.
+
+    Args:
+        rgb: ``[..., 3]`` colours (usually in ``[0, 1]``), any float dtype/device.
+
+    Returns:
+        ``[..., 3]`` DC SH coefficients, same dtype/device.
+    """
+    from gsw.constants import SH_C0, SH_COLOR_OFFSET  # noqa: PLC0415 - needs the compiled extension
+
+    return (rgb - SH_COLOR_OFFSET) / SH_C0
 
 
 @dataclass(eq=False)

@@ -295,7 +295,7 @@ def test_inria_errors(tmp_path):
     with pytest.raises(DatasetError, match="images folder not found"):
         load_inria_model(tmp_path, images_dir=tmp_path / "nope")
     (tmp_path / "imgs").mkdir()
-    with pytest.raises(DatasetError, match="image not found"):
+    with pytest.raises(DatasetError, match="3 images not found: .*img_0, .*img_1, .*img_2"):
         load_inria_model(tmp_path, images_dir=tmp_path / "imgs")
     with pytest.raises(DatasetError, match="images_dir"):
         load_dataset(tmp_path)
@@ -320,3 +320,125 @@ def test_read_image_formats(tmp_path):
     assert back.shape == (4, 5, 7) and torch.allclose(back, rgba, atol=0.5 / 255 + 1e-6)
     with pytest.raises(FileNotFoundError):
         read_image(tmp_path / "y.png")
+
+
+# ------------------------------------------------------------------------------------------- strict inputs
+
+
+def _nerf_scene(root: Path, n: int = 3, size: tuple[int, int] = (W, H), **top) -> list[dict]:
+    (root / "train").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for k in range(n):
+        write_image(root / "train" / f"r_{k}.png", torch.full((3, size[1], size[0]), k / 4))
+        frames.append({"file_path": f"./train/r_{k}", "transform_matrix": _gl_c2w((4.0, k - 1.0, 1.0), (0, 0, 0))})
+    _write_nerf(root, "train", frames, **top)
+    return frames
+
+
+def test_missing_images_are_all_named(tmp_path):
+    _nerf_scene(tmp_path, 4)
+    (tmp_path / "train" / "r_1.png").unlink()
+    (tmp_path / "train" / "r_3.png").unlink()
+    with pytest.raises(DatasetError, match=r"transforms_train.json: 2 images not found: .*r_1, .*r_3 "):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+
+
+def test_inria_image_size_must_match_the_camera(tmp_path):
+    cams = _cams()
+    save_inria_model(tmp_path, random_gaussians(5, seed=0), cams, 10)
+    (tmp_path / "imgs").mkdir()
+    for k, cam in enumerate(cams):  # photos at twice the training resolution stored in cameras.json
+        write_image(tmp_path / "imgs" / f"{cam.name}.png", torch.full((3, 2 * H, 2 * W), k / 4))
+    with pytest.raises(DatasetError, match=rf"img_0.png: image is {2 * W}x{2 * H} but camera 0 \('img_0'\) in "
+                                           rf"cameras.json is {W}x{H}; pass resize_images=True"):
+        load_inria_model(tmp_path, images_dir=tmp_path / "imgs")
+    model = load_inria_model(tmp_path, images_dir=tmp_path / "imgs", resize_images=True)  # the explicit opt-in
+    assert model.images.shape == (3, 3, H, W)
+    assert torch.allclose(model.images[2], torch.full((3, H, W), 0.5), atol=1 / 255)
+    write_image(tmp_path / "imgs" / "img_1.png", torch.zeros(3, 2 * H, 3 * W))  # not a uniform multiple
+    with pytest.raises(DatasetError, match=rf"img_1.png: image is {3 * W}x{2 * H}"):
+        load_inria_model(tmp_path, images_dir=tmp_path / "imgs", resize_images=True)
+    for cam in cams:  # images at the camera size: the explicit downscale resizes both
+        write_image(tmp_path / "imgs" / f"{cam.name}.png", torch.full((3, H, W), 0.25))
+    model = load_inria_model(tmp_path, images_dir=tmp_path / "imgs", downscale=2)
+    assert model.images.shape == (3, 3, H // 2, W // 2) and model.cameras[0].width == W // 2
+    with pytest.raises(DatasetError, match=r"a 4x3 view is too small to train on \(at least 4 pixels"):
+        load_inria_model(tmp_path, images_dir=tmp_path / "imgs", downscale=16)
+
+
+def test_nerf_image_size_must_match_the_transforms(tmp_path):
+    _nerf_scene(tmp_path, 2, w=W, h=H)
+    assert load_nerf_synthetic(tmp_path, holdout_every=0).images.shape == (2, 3, H, W)
+    _nerf_scene(tmp_path, 2, w=W + 8, h=H)
+    with pytest.raises(DatasetError, match=rf"frame 0: r_0.png is {W}x{H} but the transforms file says {W + 8}x{H}"):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+
+
+@pytest.mark.parametrize("top, frame_change, match", [
+    ({"w": 64.5}, {}, r"field 'w' must be an integer, got 64.5"),
+    ({"h": "48"}, {}, r"field 'h' must be an integer, got '48' \(str\)"),
+    ({"w": 200000}, {}, r"field 'w' = 200000 is outside 1..16384"),
+    ({"camera_angle_x": True}, {}, r"field 'camera_angle_x' must be a finite number, got True \(bool\)"),
+    ({"camera_angle_x": 4.0}, {}, r"'camera_angle_x' must be in \(0, pi\)"),
+    ({"fl_x": None}, {}, r"field 'fl_x' must be a positive finite number, got None"),
+    ({"fl_x": -5.0}, {}, r"field 'fl_x' must be a positive finite number"),
+    ({"k1": [0.1]}, {}, r"field 'k1' must be a finite number"),
+    ({}, {"file_path": 3}, r"frame 1: field 'file_path' must be a non-empty string, got 3"),
+    ({}, {"transform_matrix": [[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]},
+     r"frame 1: field 'transform_matrix' must be a 4x4 list of finite numbers"),
+    ({}, {"cx": "32"}, r"frame 1: field 'cx' must be a finite number, got '32'"),
+])
+def test_transforms_fields_are_type_checked(tmp_path, top, frame_change, match):
+    frames = _nerf_scene(tmp_path, 2)
+    frames[1].update(frame_change)
+    _write_nerf(tmp_path, "train", frames, **top)
+    with pytest.raises(DatasetError, match=match):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+
+
+def test_integral_floats_are_integers(tmp_path):
+    """instant-ngp's colmap2nerf.py writes "w": 1920.0; an integral float is an integer, 64.5 is not."""
+    _nerf_scene(tmp_path, 2, w=float(W), h=float(H))
+    assert load_nerf_synthetic(tmp_path, holdout_every=0).cameras[0].width == W
+
+
+def test_json_files_encoding_and_directories(tmp_path):
+    _nerf_scene(tmp_path, 1, comment="caf\u00e9")
+    path = tmp_path / "transforms_train.json"
+    path.write_bytes(path.read_text().replace("\\u00e9", "\u00e9").encode("latin-1"))
+    with pytest.raises(DatasetError, match=r"transforms_train.json: not UTF-8 text .*must be UTF-8"):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_text(encoding="latin-1").encode("utf-8"))  # BOM is fine
+    assert len(load_nerf_synthetic(tmp_path, holdout_every=0)) == 1
+    path.unlink()
+    path.mkdir()
+    with pytest.raises(DatasetError, match="transforms_train.json: is a directory, expected a JSON file"):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+    (tmp_path / "model" / "point_cloud" / "iteration_1").mkdir(parents=True)
+    save_inria_model(tmp_path / "model", random_gaussians(3, seed=0), _cams(), 1)
+    (tmp_path / "model" / "cameras.json").unlink()
+    (tmp_path / "model" / "cameras.json").mkdir()
+    with pytest.raises(DatasetError, match="cameras.json: is a directory"):
+        load_inria_model(tmp_path / "model")
+
+
+def test_tiny_and_undecodable_views(tmp_path):
+    _nerf_scene(tmp_path, 2, size=(1, 1))
+    with pytest.raises(DatasetError, match=r"frame 0: r_0.png: a 1x1 view is too small to train on"):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+    _nerf_scene(tmp_path, 2, size=(8, 8))
+    assert load_nerf_synthetic(tmp_path, holdout_every=0).images.shape == (2, 3, 8, 8)
+    with pytest.raises(DatasetError, match="a 2x2 view is too small"):
+        load_nerf_synthetic(tmp_path, holdout_every=0, downscale=4)
+    (tmp_path / "train" / "r_1.png").write_bytes(b"GIF89a not really")
+    with pytest.raises(DatasetError, match="frame 1: cannot decode image .*r_1.png"):
+        load_nerf_synthetic(tmp_path, holdout_every=0)
+
+
+def test_inria_cameras_json_errors_name_the_camera_and_field(tmp_path):
+    save_inria_model(tmp_path, random_gaussians(3, seed=0), _cams(), 1)
+    entries = json.loads((tmp_path / "cameras.json").read_text())
+    entries[2]["width"] = 128.9
+    (tmp_path / "cameras.json").write_text(json.dumps(entries))
+    with pytest.raises(DatasetError, match=r"cameras.json: camera 2: field 'width' must be an integer, got 128.9"):
+        load_inria_model(tmp_path)

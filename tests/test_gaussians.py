@@ -5,7 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsw.gaussians import Gaussians, cat_gaussians, num_coeffs_to_sh_degree, sh_degree_to_num_coeffs
+from gsw.gaussians import (
+    Gaussians,
+    cat_gaussians,
+    num_coeffs_to_sh_degree,
+    rgb_to_sh_dc,
+    sh_dc_to_rgb,
+    sh_degree_to_num_coeffs,
+)
 
 
 def make(n: int = 5, degree: int = 3, dtype: torch.dtype = torch.float32, seed: int = 0) -> Gaussians:
@@ -151,3 +158,14 @@ def test_to_clone_detach_requires_grad():
     assert det.means.data_ptr() == g.means.data_ptr()
     g.requires_grad_(False)
     assert not g.means.requires_grad
+
+
+def test_rgb_sh_dc_conversion_pair():
+    """rgb = 0.5 + C0 f_dc with C0 = 1 / (2 sqrt(pi)), the degree-0 SH basis constant (INRIA convention)."""
+    c0 = 0.5 / torch.pi**0.5
+    f_dc = torch.tensor([[0.0, 1.0, -2.0]], dtype=torch.float64)
+    torch.testing.assert_close(sh_dc_to_rgb(f_dc), 0.5 + c0 * f_dc, rtol=0, atol=1e-15)
+    rgb = torch.rand(10, 3, dtype=torch.float64)
+    torch.testing.assert_close(sh_dc_to_rgb(rgb_to_sh_dc(rgb)), rgb, rtol=0, atol=1e-15)
+    assert rgb_to_sh_dc(torch.full((3,), 0.5)).abs().max() == 0  # mid grey is f_dc = 0
+    assert sh_dc_to_rgb(torch.zeros(2, 3, dtype=torch.float16)).dtype == torch.float16

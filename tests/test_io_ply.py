@@ -284,15 +284,73 @@ def test_truncated(tmp_path, good):
         + " ".join(["0"] * 14)
         + "\n"
     )
-    with pytest.raises(PlyError, match="expected 2 vertex lines, found 1"):
+    with pytest.raises(PlyError, match="declares 2 record lines .*found 1"):
         load_ply(tmp_path / "ascii.ply")
 
 
-def test_trailing_bytes_only_rejected_when_strict(tmp_path, good):
+def test_header_vertex_count_must_match_the_data(tmp_path, good):
+    """A count lower than the data used to load silently and drop Gaussians; higher is truncation."""
+    head, body = good.read_bytes().split(b"end_header\n")
+    row = 4 * len(ply_property_names(1))
+    (tmp_path / "low.ply").write_bytes(head.replace(b"element vertex 8", b"element vertex 6") + b"end_header\n" + body)
+    with pytest.raises(PlyError, match=rf"{2 * row} bytes of trailing data.*element vertex 6.*2 more vertices.*count"):
+        load_ply(tmp_path / "low.ply")
+    with pytest.raises(PlyError, match="trailing data"):
+        load_ply(tmp_path / "low.ply", strict=False)  # not a strict-only check any more
+    (tmp_path / "high.ply").write_bytes(head.replace(b"element vertex 8", b"element vertex 9") + b"end_header\n" + body)
+    with pytest.raises(PlyError, match="truncated"):
+        load_ply(tmp_path / "high.ply")
+    # even one stray byte (a trailing newline) is reported, so that nothing after the data goes unread
     (tmp_path / "tail.ply").write_bytes(good.read_bytes() + b"\n")
-    assert len(load_ply(tmp_path / "tail.ply")) == 8
-    with pytest.raises(PlyError, match="1 unexpected trailing bytes"):
-        load_ply(tmp_path / "tail.ply", strict=True)
+    with pytest.raises(PlyError, match="1 bytes of trailing data"):
+        load_ply(tmp_path / "tail.ply")
+    assert len(load_ply(good)) == 8
+
+
+def test_ascii_counts_and_rows_must_match(tmp_path):
+    g = make(3, 0)
+    path = write_ply(tmp_path / "a.ply", inria_columns(g, normals=False), fmt="ascii")
+    text = path.read_text()
+    assert_bit_identical(g, load_ply(path))
+    (tmp_path / "blank.ply").write_text(text + "\n  \n")  # blank lines at the end are fine
+    assert_bit_identical(g, load_ply(tmp_path / "blank.ply"))
+    (tmp_path / "low.ply").write_text(text.replace("element vertex 3", "element vertex 2"))
+    with pytest.raises(PlyError, match="1 lines of trailing data.*element vertex 2"):
+        load_ply(tmp_path / "low.ply")
+    lines = text.splitlines()
+    lines[-1] += " 7"  # one row with an extra value, another with one fewer: same total
+    lines[-2] = " ".join(lines[-2].split()[:-1])
+    (tmp_path / "rows.ply").write_text("\n".join(lines) + "\n")
+    with pytest.raises(PlyError, match="vertex 1 has 13 values, expected 14"):
+        load_ply(tmp_path / "rows.ply")
+
+
+def test_element_order(tmp_path):
+    g = make(5, 0)
+    cols = inria_columns(g)
+    path = write_ply(tmp_path / "m.ply", cols)
+    head, body = path.read_bytes().split(b"end_header\n")
+    after = b"element extra 3\nproperty double t\n"
+    # a list-free element after the vertices: its data must be there, and is skipped
+    (tmp_path / "after.ply").write_bytes(head + b"\n" + after + b"end_header\n" + body + np.zeros(3).tobytes())
+    assert_bit_identical(g, load_ply(tmp_path / "after.ply"))
+    (tmp_path / "after_missing.ply").write_bytes(head + b"\n" + after + b"end_header\n" + body)
+    with pytest.raises(PlyError, match="truncated"):
+        load_ply(tmp_path / "after_missing.ply")
+    # list elements: fine without records, an error with records (their size is unknown)
+    faces = b"element face %d\nproperty list uchar int vertex_indices\n"
+    (tmp_path / "faces0.ply").write_bytes(head + b"\n" + faces % 0 + b"end_header\n" + body)
+    assert_bit_identical(g, load_ply(tmp_path / "faces0.ply"))
+    (tmp_path / "faces.ply").write_bytes(head + b"\n" + faces % 2 + b"end_header\n" + body + b"\x01" * 10)
+    with pytest.raises(PlyError, match="element 'face' \\(after 'vertex'\\) has list properties and 2 records"):
+        load_ply(tmp_path / "faces.ply")
+    bad_list = head.replace(b"property float x", b"property list float128 int x")
+    (tmp_path / "bad_list.ply").write_bytes(bad_list + b"end_header\n" + body)
+    with pytest.raises(PlyError, match="cannot parse"):
+        load_ply(tmp_path / "bad_list.ply")
+    (tmp_path / "two.ply").write_bytes(head + b"\nelement vertex 0\nproperty float x\nend_header\n" + body)
+    with pytest.raises(PlyError, match="duplicate element 'vertex'"):
+        load_ply(tmp_path / "two.ply")
 
 
 def test_nonfinite_values_are_named_and_counted(tmp_path):
@@ -311,11 +369,28 @@ def test_errors_are_value_errors(tmp_path):
     assert issubclass(PlyError, ValueError)
     with pytest.raises(FileNotFoundError):
         load_ply(tmp_path / "absent.ply")
+    (tmp_path / "dir.ply").mkdir()
+    with pytest.raises(PlyError, match="dir.ply: is a directory"):
+        load_gaussians(tmp_path / "dir.ply")
     with pytest.raises(ValueError, match="extension"):
         load_gaussians(tmp_path / "model.obj")
 
 
-def test_empty_model_round_trip(tmp_path):
+def test_empty_model_is_an_error_unless_allowed(tmp_path):
     save_ply(Gaussians.empty(2), tmp_path / "e.ply")
-    g = load_ply(tmp_path / "e.ply")
+    with pytest.raises(PlyError, match="e.ply: the model has 0 Gaussians"):
+        load_ply(tmp_path / "e.ply")
+    with pytest.raises(PlyError, match="0 Gaussians"):
+        load_gaussians(tmp_path / "e.ply")
+    g = load_ply(tmp_path / "e.ply", allow_empty=True)
     assert len(g) == 0 and g.sh_degree == 2
+
+
+def test_ascii_last_line_must_end(tmp_path):
+    """A cut in the last number of an ASCII file still parses as a number: the missing line break reveals it."""
+    g = make(2, 0)
+    path = write_ply(tmp_path / "a.ply", inria_columns(g, normals=False), fmt="ascii")
+    text = path.read_text()
+    (tmp_path / "cut.ply").write_text(text[:-3])
+    with pytest.raises(PlyError, match="cut.ply: truncated ASCII PLY data: the last record line has no line break"):
+        load_ply(tmp_path / "cut.ply")

@@ -77,15 +77,70 @@ def test_sorted_like_antimatter15(tmp_path):
     assert (key[order][:-1] >= key[order][1:]).all()
 
 
-def test_bad_size(tmp_path):
+def test_bad_size_empty_and_directory(tmp_path):
     (tmp_path / "bad.splat").write_bytes(b"\0" * 65)
     with pytest.raises(SplatError, match="65 bytes is not a multiple of 32"):
         load_splat(tmp_path / "bad.splat")
-    rec = np.zeros(1, SPLAT_DTYPE)
-    rec["position"] = np.nan
-    (tmp_path / "nan.splat").write_bytes(rec.tobytes())
-    with pytest.raises(SplatError, match="non-finite"):
-        load_splat(tmp_path / "nan.splat")
+    (tmp_path / "empty.splat").write_bytes(b"")
+    with pytest.raises(SplatError, match="empty.splat: empty file"):
+        load_splat(tmp_path / "empty.splat")
+    (tmp_path / "dir.splat").mkdir()
+    with pytest.raises(SplatError, match="is a directory"):
+        load_gaussians(tmp_path / "dir.splat")
+    with pytest.raises(FileNotFoundError):
+        load_splat(tmp_path / "absent.splat")
+
+
+def _valid_records(n: int) -> np.ndarray:
+    rec = np.zeros(n, SPLAT_DTYPE)
+    rec["scale"] = 0.01
+    rec["rot"] = [255, 128, 128, 128]
+    return rec
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("position", np.nan, "non-finite position"),
+    ("position", 2e7, r"position beyond \+-1e\+07"),
+    ("scale", np.inf, "non-finite scale"),
+    ("scale", -0.1, r"scale outside \[1e-10, 1e\+07\]"),
+    ("scale", 0.0, "scale outside"),
+    ("scale", 1e-30, "scale outside"),
+    ("scale", 1e9, "scale outside"),
+    ("rot", 128, r"zero quaternion \(rotation bytes all 128\)"),
+])
+def test_implausible_records_are_rejected(tmp_path, field, value, match):
+    rec = _valid_records(4)
+    rec[field][2] = value
+    (tmp_path / "x.splat").write_bytes(rec.tobytes())
+    with pytest.raises(SplatError, match=rf"x.splat: not a plausible .splat file: 1 of 4 splats have a {match}.*first: splat 2"):
+        load_splat(tmp_path / "x.splat")
+    rec[field][2] = _valid_records(1)[field][0]
+    (tmp_path / "x.splat").write_bytes(rec.tobytes())
+    assert len(load_splat(tmp_path / "x.splat")) == 4
+
+
+def test_random_bytes_do_not_load(tmp_path):
+    """64 random bytes decode as 2 splats; the sanity check rejects them (seeded, many draws)."""
+    rng = np.random.default_rng(0)
+    path = tmp_path / "r.splat"
+    for _ in range(300):
+        path.write_bytes(rng.bytes(64))
+        with pytest.raises(SplatError, match="not a plausible .splat file"):
+            load_splat(path)
+
+
+def test_save_refuses_what_load_would_reject(tmp_path):
+    g = random_model(3, degree=0)
+    g.quats[1] = 0.0  # a zero quaternion writes rotation bytes 128
+    with pytest.raises(SplatError, match="refusing to write .*zero quaternion"):
+        save_splat(g, tmp_path / "z.splat")
+    g = random_model(3, degree=0)
+    g.log_scales[0, 0] = -40.0  # 4e-18: below SCALE_RANGE
+    with pytest.raises(SplatError, match="refusing to write .*scale outside"):
+        save_splat(g, tmp_path / "s.splat")
+    with pytest.raises(SplatError, match="0 Gaussians"):
+        save_splat(random_model(0, degree=0), tmp_path / "e.splat")
+    assert not any(tmp_path.iterdir())
 
 
 def test_dispatch_by_extension(tmp_path):

@@ -17,8 +17,9 @@ from gsw.data.distortion import (
     undistort_normalized,
     undistort_pixels,
 )
-from gsw.data.images import read_image, resize_image, write_image
+from gsw.data.images import ImageError, read_image, resize_image, write_image
 from gsw.data.loaders import (
+    MIN_IMAGE_SIZE,
     Dataset,
     DatasetError,
     InriaModel,
@@ -33,7 +34,7 @@ from gsw.data.loaders import (
 )
 
 __all__ = [
-    "Dataset", "DatasetError", "Distortion", "InriaModel", 
+    "Dataset", "DatasetError", "Distortion", "ImageError", "InriaModel", "MIN_IMAGE_SIZE",
     "detect_format", "distort_normalized", "distort_pixels", "holdout_indices", "load_dataset",
     "load_inria_model", "load_instant_ngp", "load_nerf_synthetic", "read_image", "resize_image",
     "save_inria_model", "scene_extent", "undistort_image", "undistort_normalized",

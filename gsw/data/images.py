@@ -1,4 +1,13 @@
-"""Image file IO (Pillow, atomic writes) and resizing. Tensors are channel-major float32 in ``[0, 1]``."""
+"""Image file IO (Pillow, atomic writes) and resizing. Tensors are channel-major float32 in ``[0, 1]``.
+
+:func:`read_image` reads every common PNG/JPEG pixel format at its full range: 1/2/4/8-bit and 16-bit
+grayscale (``"I;16"``: divided by 65535, not clipped at 255), grayscale + alpha, palette (with or without
+``tRNS`` transparency), RGB and RGBA at 8 or 16 bits (Pillow keeps the top 8 bits of 16-bit colour),
+CMYK and YCbCr JPEGs. ``tRNS`` colour keys of 2/4-bit grayscale are applied at the right scale (Pillow
+compares the raw key with rescaled pixels); 16-bit RGB with a colour key is rejected (Pillow keeps only
+8 bits, so the key cannot be matched). Other pixel formats (32-bit integer ``"I"``, float ``"F"``, ``"LAB"``, ...) are
+rejected by name, as are images larger than :data:`gsw.camera.MAX_IMAGE_SIZE` on a side (before decoding).
+"""
 
 from __future__ import annotations
 
@@ -11,37 +20,87 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gsw._atomic import atomic_write
+from gsw.camera import MAX_IMAGE_SIZE
 
-__all__ = ["read_image", "write_image", "resize_image", "composite", "IMAGE_SUFFIXES"]
+__all__ = ["ImageError", "read_image", "write_image", "resize_image", "composite", "IMAGE_SUFFIXES"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
+_SIXTEEN_BIT = ("I;16", "I;16B", "I;16L", "I;16N")
+_EIGHT_BIT = ("1", "L", "P", "LA", "PA", "La", "RGB", "RGBA", "RGBa", "RGBX", "CMYK", "YCbCr")
+_ALPHA_MODES = ("RGBA", "LA", "PA", "La", "RGBa")
+
+
+class ImageError(ValueError):
+    """An image file cannot be read: not an image, truncated, unsupported pixel format or absurd size."""
+
+
+def _sixteen_bit(im) -> np.ndarray:
+    """``[H, W, 3|4]`` float32 in ``[0, 1]`` from a 16-bit grayscale image (alpha from a ``tRNS`` value)."""
+    raw = np.asarray(im).astype(np.int64)
+    gray = (raw / 65535.0).astype(np.float32)
+    channels = [gray, gray, gray]
+    transparent = im.info.get("transparency")
+    if isinstance(transparent, int):
+        channels.append((raw != transparent).astype(np.float32))
+    return np.stack(channels, axis=-1)
+
+
+def _png_colour_key(im, path: Path) -> None:
+    """Fix or reject the ``tRNS`` colour keys Pillow misreads (it keeps the raw key, not the pixels' scale)."""
+    rawmode = im.tile[0][3] if im.format == "PNG" and "transparency" in im.info and im.tile else None
+    if rawmode in ("L;2", "L;4"):  # pixels are scaled to 0..255, the key is not
+        im.info["transparency"] = int(im.info["transparency"]) * (255 // (2 ** int(rawmode[-1]) - 1))
+    elif rawmode in ("RGB;16B", "RGB;16"):
+        raise ImageError(f"{path}: 16-bit RGB PNG with a tRNS colour key is not supported (Pillow keeps only "
+                         "the top 8 bits of each sample, so the key cannot be matched)")
+
 
 def read_image(path: str | os.PathLike) -> Tensor:
-    """Reads an image file (Pillow).
+    """Reads an image file (Pillow) at its full range (see the module docstring for the pixel formats).
 
     Args:
         path: a PNG, JPEG or other Pillow-readable file.
 
     Returns:
-        ``[C, H, W]`` float32 in ``[0, 1]``; ``C = 4`` when the file has an alpha channel, else 3.
+        ``[C, H, W]`` float32 in ``[0, 1]``; ``C = 4`` (RGBA, straight alpha) when the file has an alpha
+        channel or ``tRNS`` transparency, else ``C = 3`` (grayscale is repeated over RGB).
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file cannot be decoded.
+        ImageError: the path is a directory, or the file cannot be decoded (not an image, truncated),
+            has an unsupported pixel format, or is larger than ``MAX_IMAGE_SIZE`` on a side.
     """
     from PIL import Image  # noqa: PLC0415
 
     path = Path(path)
+    if path.is_dir():
+        raise ImageError(f"{path}: is a directory, not an image file")
     if not path.is_file():
         raise FileNotFoundError(f"image not found: {path}")
     try:
         with Image.open(path) as im:
-            has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
-            arr = np.array(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.uint8, order="C")
-    except Exception as exc:  # decoder-specific exception types
-        raise ValueError(f"cannot decode image {path}: {exc}") from exc
-    return torch.from_numpy(arr).permute(2, 0, 1).float().div_(255.0)
+            width, height = im.size
+            if not (1 <= width <= MAX_IMAGE_SIZE and 1 <= height <= MAX_IMAGE_SIZE):
+                raise ImageError(f"{path}: image is {width}x{height}; sides must be in 1..{MAX_IMAGE_SIZE} pixels")
+            _png_colour_key(im, path)
+            if im.mode in _SIXTEEN_BIT:
+                arr = _sixteen_bit(im)
+            elif im.mode in _EIGHT_BIT:
+                has_alpha = im.mode in _ALPHA_MODES or "transparency" in im.info
+                arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+            else:
+                raise ImageError(
+                    f"{path}: unsupported pixel format (Pillow mode {im.mode!r}); supported: 8-bit modes "
+                    f"{', '.join(_EIGHT_BIT)} and 16-bit grayscale"
+                )
+    except ImageError:
+        raise
+    except Exception as exc:  # decoder-specific exception types (UnidentifiedImageError, OSError, ...)
+        raise ImageError(f"cannot decode image {path}: {exc}") from exc
+    if arr.shape[:2] != (height, width):
+        raise ImageError(f"cannot decode image {path}: decoded {arr.shape[:2]} pixels, header says {height}x{width}")
+    return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).contiguous()
 
 
 def write_image(path: str | os.PathLike, image: Tensor, *, quality: int = 95) -> Path:

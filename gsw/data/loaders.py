@@ -3,174 +3,46 @@
 Every loader returns cameras in the :mod:`gsw.camera` convention (world-to-camera, OpenCV axes, pixel ``(i, j)``
 centred at ``(i + 0.5, j + 0.5)``) and images as ``[V, 3, H, W]`` float32 in ``[0, 1]``, composited on the
 dataset background when the files have an alpha channel.
+
+Inputs are checked, never silently adapted: JSON fields are type-checked (:mod:`gsw.camera_io`), every
+missing image is named in one error, an image whose size differs from its camera's is an error (images
+are resized only by an explicit ``downscale``, or ``resize_images=True`` for INRIA folders), and views
+smaller than :data:`MIN_IMAGE_SIZE` pixels on a side are rejected.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import re
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Sequence
 
 import torch
 from torch import Tensor
 
-from gsw.camera import Camera, save_inria_cameras
+from gsw.camera import Camera
+from gsw.camera_io import json_integer, json_matrix
+from gsw.data.dataset import MIN_IMAGE_SIZE, Background, Dataset, DatasetError, _background, _check_downscale, \
+    _check_usable, _find_images, _number, _read_json, _read_view
 from gsw.data.distortion import Distortion, undistort_image
-from gsw.data.images import IMAGE_SUFFIXES, composite, read_image, resize_image
-from gsw.gaussians import Gaussians
+from gsw.data.images import composite, resize_image
+from gsw.data.inria import InriaModel, load_inria_model, save_inria_model
+from gsw.gaussians import sh_dc_to_rgb
 
 __all__ = [
     "Dataset", "DatasetError", "InriaModel", "load_nerf_synthetic", "load_instant_ngp", "load_inria_model",
-    "load_dataset", "detect_format", "save_inria_model",
-    "scene_extent",
+    "load_dataset", "detect_format", "save_inria_model", "scene_extent", "MIN_IMAGE_SIZE",
 ]
-
-Background = Sequence[float] | Tensor
-
-
-class DatasetError(ValueError):
-    """A dataset is missing files, malformed, inconsistent or of an unknown format."""
-
-
-@dataclass
-class Dataset:
-    """Posed images.
-
-    Attributes:
-        cameras: ``V`` cameras.
-        images: ``[V, 3, H, W]`` float32 in ``[0, 1]`` (composited on :attr:`background` where the files had
-            alpha).
-        alphas: ``[V, 1, H, W]`` alpha masks, or ``None`` when the images had no alpha channel.
-        names: ``V`` image names (relative file paths without extension for NeRF-style datasets).
-        background: ``[3]`` RGB background the images were composited on.
-        format: ``"nerf_synthetic"``, ``"instant_ngp"`` or ``"inria"``.
-        points: optional ``[P, 3]`` point cloud for initialisation.
-        point_colors: optional ``[P, 3]`` RGB in ``[0, 1]`` of :attr:`points`.
-        meta: format-specific extras (e.g. instant-ngp ``aabb_scale``).
-    """
-
-    cameras: list[Camera]
-    images: Tensor
-    alphas: Tensor | None
-    names: list[str]
-    background: Tensor
-    format: str = ""
-    points: Tensor | None = None
-    point_colors: Tensor | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        v = len(self.cameras)
-        if self.images.dim() != 4 or self.images.shape[0] != v or self.images.shape[1] != 3:
-            raise DatasetError(f"images must be [V={v}, 3, H, W], got {list(self.images.shape)}")
-        if len(self.names) != v:
-            raise DatasetError(f"{len(self.names)} names for {v} cameras")
-        h, w = self.images.shape[-2:]
-        for cam in self.cameras:
-            if (cam.height, cam.width) != (h, w):
-                raise DatasetError(f"camera {cam.name!r} is {cam.width}x{cam.height} but images are {w}x{h}")
-        if self.alphas is not None and tuple(self.alphas.shape) != (v, 1, h, w):
-            raise DatasetError(f"alphas must be [V, 1, H, W] = {[v, 1, h, w]}, got {list(self.alphas.shape)}")
-
-    def __len__(self) -> int:
-        return len(self.cameras)
-
-    @property
-    def height(self) -> int:
-        """Image height ``H``."""
-        return int(self.images.shape[-2])
-
-    @property
-    def width(self) -> int:
-        """Image width ``W``."""
-        return int(self.images.shape[-1])
-
-    def subset(self, indices: Sequence[int]) -> "Dataset":
-        """The views at ``indices`` (a new :class:`Dataset` sharing the point cloud)."""
-        idx = list(indices)
-        return Dataset(
-            cameras=[self.cameras[i] for i in idx], images=self.images[idx],
-            alphas=None if self.alphas is None else self.alphas[idx], names=[self.names[i] for i in idx],
-            background=self.background, format=self.format, points=self.points, point_colors=self.point_colors,
-            meta=dict(self.meta))
-
-
-class InriaModel(NamedTuple):
-    """What :func:`load_inria_model` returns (unpacks as ``gaussians, cameras, images``)."""
-
-    gaussians: Gaussians
-    cameras: list[Camera]
-    images: Tensor | None
-    iteration: int
-    folder: Path
-
-
-# ------------------------------------------------------------------------------------------- helpers
-
-
-def _background(background: Background) -> Tensor:
-    bg = torch.as_tensor(background, dtype=torch.float32).detach().cpu().flatten()
-    if bg.shape != (3,) or not torch.isfinite(bg).all():
-        raise ValueError(f"background must be 3 finite numbers, got {background!r}")
-    return bg
-
-
-def _check_downscale(downscale: float) -> float:
-    if isinstance(downscale, bool) or not isinstance(downscale, (int, float)) or not downscale >= 1 \
-            or not math.isfinite(downscale):
-        raise ValueError(f"downscale must be a number >= 1, got {downscale!r}")
-    return float(downscale)
-
-
-def _read_json(path: Path) -> Any:
-    if not path.is_file():
-        raise DatasetError(f"missing file: {path}")
-    try:
-        with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"malformed JSON in {path}: {exc}") from None
-
-
-def _resolve_image(root: Path, file_path: str, context: str) -> Path:
-    p = Path(file_path)
-    path = p if p.is_absolute() else root / p
-    if path.suffix in IMAGE_SUFFIXES and path.is_file():
-        return path
-    if path.suffix not in IMAGE_SUFFIXES or not path.is_file():
-        for suffix in (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG"):
-            candidate = path.with_name(path.name + suffix)
-            if candidate.is_file():
-                return candidate
-    if path.is_file():
-        return path
-    raise DatasetError(f"{context}: image not found: {path} (also tried .png/.jpg/.jpeg)")
-
-
-def _number(obj: dict, key: str, context: str, default: Any = None) -> Any:
-    value = obj.get(key, default)
-    if value is default:
-        return default
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise DatasetError(f"{context}: {key!r} must be a finite number, got {value!r}")
-    return float(value)
 
 
 def _c2w(frame: dict, context: str) -> Tensor:
     if "transform_matrix" not in frame:
         raise DatasetError(f"{context}: frame lacks 'transform_matrix'")
-    try:
-        m = torch.tensor(frame["transform_matrix"], dtype=torch.float64)
-    except (TypeError, ValueError) as exc:
-        raise DatasetError(f"{context}: malformed transform_matrix ({exc})") from None
-    if m.shape == (3, 4):
+    value = frame["transform_matrix"]
+    rows = 3 if isinstance(value, list) and len(value) == 3 else 4  # 3x4 is accepted too
+    m = json_matrix(value, (rows, 4), "transform_matrix", context, error=DatasetError)
+    if rows == 3:
         m = torch.cat([m, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)])
-    if m.shape != (4, 4) or not torch.isfinite(m).all():
-        raise DatasetError(f"{context}: transform_matrix must be a finite 4x4 (or 3x4) matrix")
     # Orthonormalise the rotation (some exporters round it) so Camera accepts it.
     u, _, vh = torch.linalg.svd(m[:3, :3])
     r = u @ vh
@@ -183,75 +55,94 @@ def _c2w(frame: dict, context: str) -> Tensor:
     return m
 
 
-def _load_frames(root: Path, meta: dict, frames: list[dict], *, source: str, downscale: float,
+def _intrinsics(get: Any, ctx: str, w: int, h: int) -> tuple[float, float, float, float]:
+    """``fx, fy, cx, cy`` of a NeRF / instant-ngp frame (``get`` reads a checked number, frame then top level)."""
+    fl_x, fl_y = get("fl_x", positive=True), get("fl_y", positive=True)
+    angle_x, angle_y = get("camera_angle_x"), get("camera_angle_y")
+    for name, angle in (("camera_angle_x", angle_x), ("camera_angle_y", angle_y)):
+        if angle is not None and not 0.0 < angle < math.pi:
+            raise DatasetError(f"{ctx}: field {name!r} must be in (0, pi) radians, got {angle!r}")
+    if fl_x is None and angle_x is None:
+        raise DatasetError(f"{ctx}: no focal length (need 'fl_x' or 'camera_angle_x')")
+    if fl_x is None:
+        fl_x = w / (2.0 * math.tan(angle_x / 2.0))
+    if fl_y is None:
+        fl_y = h / (2.0 * math.tan(angle_y / 2.0)) if angle_y is not None else fl_x
+    cx, cy = get("cx"), get("cy")
+    return fl_x, fl_y, w / 2.0 if cx is None else cx, h / 2.0 if cy is None else cy
+
+
+def _distortion(get: Any, frame: dict, meta: dict, ctx: str) -> Distortion:
+    if frame.get("is_fisheye", meta.get("is_fisheye", False)):
+        raise DatasetError(f"{ctx}: fisheye cameras (is_fisheye) are not supported")
+    if (get("k4") or 0.0) != 0.0:
+        raise DatasetError(f"{ctx}: k4 (fisheye model) is not supported")
+    return Distortion(*(get(key) or 0.0 for key in ("k1", "k2", "p1", "p2", "k3")))
+
+
+def _load_frame(path: Path, frame: dict, meta: dict, ctx: str, *, downscale: float, background: Tensor,
+                undistort: bool) -> tuple[Camera, Tensor, Tensor | None, tuple[int, int]]:
+    """One view: ``(camera, rgb [3, H, W], alpha [1, H, W] or None, (H, W) of the file)``."""
+    img = _read_view(path, ctx)
+    h, w = img.shape[-2:]
+
+    def get(key: str, positive: bool = False) -> Any:
+        return _number(frame, key, ctx, _number(meta, key, ctx, positive=positive), positive=positive)
+
+    fw = json_integer(frame, "w", ctx, json_integer(meta, "w", ctx, None, error=DatasetError), error=DatasetError)
+    fh = json_integer(frame, "h", ctx, json_integer(meta, "h", ctx, None, error=DatasetError), error=DatasetError)
+    if (fw is not None and fw != w) or (fh is not None and fh != h):
+        raise DatasetError(f"{ctx}: {path.name} is {w}x{h} but the transforms file says {fw or w}x{fh or h}")
+    fl_x, fl_y, cx, cy = _intrinsics(get, ctx, w, h)
+    dist = _distortion(get, frame, meta, ctx)
+    c2w = _c2w(frame, ctx)
+    if not dist.is_identity:
+        if not undistort:
+            raise DatasetError(
+                f"{ctx}: the camera has lens distortion (k1={dist.k1}, k2={dist.k2}, p1={dist.p1}, "
+                f"p2={dist.p2}, k3={dist.k3}) and undistort=False; pass undistort=True to resample the "
+                "images into pinhole cameras")
+        img = undistort_image(img, fl_x, fl_y, cx, cy, dist)
+    rgb, alpha = composite(img, background) if img.shape[0] == 4 else (img, None)
+    try:
+        cam = Camera.from_nerf(c2w, w, h, fx=fl_x, fy=fl_y, cx=cx, cy=cy, name=str(frame["file_path"]))
+    except ValueError as exc:
+        raise DatasetError(f"{ctx}: {exc}") from None
+    if downscale != 1.0:  # the explicit, documented resize
+        cam = cam.scaled(1.0 / downscale)
+        rgb = resize_image(rgb, cam.height, cam.width)
+        alpha = None if alpha is None else resize_image(alpha, cam.height, cam.width)
+    _check_usable(cam.width, cam.height, f"{ctx}: {path.name}")
+    return cam, rgb, alpha, (h, w)
+
+
+def _load_frames(root: Path, meta: dict, frames: list, *, source: str, downscale: float,
                  background: Tensor, undistort: bool, fmt: str) -> Dataset:
     """Shared NeRF / instant-ngp frame parser (intrinsics per frame or at the top level)."""
-    cameras, images, alphas, names = [], [], [], []
-    any_alpha = False
-    size: tuple[int, int] | None = None
+    if not frames:
+        raise DatasetError(f"{source}: no frames")
     for k, frame in enumerate(frames):
-        ctx = f"{source} frame {k}"
         if not isinstance(frame, dict) or "file_path" not in frame:
-            raise DatasetError(f"{ctx}: frame lacks 'file_path'")
-        path = _resolve_image(root, str(frame["file_path"]), ctx)
-        try:
-            img = read_image(path)
-        except ValueError as exc:
-            raise DatasetError(f"{ctx}: {exc}") from None
-        h, w = img.shape[-2:]
-        get = lambda key: _number(frame, key, ctx, _number(meta, key, source))  # noqa: E731
-        fw, fh = get("w"), get("h")
-        if (fw is not None and int(fw) != w) or (fh is not None and int(fh) != h):
-            raise DatasetError(f"{ctx}: {path.name} is {w}x{h} but the transforms file says "
-                               f"{int(fw or w)}x{int(fh or h)}")
-        if size is None:
-            size = (h, w)
-        elif size != (h, w):
+            raise DatasetError(f"{source} frame {k}: frame lacks 'file_path'")
+        if not isinstance(frame["file_path"], str) or not frame["file_path"]:
+            raise DatasetError(f"{source} frame {k}: field 'file_path' must be a non-empty string, "
+                               f"got {frame['file_path']!r}")
+    paths = _find_images(root, [f["file_path"] for f in frames], source)
+    cameras, images, alphas, sizes = [], [], [], []
+    for k, (frame, path) in enumerate(zip(frames, paths)):
+        cam, rgb, alpha, (h, w) = _load_frame(path, frame, meta, f"{source} frame {k}", downscale=downscale,
+                                              background=background, undistort=undistort)
+        if sizes and (h, w) != sizes[0]:
             raise DatasetError(f"inconsistent image sizes in {source}: {path.name} is {w}x{h}, "
-                               f"earlier images are {size[1]}x{size[0]}")
-        fl_x, fl_y = get("fl_x"), get("fl_y")
-        angle_x, angle_y = get("camera_angle_x"), get("camera_angle_y")
-        if fl_x is None and angle_x is None:
-            raise DatasetError(f"{ctx}: no focal length (need 'fl_x' or 'camera_angle_x')")
-        if fl_x is None:
-            fl_x = w / (2.0 * math.tan(angle_x / 2.0))
-        if fl_y is None:
-            fl_y = h / (2.0 * math.tan(angle_y / 2.0)) if angle_y is not None else fl_x
-        cx, cy = get("cx"), get("cy")
-        cx = w / 2.0 if cx is None else cx
-        cy = h / 2.0 if cy is None else cy
-        if frame.get("is_fisheye", meta.get("is_fisheye", False)):
-            raise DatasetError(f"{ctx}: fisheye cameras (is_fisheye) are not supported")
-        dist = Distortion(*(get(key) or 0.0 for key in ("k1", "k2", "p1", "p2", "k3")))
-        if (get("k4") or 0.0) != 0.0:
-            raise DatasetError(f"{ctx}: k4 (fisheye model) is not supported")
-        c2w = _c2w(frame, ctx)
-        if not dist.is_identity:
-            if not undistort:
-                raise DatasetError(
-                    f"{ctx}: the camera has lens distortion (k1={dist.k1}, k2={dist.k2}, p1={dist.p1}, "
-                    f"p2={dist.p2}, k3={dist.k3}) and undistort=False; pass undistort=True to resample the "
-                    "images into pinhole cameras")
-            img = undistort_image(img, fl_x, fl_y, cx, cy, dist)
-        if img.shape[0] == 4:
-            any_alpha = True
-            rgb, alpha = composite(img, background)
-        else:
-            rgb, alpha = img, torch.ones_like(img[:1])
-        name = str(frame["file_path"])
-        cam = Camera.from_nerf(c2w, w, h, fx=fl_x, fy=fl_y, cx=cx, cy=cy, name=name)
-        if downscale != 1.0:
-            cam = cam.scaled(1.0 / downscale)
-            rgb = resize_image(rgb, cam.height, cam.width)
-            alpha = resize_image(alpha, cam.height, cam.width)
+                               f"earlier images are {sizes[0][1]}x{sizes[0][0]}")
+        sizes.append((h, w))
         cameras.append(cam)
         images.append(rgb)
         alphas.append(alpha)
-        names.append(name)
-    if not cameras:
-        raise DatasetError(f"{source}: no frames")
+    any_alpha = any(a is not None for a in alphas)
+    alpha_stack = torch.stack([torch.ones_like(rgb[:1]) if a is None else a for a, rgb in zip(alphas, images)])
     return Dataset(cameras=cameras, images=torch.stack(images).contiguous(),
-                   alphas=torch.stack(alphas).contiguous() if any_alpha else None, names=names,
+                   alphas=alpha_stack.contiguous() if any_alpha else None, names=[c.name for c in cameras],
                    background=background, format=fmt)
 
 
@@ -307,15 +198,15 @@ def load_nerf_synthetic(root: str | os.PathLike, split: str = "train", *, downsc
         raise DatasetError(f"dataset folder not found: {root}")
     path = root / f"transforms_{split}.json"
     derived = False
-    if not path.is_file():
+    if not path.exists():
         train_path = root / "transforms_train.json"
-        if not train_path.is_file():
+        if not train_path.exists():
             raise DatasetError(f"missing file: {path} (and no transforms_train.json in {root})")
         if split != "train" and holdout_every < 2:
             raise DatasetError(f"missing file: {path} and holdout_every={holdout_every} disables the hold-out split")
         path, derived = train_path, True
     elif split == "train" and holdout_every >= 2 and not any(
-            (root / f"transforms_{s}.json").is_file() for s in ("test", "val")):
+            (root / f"transforms_{s}.json").exists() for s in ("test", "val")):
         derived = True
     meta = _read_json(path)
     frames = _frames_of(meta, str(path))
@@ -370,103 +261,6 @@ def load_instant_ngp(path: str | os.PathLike, split: str = "all", *, downscale: 
     return ds
 
 
-# ------------------------------------------------------------------------------------------- INRIA
-
-
-def save_inria_model(folder: str | os.PathLike, gaussians: Gaussians, cameras: Sequence[Camera],
-                     iteration: int) -> Path:
-    """Write an INRIA model folder: ``point_cloud/iteration_{iteration}/point_cloud.ply`` + ``cameras.json``.
-
-    Both files are written atomically (temporary file + rename). Returns the PLY path.
-    """
-    from gsw.io.ply import save_ply  # noqa: PLC0415
-
-    folder = Path(folder)
-    ply_dir = folder / "point_cloud" / f"iteration_{int(iteration)}"
-    ply_dir.mkdir(parents=True, exist_ok=True)
-    ply = ply_dir / "point_cloud.ply"
-    save_ply(gaussians, ply)
-    save_inria_cameras(cameras, folder / "cameras.json")
-    return ply
-
-
-_ITER_RE = re.compile(r"^iteration_(\d+)$")
-
-
-def load_inria_model(folder: str | os.PathLike, *, iteration: int | None = None,
-                     images_dir: str | os.PathLike | None = None, downscale: float = 1,
-                     background: Background = (1.0, 1.0, 1.0)) -> InriaModel:
-    """Load an INRIA 3DGS output folder: ``point_cloud/iteration_*/point_cloud.ply`` + ``cameras.json``.
-
-    Args:
-        folder: the model folder.
-        iteration: which ``iteration_N`` to load (default: the largest).
-        images_dir: optional folder with the source images, matched by ``img_name`` (with or without an
-            extension); images are resized to each camera's size when they differ by a consistent factor
-            (INRIA stores the training resolution in ``cameras.json``).
-        downscale: extra size divisor applied to cameras and images (>= 1).
-        background: RGB for RGBA source images.
-
-    Returns:
-        :class:`InriaModel` ``(gaussians, cameras, images or None, iteration, folder)``.
-    """
-    from gsw.io.ply import load_ply  # noqa: PLC0415
-
-    folder = Path(folder)
-    downscale = _check_downscale(downscale)
-    if not folder.is_dir():
-        raise DatasetError(f"model folder not found: {folder}")
-    pc = folder / "point_cloud"
-    iterations = sorted(int(m.group(1)) for d in (pc.iterdir() if pc.is_dir() else [])
-                        if d.is_dir() and (m := _ITER_RE.match(d.name)))
-    if not iterations:
-        raise DatasetError(f"{folder}: no point_cloud/iteration_*/ folder (not an INRIA model folder)")
-    if iteration is None:
-        iteration = iterations[-1]
-    elif iteration not in iterations:
-        raise DatasetError(f"{folder}: no iteration {iteration} (available: {iterations})")
-    ply = pc / f"iteration_{iteration}" / "point_cloud.ply"
-    if not ply.is_file():
-        raise DatasetError(f"missing file: {ply}")
-    gaussians = load_ply(ply)
-    entries = _read_json(folder / "cameras.json")
-    if not isinstance(entries, list) or not entries:
-        raise DatasetError(f"{folder / 'cameras.json'}: expected a non-empty JSON list of camera entries")
-    cameras = []
-    for k, e in enumerate(entries):
-        try:
-            cameras.append(Camera.from_inria(e))
-        except (ValueError, TypeError) as exc:
-            raise DatasetError(f"{folder / 'cameras.json'} entry {k}: {exc}") from None
-    if downscale != 1.0:
-        cameras = [c.scaled(1.0 / downscale) for c in cameras]
-    images = None
-    if images_dir is not None:
-        images = _load_named_images(Path(images_dir), cameras, _background(background))
-    return InriaModel(gaussians, cameras, images, iteration, folder)
-
-
-def _load_named_images(images_dir: Path, cameras: Sequence[Camera], bg: Tensor) -> Tensor:
-    if not images_dir.is_dir():
-        raise DatasetError(f"images folder not found: {images_dir}")
-    out = []
-    for cam in cameras:
-        if not cam.name:
-            raise DatasetError("camera entry has no img_name; cannot match it to an image file")
-        path = _resolve_image(images_dir, cam.name, f"camera {cam.name!r}")
-        img = read_image(path)
-        rgb = composite(img, bg)[0] if img.shape[0] == 4 else img
-        h, w = rgb.shape[-2:]
-        if (h, w) != (cam.height, cam.width):
-            fx, fy = w / cam.width, h / cam.height
-            if abs(fx - fy) > 0.02 * max(fx, fy):
-                raise DatasetError(f"{path.name} is {w}x{h}, which is not a uniform rescale of the camera's "
-                                   f"{cam.width}x{cam.height}")
-            rgb = resize_image(rgb, cam.height, cam.width)
-        out.append(rgb)
-    return torch.stack(out).contiguous()
-
-
 # ------------------------------------------------------------------------------------------- auto-detect
 
 
@@ -483,11 +277,11 @@ def detect_format(path: str | os.PathLike) -> str:
         if path.name.startswith("transforms") and path.suffix == ".json":
             return "instant_ngp" if path.name == "transforms.json" else "nerf_synthetic"
         raise DatasetError(f"unknown dataset format: {path} (expected a folder or a transforms*.json file)")
-    if any((path / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
+    if any((path / f"transforms_{s}.json").exists() for s in ("train", "val", "test")):
         return "nerf_synthetic"
-    if (path / "transforms.json").is_file():
+    if (path / "transforms.json").exists():
         return "instant_ngp"
-    if (path / "cameras.json").is_file() or (path / "point_cloud").is_dir():
+    if (path / "cameras.json").exists() or (path / "point_cloud").is_dir():
         return "inria"
     raise DatasetError(
         f"unknown dataset format in {path}: expected transforms_train.json (NeRF-synthetic), transforms.json "
@@ -519,14 +313,12 @@ def load_dataset(path: str | os.PathLike, split: str = "train", *, downscale: fl
     if split != "all":
         train_idx, test_idx = holdout_indices(len(idx), holdout_every)
         idx = train_idx if split == "train" else test_idx
-    from gsw.constants import SH_C0, SH_COLOR_OFFSET  # noqa: PLC0415
-
     g = model.gaussians
     assert model.images is not None
     return Dataset(cameras=[model.cameras[i] for i in idx], images=model.images[idx], alphas=None,
                    names=[model.cameras[i].name for i in idx], background=_background(background), format="inria",
                    points=g.means.detach().float(),
-                   point_colors=(g.sh[:, 0].detach().float() * SH_C0 + SH_COLOR_OFFSET).clamp(0, 1),
+                   point_colors=sh_dc_to_rgb(g.sh[:, 0].detach().float()).clamp(0, 1),
                    meta={"iteration": model.iteration})
 
 

@@ -11,7 +11,13 @@ unnormalised ``(w, x, y, z)`` quaternion, exactly like the :class:`~gsw.gaussian
 
 Reading accepts SH degree 0-3, files with or without normals, any property order, ``binary_little_endian``,
 ``binary_big_endian`` and ``ascii`` formats, and any scalar property type (converted to float32). Normals
-are ignored on load.
+are ignored on load (NaN normals included). Other elements may come before or after ``vertex`` when they
+have no list properties (or no records).
+
+Reading is strict about the amount of data, so that a wrong count in the header cannot drop or invent
+Gaussians: the file must end exactly where the header says (binary) or hold exactly the declared number
+of records plus blank lines (ASCII); a shorter file is "truncated", a longer one has "trailing data".
+NaN/Inf in any property that is used and a model of 0 Gaussians are errors by default.
 
 Example:
     >>> from gsw.io import load_ply, save_ply
@@ -111,12 +117,14 @@ def _read_header(f, path: Path) -> _Header:
         elif key == "element":
             if len(words) != 3 or not words[2].isdigit():
                 raise PlyError(f"{path}: bad PLY header: line {lineno}: expected 'element <name> <count>'")
+            if any(e.name == words[1] for e in elements):
+                raise PlyError(f"{path}: bad PLY header: line {lineno}: duplicate element '{words[1]}'")
             elements.append(_Element(words[1], int(words[2])))
         elif key == "property":
             if not elements:
                 raise PlyError(f"{path}: bad PLY header: line {lineno}: property before any element")
             element = elements[-1]
-            if len(words) == 5 and words[1] == "list":
+            if len(words) == 5 and words[1] == "list" and words[2] in _SCALAR_TYPES and words[3] in _SCALAR_TYPES:
                 element.has_list = True
                 name, code = words[4], "list"
             elif len(words) == 3 and words[1] in _SCALAR_TYPES:
@@ -163,26 +171,44 @@ def _column_plan(vertex: _Element, path: Path, strict: bool) -> tuple[list[str],
     return wanted, _F_REST_COUNTS[len(rest)]
 
 
-def _read_binary(f, header: _Header, vertex_index: int, path: Path, strict: bool) -> np.ndarray:
+def _binary_offsets(header: _Header, vertex_index: int, path: Path) -> tuple[int, int]:
+    """Byte offset of the vertex data and the exact file size the header implies."""
     endian = _FORMATS[header.format]
-    offset = header.num_bytes
-    for element in header.elements[:vertex_index]:
-        if element.has_list:
+    offset, total = header.num_bytes, header.num_bytes
+    for i, element in enumerate(header.elements):
+        if element.has_list and element.count:
+            where = "before" if i < vertex_index else "after"
             raise PlyError(
-                f"{path}: element '{element.name}' before 'vertex' has list properties; cannot locate the vertices"
+                f"{path}: element '{element.name}' ({where} 'vertex') has list properties and {element.count} "
+                "records; cannot check the vertex data against the file size (not a 3DGS model?)"
             )
-        offset += element.count * np.dtype([(p, endian + c) for p, c in element.properties]).itemsize
+        size = 0 if element.has_list else element.count * np.dtype([(p, endian + c) for p, c in element.properties]).itemsize
+        if i < vertex_index:
+            offset += size
+        total += size
+    return offset, total
+
+
+def _read_binary(f, header: _Header, vertex_index: int, path: Path) -> np.ndarray:
+    endian = _FORMATS[header.format]
+    offset, total = _binary_offsets(header, vertex_index, path)
     vertex = header.elements[vertex_index]
     dtype = np.dtype([(p, endian + c) for p, c in vertex.properties])
     expected = vertex.count * dtype.itemsize
-    actual = max(os.fstat(f.fileno()).st_size - offset, 0)
-    if actual < expected:
+    size = os.fstat(f.fileno()).st_size
+    if size < total:
         raise PlyError(
-            f"{path}: truncated PLY data: {vertex.count} vertices x {dtype.itemsize} bytes = {expected} bytes "
-            f"expected after the header, but only {actual} bytes are present"
+            f"{path}: truncated PLY data: the header declares {total - header.num_bytes} bytes of data "
+            f"({vertex.count} vertices x {dtype.itemsize} bytes = {expected} bytes expected for 'vertex'), "
+            f"but only {size - header.num_bytes} bytes are present"
         )
-    if strict and actual > expected and vertex_index == len(header.elements) - 1:
-        raise PlyError(f"{path}: {actual - expected} unexpected trailing bytes after the vertex data (strict=True)")
+    if size > total:
+        extra = size - total
+        raise PlyError(
+            f"{path}: {extra} bytes of trailing data after the {total - header.num_bytes} bytes the header declares "
+            f"(element vertex {vertex.count} x {dtype.itemsize} bytes; {extra / dtype.itemsize:g} more vertices' worth): "
+            "the header's vertex count does not match the data"
+        )
     f.seek(offset)
     if all(c == "f4" for _, c in vertex.properties):
         # Fast path (the INRIA layout): read straight into one float32 matrix.
@@ -200,45 +226,76 @@ def _read_binary(f, header: _Header, vertex_index: int, path: Path, strict: bool
 
 def _read_ascii(f, header: _Header, vertex_index: int, path: Path) -> np.ndarray:
     f.seek(header.num_bytes)
-    lines = f.read().splitlines()
+    raw = f.read()
+    lines = raw.splitlines()
     skip = sum(e.count for e in header.elements[:vertex_index])
+    total = sum(e.count for e in header.elements)
     vertex = header.elements[vertex_index]
     rows = lines[skip : skip + vertex.count]
-    if len(rows) < vertex.count:
-        raise PlyError(f"{path}: truncated ASCII PLY data: expected {vertex.count} vertex lines, found {len(rows)}")
-    tokens = b" ".join(rows).split()
-    num_props = len(vertex.properties)
-    if len(tokens) != vertex.count * num_props:
+    if len(lines) < total:
         raise PlyError(
-            f"{path}: malformed ASCII PLY data: expected {vertex.count} x {num_props} values, found {len(tokens)}"
+            f"{path}: truncated ASCII PLY data: the header declares {total} record lines "
+            f"(element vertex {vertex.count}), found {len(lines)}"
+        )
+    extra = [i for i, line in enumerate(lines[total:]) if line.strip()]
+    if extra:
+        raise PlyError(
+            f"{path}: {len(extra)} lines of trailing data after the {total} record lines the header declares "
+            f"(element vertex {vertex.count}): the header's vertex count does not match the data"
+        )
+    if total and not raw.rstrip(b" \t\x0b\x0c").endswith((b"\n", b"\r")):
+        raise PlyError(f"{path}: truncated ASCII PLY data: the last record line has no line break")
+    num_props = len(vertex.properties)
+    tokens = [row.split() for row in rows]
+    wrong = next((i for i, t in enumerate(tokens) if len(t) != num_props), None)
+    if wrong is not None:
+        raise PlyError(
+            f"{path}: malformed ASCII PLY data: vertex {wrong} has {len(tokens[wrong])} values, "
+            f"expected {num_props}"
         )
     try:
-        values = np.array(tokens).astype(np.float64)
+        values = np.array([v for t in tokens for v in t]).astype(np.float64)
     except ValueError as exc:
         raise PlyError(f"{path}: malformed ASCII PLY data: {exc}") from None
     with np.errstate(over="ignore"):
         return values.astype(np.float32).reshape(vertex.count, num_props)
 
 
-def load_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False, strict: bool = False) -> Gaussians:
+def _check_finite(data: np.ndarray, wanted: list[str], position: dict[str, int], path: Path) -> None:
+    if np.isfinite(data).all():
+        return
+    used = [position[p] for p in wanted]
+    bad = np.count_nonzero(~np.isfinite(data[:, used]), axis=0)
+    if bad.any():
+        details = ", ".join(f"{wanted[i]} ({bad[i]})" for i in np.flatnonzero(bad))
+        raise PlyError(f"{path}: non-finite (NaN/Inf) values in properties: {details}")
+
+
+def load_ply(
+    path: str | os.PathLike, *, allow_nonfinite: bool = False, allow_empty: bool = False, strict: bool = False
+) -> Gaussians:
     """Load a 3DGS model from an INRIA-layout PLY file.
 
     Args:
         path: the ``.ply`` file.
         allow_nonfinite: accept NaN/Inf values instead of raising.
-        strict: also reject unknown vertex properties and trailing bytes (by default they are ignored).
+        allow_empty: accept a model of 0 Gaussians instead of raising.
+        strict: also reject unknown vertex properties (by default they are ignored).
 
     Returns:
         :class:`~gsw.gaussians.Gaussians` on the CPU in float32; ``sh`` is ``[N, (d+1)^2, 3]`` with the SH
         degree ``d`` given by the number of ``f_rest_*`` properties. Normals are dropped.
 
     Raises:
-        PlyError: the file is not a PLY, has an unsupported format or a bad header, lacks a required
-            property, has a wrong number of ``f_rest_*`` properties, is truncated, or holds NaN/Inf values
-            (unless ``allow_nonfinite``); the message names the problem.
+        PlyError: the path is a directory or not a PLY, has an unsupported format or a bad header, lacks a
+            required property, has a wrong number of ``f_rest_*`` properties, holds less data (truncated) or
+            more data (trailing data) than the header declares, holds NaN/Inf values (unless
+            ``allow_nonfinite``) or 0 Gaussians (unless ``allow_empty``); the message names the problem.
         FileNotFoundError: the file does not exist.
     """
     path = Path(path)
+    if path.is_dir():
+        raise PlyError(f"{path}: is a directory, not a PLY file")
     with open(path, "rb") as f:
         header = _read_header(f, path)
         vertex_index = next((i for i, e in enumerate(header.elements) if e.name == "vertex"), None)
@@ -249,15 +306,12 @@ def load_ply(path: str | os.PathLike, *, allow_nonfinite: bool = False, strict: 
         if header.format == "ascii":
             data = _read_ascii(f, header, vertex_index, path)
         else:
-            data = _read_binary(f, header, vertex_index, path, strict)
-
+            data = _read_binary(f, header, vertex_index, path)
+    if vertex.count == 0 and not allow_empty:
+        raise PlyError(f"{path}: the model has 0 Gaussians (element vertex 0); pass allow_empty=True to load it")
     position = {p: i for i, (p, _) in enumerate(vertex.properties)}
-    if not allow_nonfinite and not np.isfinite(data).all():
-        used = [position[p] for p in wanted]
-        bad = np.count_nonzero(~np.isfinite(data[:, used]), axis=0)
-        if bad.any():
-            details = ", ".join(f"{wanted[i]} ({bad[i]})" for i in np.flatnonzero(bad))
-            raise PlyError(f"{path}: non-finite (NaN/Inf) values in properties: {details}")
+    if not allow_nonfinite:
+        _check_finite(data, wanted, position, path)
 
     def columns(*names: str) -> np.ndarray:
         return _take_columns(data, [position[p] for p in names])

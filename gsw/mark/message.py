@@ -74,7 +74,11 @@ def as_message(message: MessageLike, num_bits: int, *, seed: int | None = None) 
         if message.startswith("key:"):
             return message_from_key(message[4:], num_bits)
         return message_from_hex(message, num_bits)
-    bits = torch.as_tensor(message, dtype=torch.float32).flatten()
+    try:
+        bits = torch.as_tensor(message, dtype=torch.float32).flatten()
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"message must be a hex string, 'key:<secret>' or {num_bits} bits (0/1), "
+                         f"got {type(message).__name__} ({exc})") from None
     if bits.numel() != num_bits:
         raise ValueError(f"message has {bits.numel()} bits, expected {num_bits}")
     if not torch.all((bits == 0) | (bits == 1)):

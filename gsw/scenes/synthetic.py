@@ -20,8 +20,7 @@ import torch
 from torch import Tensor
 
 from gsw.camera import Camera, orbit_cameras
-from gsw.constants import SH_C0, SH_COLOR_OFFSET
-from gsw.gaussians import Gaussians, sh_degree_to_num_coeffs
+from gsw.gaussians import Gaussians, rgb_to_sh_dc, sh_degree_to_num_coeffs
 
 __all__ = [
     "SyntheticScene", "random_gaussians", "frustum_scene", "frustum_sigma_px", "default_scene",
@@ -61,16 +60,11 @@ def _normal(gen: torch.Generator, shape: Sequence[int], std: float = 1.0) -> Ten
     return std * torch.randn(*shape, generator=gen, dtype=_F64)
 
 
-def _rgb_to_dc(rgb: Tensor) -> Tensor:
-    """``[..., 3]`` colour -> DC SH coefficient (``rgb = SH_COLOR_OFFSET + SH_C0 * f_dc``)."""
-    return (rgb - SH_COLOR_OFFSET) / SH_C0
-
-
 def _sh_from_rgb(gen: torch.Generator, rgb: Tensor, sh_degree: int, rest_std: float) -> Tensor:
     """``[N, K, 3]`` SH with the given base colour and small random higher orders."""
     k = sh_degree_to_num_coeffs(sh_degree)
     sh = _normal(gen, (rgb.shape[0], k, 3), rest_std)
-    sh[:, 0] = _rgb_to_dc(rgb)
+    sh[:, 0] = rgb_to_sh_dc(rgb)
     return sh
 
 

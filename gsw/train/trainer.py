@@ -51,9 +51,8 @@ from torch import Tensor
 
 import gsw
 from gsw.camera import Camera
-from gsw.constants import SH_C0, SH_COLOR_OFFSET
 from gsw.data.loaders import Dataset, save_inria_model, scene_extent
-from gsw.gaussians import Gaussians, sh_degree_to_num_coeffs
+from gsw.gaussians import Gaussians, rgb_to_sh_dc, sh_degree_to_num_coeffs
 from gsw.metrics.image import psnr, ssim
 from gsw.render.rasterize import rasterize
 from gsw.train.optim import GaussianAdam
@@ -284,10 +283,6 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
 # ------------------------------------------------------------------------------------------- init
 
 
-def _rgb_to_sh_dc(rgb: Tensor) -> Tensor:
-    return (rgb - SH_COLOR_OFFSET) / SH_C0
-
-
 def _knn_mean_sq_dist(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
     """Mean squared distance to the ``k`` nearest other points (INRIA's ``distCUDA2``), chunked cdist, on the
     points' device."""
@@ -332,7 +327,7 @@ def _make_gaussians(means: Tensor, rgb: Tensor, sh_degree: int, opacity: float,
     quats = torch.zeros(n, 4, **kw)
     quats[:, 0] = 1.0
     sh = torch.zeros(n, sh_degree_to_num_coeffs(sh_degree), 3, **kw)
-    sh[:, 0] = _rgb_to_sh_dc(rgb.to(**kw))
+    sh[:, 0] = rgb_to_sh_dc(rgb.to(**kw))
     op = torch.full((n,), float(torch.logit(torch.tensor(opacity))), **kw)
     return Gaussians(means, log_scales, quats, op, sh)
 
