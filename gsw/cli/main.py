@@ -450,7 +450,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def _add_eval_grid_parser(sub) -> None:
-    from gsw.attacks.ops import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
+    from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
     from gsw.eval.grid import METHODS, PAPER_MODEL_ATTACKS, GridSpec
 
     default = GridSpec()

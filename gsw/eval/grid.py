@@ -50,7 +50,7 @@ import torch
 from torch import Tensor
 
 from gsw._atomic import atomic_write
-from gsw.attacks.ops import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS, bind_model_attacks
+from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS, bind_model_attacks
 from gsw.camera import Camera
 from gsw.mark.embed import EmbedConfig, embed
 from gsw.eval.report import evaluate_watermark
@@ -203,10 +203,10 @@ class GridSpec:
         bits: message lengths (32, 48, 64 with the shipped decoders).
         seeds: seeds of the message, view order and train-time attacks.
         epochs: embedding epochs.
-        image_attacks: keys of :data:`gsw.attacks.ops.IMAGE_ATTACKS` (the paper's strengths).
-        model_attacks: keys of :data:`gsw.attacks.ops.MODEL_ATTACKS` or :data:`gsw.attacks.ops.VIEW_MODEL_ATTACKS`
+        image_attacks: keys of :data:`gsw.attacks.presets.IMAGE_ATTACKS` (the paper's strengths).
+        model_attacks: keys of :data:`gsw.attacks.presets.MODEL_ATTACKS` or :data:`gsw.attacks.presets.VIEW_MODEL_ATTACKS`
             (``finetune`` trains on renders of the embedding views).
-        sweeps: keys of :data:`gsw.attacks.ops.SWEEPS`: robustness curves over their values.
+        sweeps: keys of :data:`gsw.attacks.presets.SWEEPS`: robustness curves over their values.
         embed: further EmbedConfig overrides for every method (``"weights"`` as a dict), applied before the
             method's own; ``epochs``, ``seed`` and ``background`` are set by the grid.
         fpr: false-positive rate of a detection.

@@ -107,7 +107,7 @@ class EmbedResult:
 def _perturbed(g: Gaussians, rng: random.Random, tgen: torch.Generator, sigma: float) -> Gaussians:
     """A differentiable model attack for train-time sampling, one of two at random: N(0, sigma^2) on every
     raw parameter but the positions, or the view-dependent SH dropped (degree 0).  The evaluation's
-    :func:`gsw.attacks.ops.parameter_noise_attributes` / :func:`gsw.attacks.ops.reduce_sh` return detached copies;
+    :func:`gsw.attacks.model.parameter_noise_attributes` / :func:`gsw.attacks.model.reduce_sh` return detached copies;
     these keep the graph so the clean parameters learn a message that survives them."""
     if rng.random() < 0.5:
         def noisy(t: Tensor) -> Tensor:
