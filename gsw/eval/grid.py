@@ -53,6 +53,7 @@ from gsw._atomic import atomic_write
 from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS, bind_model_attacks
 from gsw.camera import Camera
 from gsw.mark.embed import EmbedConfig, embed
+from gsw.mark.loss import lpips_weights
 from gsw.eval.report import evaluate_watermark
 from gsw.stats import DETECTION_FPR
 from gsw.gaussians import Gaussians
@@ -142,7 +143,7 @@ def lpips_loss_overrides(net: str | None) -> dict[str, Any]:
     Returns:
         Overrides for :attr:`GridSpec.embed`.
     """
-    return {"lpips_net": net} if net else {"lpips_net": None, "weights": {"lpips": 0.0}}
+    return {"lpips_net": net} if net else {"lpips_net": None, "weights": {"lpips": lpips_weights(None).lpips}}
 
 
 def method_config(method: str, base: EmbedConfig | None = None) -> EmbedConfig:
@@ -248,7 +249,7 @@ class GridSpec:
                              "(the grid sets them)")
         for method in self.methods:
             cfg = self.config(method, 0)
-            if cfg.lpips_net is None and cfg.weights.lpips != 0:
+            if cfg.weights != lpips_weights(cfg.lpips_net, cfg.weights):
                 raise ValueError(f"method {method}: lpips_net is None but the LPIPS loss weight is "
                                  f"{cfg.weights.lpips}; also override weights.lpips = 0")
 
