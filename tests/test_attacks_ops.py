@@ -191,3 +191,8 @@ def test_training_jpeg_is_the_evaluation_jpeg():
     real = layers.real_jpeg(x, torch.tensor([90.0, 50.0, 10.0]))
     for i, q in enumerate((90, 50, 10)):
         assert torch.equal(real[i], A.jpeg(x[i], quality=q))
+
+
+def test_combined_defaults_are_the_single_attacks_defaults():
+    img = smooth_image(batch=2)
+    assert torch.equal(A.combined(img, seed=4), A.jpeg(A.gaussian_blur(A.crop(img, seed=4))))

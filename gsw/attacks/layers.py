@@ -180,7 +180,8 @@ class JPEG(NoiseLayer):
     name = "jpeg"
 
     def __init__(
-        self, quality: tuple[float, float] = TRAINING_RANGES["jpeg"], mode: str = "real_diffgrad", fixed: bool = False
+        self, quality: tuple[float, float] = TRAINING_RANGES["jpeg"], mode: str = "real_diffgrad",
+        fixed: bool = False,
     ) -> None:
         super().__init__(quality[0], quality[1], fixed)
         if mode not in ("real", "diff", "real_diffgrad"):
@@ -392,12 +393,14 @@ class GpuAttacks:
             return x
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
 
-    def jpeg(self, x: torch.Tensor, s: float, quality: tuple[float, float] = TRAINING_RANGES["jpeg"]) -> torch.Tensor:
+    def jpeg(self, x: torch.Tensor, s: float,
+             quality: tuple[float, float] = TRAINING_RANGES["jpeg"]) -> torch.Tensor:
         q_hi, q_lo = quality
         q = (q_hi + self._tv(x.shape[0], s) * (q_lo - q_hi)).round()
         return diff_jpeg(x.float(), q)
 
-    def blur(self, x: torch.Tensor, s: float, sigma: tuple[float, float] = TRAINING_RANGES["blur"]) -> torch.Tensor:
+    def blur(self, x: torch.Tensor, s: float,
+             sigma: tuple[float, float] = TRAINING_RANGES["blur"]) -> torch.Tensor:
         lo, hi = sigma
         return _blur(x, lo + self._t(s) * (hi - lo))
 

@@ -235,7 +235,8 @@ def _footprint(a_d: torch.Tensor, c_d: torch.Tensor, det: torch.Tensor, ok: torc
     return radius, rects, ok
 
 
-def _colors(means: torch.Tensor, sh: torch.Tensor, sh_degree: int, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+def _colors(means: torch.Tensor, sh: torch.Tensor, sh_degree: int, R: torch.Tensor,
+            t: torch.Tensor) -> torch.Tensor:
     """RGB [N, 3]: the direct colours (``sh_degree == -1``), else SH evaluated towards the camera, clamped at 0."""
     if sh_degree < 0:
         if sh.dim() != 2 or sh.shape[-1] != 3:
