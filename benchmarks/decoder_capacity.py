@@ -45,7 +45,7 @@ import torch.nn.functional as F  # noqa: E402
 
 from watermark.dwt import ll_subband  # noqa: E402
 from watermark.evaluation import bootstrap_ci95, eval_attacks  # noqa: E402
-from watermark.evaluation import psnr as psnr_db  # noqa: E402
+from gsw.metrics.image import psnr as psnr_db  # noqa: E402
 from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
 from watermark.image import watermark_images  # noqa: E402
 from watermark.refine import SCHEDULES, scale_to_psnr  # noqa: E402

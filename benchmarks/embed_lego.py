@@ -34,7 +34,7 @@ def main() -> int:
     from gsw.data import load_inria_model, load_nerf_synthetic
     from gsw.mark.embed import EmbedConfig, embed, verify
     from gsw.mark.fgd import PRUNE_THRESHOLD, fgd_prune
-    from gsw.mark.loss import LossWeights
+    from gsw.mark.loss import LossWeights, lpips_weights
     from gsw.metrics.image import psnr, ssim
     from gsw.train import resolve_device
     from gsw.decoder.pretrain.evaluation import unbiasedness
@@ -139,7 +139,7 @@ def main() -> int:
     for k in args.bits:
         cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, mask=args.mask,
                           attacks=args.attacks, lr_f_dc=args.lr_f_dc, lr_f_rest=args.lr_f_rest,
-                          weights=LossWeights(message=args.message_weight, lpips=LossWeights.lpips if lp else 0.0))
+                          weights=lpips_weights(lp, LossWeights(message=args.message_weight)))
         res = embed(g, train.cameras, num_bits=k, images=train_images, config=cfg, progress=True)
         v = verify((res.gaussians, test.cameras), res.message, background=bg)
         v0 = verify((g, test.cameras), res.message, background=bg)

@@ -41,7 +41,7 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--message-weight", type=float, default=None,
                     help="weight of the message BCE term for every method (default: LossWeights.message)")
     ap.add_argument("--model-attacks", nargs="*", default=list(default.model_attacks),
-                    help="keys of gsw.attacks.ops.MODEL_ATTACKS or VIEW_MODEL_ATTACKS (finetune)")
+                    help="keys of gsw.attacks.presets.MODEL_ATTACKS or VIEW_MODEL_ATTACKS (finetune)")
     ap.add_argument("--lpips", default="alex", choices=["vgg", "alex", "none"], help="LPIPS term of the embedding loss")
     ap.add_argument("--metric-lpips", default="vgg", choices=["vgg", "alex", "none"], help="LPIPS of the report")
     ap.add_argument("--train-views", type=int, default=None, help="evenly spaced embedding views (default: all 87)")

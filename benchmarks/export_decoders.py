@@ -27,6 +27,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from watermark import noise as N  # noqa: E402
+from gsw.metrics.image import psnr  # noqa: E402
 from watermark.evaluation import bootstrap_ci95, eval_attacks, unbiasedness  # noqa: E402
 from watermark.hidden import HiddenDecoder  # noqa: E402
 from watermark.training import (WHITEN_EIG_FLOOR, embed_scaled, fit_whitening_multi, image_bank,  # noqa: E402
@@ -38,7 +39,7 @@ from watermark.zoo import WEIGHTS_DIR, load_decoder, record_in_manifest, save_de
 def jpeg_fidelity(images: list[torch.Tensor], qualities=(90, 70, 50, 30)) -> dict:
     """PSNR (dB) real JPEG vs original, kornia diff JPEG vs original, diff vs real, on 256x256 crops."""
     x = torch.stack([img[:, :256, :256] for img in images if min(img.shape[-2:]) >= 256]).float() / 255
-    ps = lambda a, b: float(-10 * torch.log10((a - b).pow(2).mean()))  # noqa: E731
+    ps = lambda a, b: float(psnr(a.flatten(0, 1), b.flatten(0, 1)))  # noqa: E731  (one MSE over all images)
     out = {}
     for q in qualities:
         qt = torch.full((x.shape[0],), float(q))

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from gsw.attacks import layers as N
+from gsw.attacks.presets import IMAGE_ATTACKS, PAPER_IMAGE_ATTACKS
 
 
 def _img(b=4, h=64, w=48, seed=0):
@@ -59,3 +60,24 @@ def test_jpeg_real_vs_differentiable():
     y.sum().backward()
     assert xg.grad.abs().sum() > 0
     assert torch.equal(N.quantize_st(torch.tensor([0.6 / 255, 1.2])), torch.tensor([1 / 255, 1.0]))
+
+
+def test_paper_layers_are_the_presets_strengths():
+    p = PAPER_IMAGE_ATTACKS
+    want = {N.GaussianNoise: p["noise"]["sigma"], N.Rotation: p["rotation"]["degrees"],
+            N.Resize: p["scaling"]["factor"], N.GaussianBlur: p["blur"]["sigma"], N.Crop: p["crop"]["keep_area"],
+            N.JPEG: p["jpeg"]["quality"]}
+    layers = list(N.paper_attacks().values())
+    singles = {type(layer): layer for layer in layers if not isinstance(layer, N.Combined)}
+    assert len(singles) == len(layers) - 1 and set(singles) == set(want)
+    for kind, layer in singles.items():
+        assert layer.fixed and layer.weakest == layer.strongest == want[kind], kind.__name__
+    (combined,) = [layer for layer in layers if isinstance(layer, N.Combined)]
+    c = p["combined"]
+    assert [(type(layer), layer.strongest) for layer in combined.layers] == [
+        (N.Crop, c["keep_area"]), (N.GaussianBlur, c["blur_sigma"]), (N.JPEG, c["quality"])]
+    # where the conventions agree, the layer is the evaluation attack at the paper's strength
+    x = 0.1 + 0.8 * _img(2)
+    assert torch.equal(singles[N.GaussianBlur](x), IMAGE_ATTACKS["blur"](x))
+    torch.testing.assert_close(singles[N.JPEG](x), IMAGE_ATTACKS["jpeg"](x), rtol=0, atol=1e-6)
+    torch.testing.assert_close(singles[N.Resize](x), IMAGE_ATTACKS["scaling"](x), rtol=0, atol=1e-6)

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from gsw.attacks.ops import gaussian_noise, jpeg, remove_random
+from gsw.attacks import gaussian_noise, jpeg, remove_random
 from gsw.cli.main import main
 from gsw.data import save_inria_model
 from gsw.mark.embed import verify

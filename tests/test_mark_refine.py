@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from gsw.decoder import load_decoder
 from gsw.decoder.pretrain import training as T
 from gsw.decoder.dwt import ll_subband
-from gsw.decoder.pretrain.evaluation import psnr
+from gsw.metrics.image import psnr
 from gsw.decoder.hidden import HiddenDecoder, HiddenEncoder
 from gsw.mark.refine import attack_cycle, refine_residual, scale_to_psnr
 

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from gsw.decoder import load_decoder
 from gsw.mark.refine import watermark_images
 from gsw.decoder.dwt import ll_subband
-from gsw.decoder.pretrain.evaluation import psnr
+from gsw.metrics.image import psnr
 from gsw.mark.refine import ATTACKS
 from gsw.decoder.pretrain.training import MultiConfig
 

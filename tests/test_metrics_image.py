@@ -20,6 +20,15 @@ def test_psnr_known_value():
     assert batch.shape == (2,) and float(batch[1]) == pytest.approx(40.0, abs=1e-3)
 
 
+def test_psnr_formula_and_data_range():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(2, 3, 16, 16, generator=g)
+    b = (a + 0.05 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    want = -10 * torch.log10(((a.double() - b.double()) ** 2).flatten(1).mean(1))
+    torch.testing.assert_close(psnr(a, b).double(), want, rtol=0, atol=1e-4)
+    torch.testing.assert_close(psnr(255 * a, 255 * b, data_range=255.0), psnr(a, b), rtol=0, atol=1e-4)
+
+
 def test_ssim_properties():
     torch.manual_seed(0)
     a = torch.rand(3, 32, 32)

@@ -1,4 +1,4 @@
-"""Tests of the pure-PyTorch reference rasterizer (gsw.reference)."""
+"""Tests of the pure-PyTorch reference rasterizer (gsw.render._reference)."""
 
 from __future__ import annotations
 

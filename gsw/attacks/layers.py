@@ -2,14 +2,15 @@
 
 Every layer maps images [B,3,H,W] with values in [0,1] to attacked images (same batch, possibly another
 size), is differentiable or straight-through, and draws its random parameters from an optional
-``torch.Generator`` (seeded => reproducible).  Each layer has a parameter range ``(weakest, strongest)``;
-a draw is ``weakest + t (strongest - weakest)`` with ``t ~ U(0, strength)``, so ``strength`` (default 1)
-can ramp the attacks up during training.  ``fixed=True`` always uses ``strongest`` (evaluation).
+``torch.Generator`` (seeded => reproducible).  Each layer has a parameter range ``(weakest, strongest)``
+(default: :data:`gsw.attacks.presets.TRAINING_RANGES`); a draw is ``weakest + t (strongest - weakest)`` with
+``t ~ U(0, strength)``, so ``strength`` (default 1) can ramp the attacks up during training.  ``fixed=True``
+always uses ``strongest`` (evaluation; :func:`paper_attacks` are the paper's strengths as fixed layers).
 
 Layers: :class:`Identity`, :class:`Crop`, :class:`Resize`, :class:`JPEG`, :class:`GaussianBlur`,
 :class:`GaussianNoise`, :class:`Rotation`, :class:`Combined`.
 
-JPEG: ``mode="real"`` runs a real codec (libjpeg-turbo through ``kornia_rs``, else Pillow; 4:2:0 chroma
+JPEG: ``mode="real"`` runs the real codec of :func:`gsw.attacks.ops.jpeg` (Pillow's libjpeg, 4:2:0 chroma
 subsampling, uint8) in the forward pass with an identity (straight-through) gradient; ``mode="diff"`` uses
 kornia's differentiable JPEG (Reich et al. 2024); ``mode="real_diffgrad"`` (default) outputs the real JPEG
 and back-propagates through kornia's differentiable JPEG: ``y = diff + (real - diff).detach()``.
@@ -24,13 +25,14 @@ Example:
 
 from __future__ import annotations
 
-import io
 import math
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from gsw.attacks.ops import gaussian_kernel1d, jpeg, separable_blur
+from gsw.attacks.presets import PAPER_IMAGE_ATTACKS, TRAINING_COMBINED_RANGES, TRAINING_RANGES
 
 __all__ = [
     "GpuAttacks",
@@ -119,7 +121,7 @@ class Crop(NoiseLayer):
 
     name = "crop"
 
-    def __init__(self, area: tuple[float, float] = (1.0, 0.35), fixed: bool = False) -> None:
+    def __init__(self, area: tuple[float, float] = TRAINING_RANGES["crop"], fixed: bool = False) -> None:
         super().__init__(area[0], area[1], fixed, per_sample=False)
 
     def apply(self, x, params, generator):
@@ -137,7 +139,7 @@ class Resize(NoiseLayer):
 
     name = "resize"
 
-    def __init__(self, scale: tuple[float, float] = (1.0, 0.5), fixed: bool = False) -> None:
+    def __init__(self, scale: tuple[float, float] = TRAINING_RANGES["resize"], fixed: bool = False) -> None:
         super().__init__(scale[0], scale[1], fixed, per_sample=False)
 
     def apply(self, x, params, generator):
@@ -149,45 +151,19 @@ class Resize(NoiseLayer):
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
 
 
-def _jpeg_backend():
-    try:
-        import kornia_rs  # noqa: F401
-
-        def codec(arr: np.ndarray, q: int) -> np.ndarray:
-            from kornia_rs import io as kio
-
-            data = kio.encode_image_jpegturbo(arr, int(q), "4:2:0")
-            return kio.decode_image_jpegturbo(data, "rgb")
-
-        return codec
-    except ImportError:
-        pass
-    try:
-        from PIL import Image
-
-        def codec(arr: np.ndarray, q: int) -> np.ndarray:
-            buf = io.BytesIO()
-            Image.fromarray(arr).save(buf, format="JPEG", quality=int(q), subsampling="4:2:0")
-            return np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB"))
-
-        return codec
-    except ImportError as e:  # pragma: no cover
-        raise ImportError("real JPEG needs kornia_rs or Pillow") from e
-
-
 @torch.no_grad()
 def real_jpeg(x: torch.Tensor, quality: torch.Tensor | float) -> torch.Tensor:
-    """Real JPEG round trip (libjpeg-turbo, 4:2:0), not differentiable.
+    """Real JPEG round trip (:func:`gsw.attacks.ops.jpeg`: Pillow, 4:2:0) with a quality per image.
 
     Args:
         x: [B,3,H,W] in [0,1] (clamped and rounded to uint8 first).
-        quality: scalar or per-image [B] quality in 1..100.
+        quality: scalar or per-image [B] quality in 1..100 (rounded).
+
+    Returns:
+        [B,3,H,W], multiples of 1/255; not differentiable.
     """
-    codec = _jpeg_backend()
     q = torch.as_tensor(quality).flatten().expand(x.shape[0]).round().int().tolist()
-    u8 = (x.detach().clamp(0, 1) * 255.0).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
-    out = np.stack([codec(np.ascontiguousarray(u8[i]), q[i]) for i in range(x.shape[0])])
-    return torch.from_numpy(out).to(x.device).permute(0, 3, 1, 2).to(x.dtype) / 255.0
+    return torch.cat([jpeg(x[i : i + 1], quality=q[i]) for i in range(x.shape[0])])
 
 
 def diff_jpeg(x: torch.Tensor, quality: torch.Tensor) -> torch.Tensor:
@@ -204,7 +180,8 @@ class JPEG(NoiseLayer):
     name = "jpeg"
 
     def __init__(
-        self, quality: tuple[float, float] = (90.0, 50.0), mode: str = "real_diffgrad", fixed: bool = False
+        self, quality: tuple[float, float] = TRAINING_RANGES["jpeg"], mode: str = "real_diffgrad",
+        fixed: bool = False,
     ) -> None:
         super().__init__(quality[0], quality[1], fixed)
         if mode not in ("real", "diff", "real_diffgrad"):
@@ -222,26 +199,24 @@ class JPEG(NoiseLayer):
         return d + (real - d).detach()
 
 
+def _blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Gaussian blur of x [B,C,H,W] with std ``sigma`` pixels: kernel radius ceil(3 sigma), at least 1 and at
+    most the image size - 1 (reflect padding), no clamping."""
+    r = min(max(1, math.ceil(3.0 * sigma)), x.shape[-1] - 1, x.shape[-2] - 1)
+    return separable_blur(x, gaussian_kernel1d(sigma, 2 * r + 1, dtype=x.dtype).to(x.device))
+
+
 class GaussianBlur(NoiseLayer):
     """Gaussian blur with std ``sigma`` pixels (one sigma per batch), kernel radius ceil(3 sigma),
     reflect padding."""
 
     name = "blur"
 
-    def __init__(self, sigma: tuple[float, float] = (0.1, 2.0), fixed: bool = False) -> None:
+    def __init__(self, sigma: tuple[float, float] = TRAINING_RANGES["blur"], fixed: bool = False) -> None:
         super().__init__(sigma[0], sigma[1], fixed, per_sample=False)
 
     def apply(self, x, params, generator):
-        s = float(params[0])
-        r = max(1, math.ceil(3.0 * s))
-        r = min(r, x.shape[-1] - 1, x.shape[-2] - 1)
-        t = torch.arange(-r, r + 1, dtype=torch.float64)
-        k = torch.exp(-0.5 * (t / s) ** 2)
-        k = (k / k.sum()).to(x.dtype).to(x.device)
-        c = x.shape[1]
-        y = F.pad(x, (r, r, r, r), mode="reflect")
-        y = F.conv2d(y, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-        return F.conv2d(y, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+        return _blur(x, float(params[0]))
 
 
 class GaussianNoise(NoiseLayer):
@@ -249,7 +224,7 @@ class GaussianNoise(NoiseLayer):
 
     name = "noise"
 
-    def __init__(self, std: tuple[float, float] = (0.0, 0.08), fixed: bool = False) -> None:
+    def __init__(self, std: tuple[float, float] = TRAINING_RANGES["noise"], fixed: bool = False) -> None:
         super().__init__(std[0], std[1], fixed)
 
     def apply(self, x, params, generator):
@@ -263,7 +238,7 @@ class Rotation(NoiseLayer):
 
     name = "rotation"
 
-    def __init__(self, degrees: tuple[float, float] = (0.0, 15.0), fixed: bool = False) -> None:
+    def __init__(self, degrees: tuple[float, float] = TRAINING_RANGES["rotation"], fixed: bool = False) -> None:
         super().__init__(degrees[0], degrees[1], fixed)
 
     def apply(self, x, params, generator):
@@ -314,31 +289,41 @@ def draws_per_batch(layer: NoiseLayer) -> bool:
 
 
 def training_noise_layers(jpeg_mode: str = "real_diffgrad") -> dict[str, NoiseLayer]:
-    """The pre-training noise layers and their ranges (weakest -> strongest)."""
+    """The pre-training noise layers at their ranges (:data:`gsw.attacks.presets.TRAINING_RANGES`)."""
+    c = TRAINING_COMBINED_RANGES
     return {
         "identity": Identity(),
-        "crop": Crop(area=(1.0, 0.35)),
-        "resize": Resize(scale=(1.0, 0.5)),
-        "jpeg": JPEG(quality=(90, 50), mode=jpeg_mode),
-        "blur": GaussianBlur(sigma=(0.1, 2.0)),
-        "noise": GaussianNoise(std=(0.0, 0.08)),
-        "rotation": Rotation(degrees=(0.0, 15.0)),
-        "combined": Combined([Crop(area=(1.0, 0.5)), GaussianBlur(sigma=(0.1, 1.0)), JPEG((90, 60), jpeg_mode)]),
+        "crop": Crop(),
+        "resize": Resize(),
+        "jpeg": JPEG(mode=jpeg_mode),
+        "blur": GaussianBlur(),
+        "noise": GaussianNoise(),
+        "rotation": Rotation(),
+        "combined": Combined([Crop(area=c["crop"]), GaussianBlur(sigma=c["blur"]), JPEG(c["jpeg"], jpeg_mode)]),
     }
 
 
 def paper_attacks() -> dict[str, NoiseLayer]:
-    """Fixed-strength image attacks of the 3D-GSW paper's table (every parameter explicit)."""
+    """The 3D-GSW paper's image attacks (:data:`gsw.attacks.presets.PAPER_IMAGE_ATTACKS`) as fixed layers.
+
+    Named by their strengths (``noise_std0.1``, ..., ``combined_crop0.4_blur0.1_jpeg50``). The layers follow
+    the training layers' conventions (random crop position and rotation sign, JPEG through
+    :func:`real_jpeg`), not those of the deterministic :data:`gsw.attacks.presets.IMAGE_ATTACKS`.
+    """
+    p = PAPER_IMAGE_ATTACKS
+    std, deg, scale = p["noise"]["sigma"], p["rotation"]["degrees"], p["scaling"]["factor"]
+    sigma, area, q = p["blur"]["sigma"], p["crop"]["keep_area"], p["jpeg"]["quality"]
+    c = p["combined"]
     return {
-        "noise_std0.1": GaussianNoise(std=(0.1, 0.1), fixed=True),
-        "rotation_30deg": Rotation(degrees=(30.0, 30.0), fixed=True),
-        "scale_0.75": Resize(scale=(0.75, 0.75), fixed=True),
-        "blur_sigma0.1": GaussianBlur(sigma=(0.1, 0.1), fixed=True),
-        "crop_area0.4": Crop(area=(0.4, 0.4), fixed=True),
-        "jpeg_q50": JPEG(quality=(50, 50), mode="real", fixed=True),
-        "combined_crop0.4_blur0.1_jpeg50": Combined(
-            [Crop((0.4, 0.4), True), GaussianBlur((0.1, 0.1), True), JPEG((50, 50), "real", True)]
-        ),
+        f"noise_std{std:g}": GaussianNoise(std=(std, std), fixed=True),
+        f"rotation_{deg:g}deg": Rotation(degrees=(deg, deg), fixed=True),
+        f"scale_{scale:g}": Resize(scale=(scale, scale), fixed=True),
+        f"blur_sigma{sigma:g}": GaussianBlur(sigma=(sigma, sigma), fixed=True),
+        f"crop_area{area:g}": Crop(area=(area, area), fixed=True),
+        f"jpeg_q{q:g}": JPEG(quality=(q, q), mode="real", fixed=True),
+        f"combined_crop{c['keep_area']:g}_blur{c['blur_sigma']:g}_jpeg{c['quality']:g}": Combined([
+            Crop((c["keep_area"],) * 2, True), GaussianBlur((c["blur_sigma"],) * 2, True),
+            JPEG((c["quality"],) * 2, "real", True)]),
     }
 
 
@@ -384,9 +369,10 @@ class GpuAttacks:
     def _tv(self, n: int, s: float) -> torch.Tensor:
         return torch.rand(n, device=self.device, generator=self.gen) * s
 
-    def crop(self, x: torch.Tensor, s: float, lo: float = 0.35) -> torch.Tensor:
+    def crop(self, x: torch.Tensor, s: float, area: tuple[float, float] = TRAINING_RANGES["crop"]) -> torch.Tensor:
         B, _, H, W = x.shape
-        side = math.sqrt(1.0 + self._t(s) * (lo - 1.0))
+        weakest, strongest = area
+        side = math.sqrt(weakest + self._t(s) * (strongest - weakest))
         ch, cw = min(H, max(4, round(H * side))), min(W, max(4, round(W * side)))
         if (ch, cw) == (H, W):
             return x
@@ -399,37 +385,36 @@ class GpuAttacks:
         return x[b, :, ry[:, :, None], rx[:, None, :]].permute(0, 3, 1, 2)
 
     def resize(self, x: torch.Tensor, s: float) -> torch.Tensor:
-        sc = 1.0 - 0.5 * self._t(s)
+        weakest, strongest = TRAINING_RANGES["resize"]
+        sc = weakest + self._t(s) * (strongest - weakest)
         H, W = x.shape[-2:]
         size = (max(4, round(H * sc)), max(4, round(W * sc)))
         if size == (H, W):
             return x
         return F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
 
-    def jpeg(self, x: torch.Tensor, s: float, q_hi: float = 90.0, q_lo: float = 50.0) -> torch.Tensor:
+    def jpeg(self, x: torch.Tensor, s: float,
+             quality: tuple[float, float] = TRAINING_RANGES["jpeg"]) -> torch.Tensor:
+        q_hi, q_lo = quality
         q = (q_hi + self._tv(x.shape[0], s) * (q_lo - q_hi)).round()
         return diff_jpeg(x.float(), q)
 
-    def blur(self, x: torch.Tensor, s: float, lo: float = 0.1, hi: float = 2.0) -> torch.Tensor:
-        sigma = lo + self._t(s) * (hi - lo)
-        r = min(max(1, math.ceil(3.0 * sigma)), x.shape[-1] - 1, x.shape[-2] - 1)
-        t = torch.arange(-r, r + 1, dtype=torch.float64)
-        k = torch.exp(-0.5 * (t / sigma) ** 2)
-        k = (k / k.sum()).to(device=x.device, dtype=x.dtype)
-        c = x.shape[1]
-        y = F.pad(x, (r, r, r, r), mode="reflect")
-        y = F.conv2d(y, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-        return F.conv2d(y, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    def blur(self, x: torch.Tensor, s: float,
+             sigma: tuple[float, float] = TRAINING_RANGES["blur"]) -> torch.Tensor:
+        lo, hi = sigma
+        return _blur(x, lo + self._t(s) * (hi - lo))
 
     def noise(self, x: torch.Tensor, s: float) -> torch.Tensor:
-        std = self._tv(x.shape[0], s) * 0.08
+        weakest, strongest = TRAINING_RANGES["noise"]
+        std = weakest + self._tv(x.shape[0], s) * (strongest - weakest)
         n = torch.randn(x.shape, device=x.device, generator=self.gen, dtype=x.dtype)
         return clamp_st(x + n * std.view(-1, 1, 1, 1).to(x.dtype))
 
     def rotation(self, x: torch.Tensor, s: float) -> torch.Tensor:
         B = x.shape[0]
         u = torch.rand(B, 2, device=x.device, generator=self.gen)
-        a = torch.deg2rad(15.0 * u[:, 0] * s * torch.where(u[:, 1] < 0.5, -1.0, 1.0))
+        weakest, strongest = TRAINING_RANGES["rotation"]
+        a = torch.deg2rad((weakest + (strongest - weakest) * u[:, 0] * s) * torch.where(u[:, 1] < 0.5, -1.0, 1.0))
         return _affine(x, _rot2(a), "zeros")
 
     def view(self, x: torch.Tensor, s: float, max_zoom: float = 1.4, min_foreshortening: float = 0.5) -> torch.Tensor:
@@ -449,9 +434,10 @@ class GpuAttacks:
         return _affine(x, _rot2(a) @ rphi @ squash @ rphi.transpose(1, 2) * zoom.view(B, 1, 1), "reflection")
 
     def combined(self, x: torch.Tensor, s: float) -> torch.Tensor:
-        x = self.crop(x, s, lo=0.5)
-        x = self.blur(x, s, lo=0.1, hi=1.0)
-        return self.jpeg(x, s, q_hi=90.0, q_lo=60.0)
+        c = TRAINING_COMBINED_RANGES
+        x = self.crop(x, s, area=c["crop"])
+        x = self.blur(x, s, sigma=c["blur"])
+        return self.jpeg(x, s, quality=c["jpeg"])
 
     def identity(self, x: torch.Tensor, s: float) -> torch.Tensor:
         return x

@@ -1,12 +1,11 @@
-"""Evaluation attacks: image attacks on renders and model attacks on :class:`~gsw.gaussians.Gaussians`.
+"""Deterministic image attacks on renders (evaluation).
 
 This module is an *evaluation* tool, unlike :mod:`gsw.attacks.layers` (random, differentiable noise layers
 for decoder training). Every attack here is a plain function with every parameter explicit, and every
 random choice is driven by an explicit ``seed`` (a private ``torch.Generator`` on the CPU, so results do not
-depend on the global RNG state or on the device).
+depend on the global RNG state or on the device). Model attacks live in :mod:`gsw.attacks.model`, the named
+tables (the paper's set, the official code's set, robustness sweeps) in :mod:`gsw.attacks.presets`.
 
-Image attacks
--------------
 All image attacks take a float image ``[3, H, W]`` or a batch ``[B, 3, H, W]`` with values in ``[0, 1]`` and
 return a tensor of the same rank, dtype and device with values in ``[0, 1]``. The spatial size is kept,
 except where stated:
@@ -15,18 +14,12 @@ except where stated:
 - :func:`scaling` returns the image at the scaled size unless ``resize_back=True``,
 - :func:`combined` returns the cropped size.
 
-The paper's table (3D-GSW, CVPR 2025; ``GUIDE.md`` section 1.7) is implemented with the defaults:
-Gaussian noise sigma 0.1, rotation pi/6 (30 degrees), scaling to 75 %, Gaussian blur sigma 0.1, crop keeping
-40 % of the area, JPEG quality 50, combined = crop + blur + JPEG. The official code's (mislabelled)
-settings are kept under their own names (``official_*``; ``GUIDE.md`` section 2): noise std 0.01, 3x3 blur
-sigma 0.1, centre crop keeping 50 % of the area, JPEG quality 10.
-
-Model attacks
--------------
-Model attacks take a :class:`Gaussians` and return new Gaussians whose tensors never alias the input's;
-the input is never modified. :data:`MODEL_ATTACKS` need nothing else; :data:`VIEW_MODEL_ATTACKS`
-(:func:`finetune`) also render the model from given cameras, and :func:`bind_model_attacks` binds them
-to a scene's views.
+The defaults of the attacks are the paper's strengths (3D-GSW, CVPR 2025; ``GUIDE.md`` section 1.7), the one
+place these numbers are written (:data:`gsw.attacks.presets.PAPER_IMAGE_ATTACKS` reads them): Gaussian noise
+sigma 0.1, rotation pi/6 (30 degrees), scaling to 75 %, Gaussian blur sigma 0.1, crop keeping 40 % of the
+area, JPEG quality 50, combined = crop + blur + JPEG. The official code's (mislabelled) settings are kept
+under their own names (``official_*``; ``GUIDE.md`` section 2): noise std 0.01, 3x3 blur sigma 0.1, centre
+crop keeping 50 % of the area, JPEG quality 10.
 
 Example:
     >>> import torch
@@ -34,26 +27,17 @@ Example:
     >>> img = torch.rand(3, 64, 48)
     >>> attacks.crop(img, keep_area=0.4, seed=0).shape
     torch.Size([3, 40, 30])
-    >>> sorted(attacks.IMAGE_ATTACKS)
-    ['blur', 'brightness', 'combined', 'contrast', 'crop', 'jpeg', 'noise', 'rotation', 'scaling']
 """
 
 from __future__ import annotations
 
-import functools
 import io
 import math
-from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
-
-from gsw.gaussians import Gaussians, cat_gaussians
-
-if TYPE_CHECKING:
-    from gsw.camera import Camera
 
 __all__ = [
     "gaussian_noise",
@@ -61,6 +45,7 @@ __all__ = [
     "scaling",
     "gaussian_blur",
     "gaussian_kernel1d",
+    "separable_blur",
     "scaled_size",
     "crop_size",
     "to_uint8",
@@ -73,24 +58,6 @@ __all__ = [
     "official_blur",
     "official_crop",
     "official_jpeg",
-    "IMAGE_ATTACKS",
-    "OFFICIAL_ATTACKS",
-    "SWEEPS",
-    "sweep",
-    "sweep_parameter",
-    "MODEL_FIELDS",
-    "finetune",
-    "VIEW_MODEL_ATTACKS",
-    "MODEL_ATTACK_NAMES",
-    "bind_model_attacks",
-    "parameter_noise",
-    "parameter_noise_attributes",
-    "remove_random",
-    "clone_random",
-    "reduce_sh",
-    "prune_by_opacity",
-    "quantize",
-    "MODEL_ATTACKS",
 ]
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -247,12 +214,32 @@ def gaussian_kernel1d(sigma: float, kernel_size: int | None = None, dtype: torch
     return (k / k.sum()).to(dtype)
 
 
+def separable_blur(x: Tensor, kernel: Tensor) -> Tensor:
+    """Convolve every channel with ``kernel`` along the width, then along the height; reflect padding.
+
+    The one blur of the package: :func:`gaussian_blur` and the training layers of :mod:`gsw.attacks.layers`
+    call it with a :func:`gaussian_kernel1d`. Differentiable; no clamping.
+
+    Args:
+        x: ``[B, C, H, W]``; ``H, W`` must exceed ``kernel.numel() // 2``.
+        kernel: ``[K]`` weights, ``K`` odd, in ``x``'s dtype and device.
+
+    Returns:
+        ``[B, C, H, W]``.
+    """
+    r = kernel.numel() // 2
+    c = x.shape[1]
+    y = F.pad(x, (r, r, r, r), mode="reflect")
+    y = F.conv2d(y, kernel.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(y, kernel.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
 def gaussian_blur(img: Tensor, sigma: float = 0.1, kernel_size: int | None = None) -> Tensor:
     """Separable Gaussian blur with reflect padding (output keeps the size).
 
     Paper setting: ``sigma = 0.1`` pixel, which with the default kernel (``2*ceil(3 sigma)+1``, at least 3,
     i.e. 3x3) is numerically almost the identity (off-centre weight ``exp(-50) ~ 2e-22``); use
-    :func:`sweep` for meaningful blur strengths.
+    :func:`gsw.attacks.presets.sweep` for meaningful blur strengths.
 
     Args:
         img: ``[3, H, W]`` or ``[B, 3, H, W]`` in ``[0, 1]``; ``H, W`` must exceed ``kernel_size // 2``.
@@ -264,13 +251,7 @@ def gaussian_blur(img: Tensor, sigma: float = 0.1, kernel_size: int | None = Non
     """
     x, single = _as_batch(img)
     k = gaussian_kernel1d(sigma, kernel_size, dtype=x.dtype).to(x.device)
-    r = k.numel() // 2
-    b, c, h, w = x.shape
-    y = x.reshape(b * c, 1, h, w)
-    y = F.pad(y, (r, r, r, r), mode="reflect")
-    y = F.conv2d(y, k.view(1, 1, 1, -1))
-    y = F.conv2d(y, k.view(1, 1, -1, 1))
-    return _restore(y.reshape(b, c, h, w).clamp(0.0, 1.0), single)
+    return _restore(separable_blur(x, k).clamp(0.0, 1.0), single)
 
 
 def crop_size(height: int, width: int, keep_area: float) -> tuple[int, int]:
@@ -486,335 +467,3 @@ def official_jpeg(img: Tensor, quality: int = 10) -> Tensor:
     """
     return jpeg(img, quality=quality)
 
-
-#: The paper's fixed-strength image attacks (defaults of each function), plus brightness and contrast (factor
-#: 1.5, as in Stable Signature's evaluation); call as ``fn(img)``.
-IMAGE_ATTACKS: dict[str, Callable[[Tensor], Tensor]] = {
-    "noise": gaussian_noise,
-    "rotation": rotation,
-    "scaling": scaling,
-    "blur": gaussian_blur,
-    "crop": crop,
-    "jpeg": jpeg,
-    "combined": combined,
-    "brightness": brightness,
-    "contrast": contrast,
-}
-
-#: The official code's attack settings (not the paper's); call as ``fn(img)``.
-OFFICIAL_ATTACKS: dict[str, Callable[[Tensor], Tensor]] = {
-    "noise": official_noise,
-    "blur": official_blur,
-    "crop": official_crop,
-    "jpeg": official_jpeg,
-}
-
-#: Robustness-curve sweeps: attack name -> (keyword of the attack function, values: weakest first; brightness
-#: and contrast in increasing factor, 1 being the identity).
-SWEEPS: dict[str, tuple[str, tuple[float, ...]]] = {
-    "noise": ("sigma", (0.0, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3)),
-    "jpeg": ("quality", (90, 70, 50, 30, 20, 10)),
-    "blur": ("sigma", (0.1, 0.5, 1.0, 1.5, 2.0, 3.0)),
-    "crop": ("keep_area", (1.0, 0.8, 0.6, 0.4, 0.3, 0.2, 0.1)),
-    "rotation": ("degrees", (0.0, 5.0, 10.0, 15.0, 30.0, 45.0, 90.0)),
-    "scaling": ("factor", (1.0, 0.9, 0.75, 0.5, 0.4, 0.25)),
-    "brightness": ("factor", (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)),
-    "contrast": ("factor", (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)),
-}
-
-
-def sweep(name: str) -> list:
-    """Parameter values for a robustness curve of the attack ``name`` (see :data:`SWEEPS` for the order).
-
-    Use with :func:`sweep_parameter`: ``[IMAGE_ATTACKS[name](img, **{sweep_parameter(name): v}) for v in
-    sweep(name)]``.
-
-    Args:
-        name: one of ``noise`` (sigma), ``jpeg`` (quality), ``blur`` (sigma), ``crop`` (keep_area),
-            ``rotation`` (degrees), ``scaling``, ``brightness``, ``contrast`` (factor).
-
-    Returns:
-        A new list of values.
-    """
-    if name not in SWEEPS:
-        raise KeyError(f"no sweep for {name!r}; choose from {sorted(SWEEPS)}")
-    return list(SWEEPS[name][1])
-
-
-def sweep_parameter(name: str) -> str:
-    """Keyword argument of ``IMAGE_ATTACKS[name]`` that :func:`sweep` varies.
-
-    Args:
-        name: a key of :data:`SWEEPS`.
-
-    Returns:
-        The keyword name.
-    """
-    if name not in SWEEPS:
-        raise KeyError(f"no sweep for {name!r}; choose from {sorted(SWEEPS)}")
-    return SWEEPS[name][0]
-
-
-# --------------------------------------------------------------------------------------------- model attacks
-
-#: Raw parameter fields of :class:`Gaussians`, in canonical order.
-MODEL_FIELDS: tuple[str, ...] = ("means", "log_scales", "quats", "opacity_logits", "sh")
-
-
-def _check_fraction(fraction: float) -> None:
-    _check_range("fraction", fraction, 0.0, 1.0)
-
-
-def _fresh(g: Gaussians) -> Gaussians:
-    return g.detach().clone()
-
-
-def parameter_noise(
-    g: Gaussians,
-    sigma: float = 0.1,
-    seed: int = 0,
-    fields: Sequence[str] = MODEL_FIELDS,
-) -> Gaussians:
-    """Add i.i.d. ``N(0, sigma^2)`` to raw (pre-activation) parameters.
-
-    Paper: "Gaussian noise sigma 0.1 on the parameters". By default the noise goes on **all raw
-    parameters**: ``means`` (world units), ``log_scales`` (log space), ``quats`` (unnormalised),
-    ``opacity_logits`` (pre-sigmoid) and every SH coefficient ``sh`` (DC and higher orders). Noise is drawn in
-    float32 on the CPU, field by field in the order of :data:`MODEL_FIELDS`, from one generator (so the noise
-    of a field does not depend on which other fields are chosen).
-
-    Args:
-        g: input Gaussians (not modified).
-        sigma: noise standard deviation, ``>= 0``.
-        seed: noise seed.
-        fields: subset of :data:`MODEL_FIELDS` to perturb.
-
-    Returns:
-        New Gaussians (no tensor shared with ``g``).
-    """
-    if sigma < 0:
-        raise ValueError(f"sigma must be >= 0, got {sigma}")
-    chosen = set(fields)
-    unknown = chosen - set(MODEL_FIELDS)
-    if unknown:
-        raise ValueError(f"unknown fields {sorted(unknown)}; choose from {MODEL_FIELDS}")
-    gen = _generator(seed)
-    params = _fresh(g).parameters()
-    for name in MODEL_FIELDS:
-        t = params[name]
-        noise = torch.randn(t.shape, generator=gen, dtype=torch.float32)
-        if name in chosen:
-            params[name] = t + sigma * noise.to(device=t.device, dtype=t.dtype)
-    return Gaussians(**params)
-
-
-def parameter_noise_attributes(g: Gaussians, sigma: float = 0.1, seed: int = 0) -> Gaussians:
-    """:func:`parameter_noise` on every field except the positions (``log_scales``, ``quats``,
-    ``opacity_logits``, ``sh``).
-
-    sigma 0.1 on the ``means`` moves every Gaussian by ~0.17 world units (on lego, ~60 px at 800x800), which
-    leaves no usable model to protect; without them the attacked model still renders the scene, which is
-    the reading of the paper's "noise on the parameters" under which its numbers (89 %) are possible.
-    """
-    return parameter_noise(g, sigma, seed, fields=tuple(f for f in MODEL_FIELDS if f != "means"))
-
-
-def remove_random(g: Gaussians, fraction: float = 0.2, seed: int = 0) -> Gaussians:
-    """Delete ``round(fraction * N)`` Gaussians chosen uniformly without replacement.
-
-    The survivors keep their original order. Paper setting: 20 %.
-
-    Args:
-        g: input Gaussians (not modified).
-        fraction: fraction removed, in ``[0, 1]`` (count rounded half up).
-        seed: seed of the choice.
-
-    Returns:
-        New Gaussians with ``N - round(fraction * N)`` entries.
-    """
-    _check_fraction(fraction)
-    n = len(g)
-    k = _round_half_up(fraction * n)
-    perm = torch.randperm(n, generator=_generator(seed))
-    keep = perm[k:].sort().values.to(g.device)
-    return _fresh(g)[keep]
-
-
-def clone_random(g: Gaussians, fraction: float = 0.2, seed: int = 0) -> Gaussians:
-    """Duplicate ``round(fraction * N)`` Gaussians chosen uniformly without replacement.
-
-    The clones are **exact copies** (same position, scale, rotation, opacity and colour) appended after
-    the original ``N`` Gaussians in ascending index order. Note that an exact duplicate changes the render
-    (the same splat composited twice, so it becomes more opaque). Paper setting: 20 %.
-
-    Args:
-        g: input Gaussians (not modified).
-        fraction: fraction duplicated, in ``[0, 1]`` (count rounded half up).
-        seed: seed of the choice.
-
-    Returns:
-        New Gaussians with ``N + round(fraction * N)`` entries; the first ``N`` equal ``g``.
-    """
-    _check_fraction(fraction)
-    n = len(g)
-    k = _round_half_up(fraction * n)
-    idx = torch.randperm(n, generator=_generator(seed))[:k].sort().values.to(g.device)
-    base = _fresh(g)
-    return cat_gaussians([base, base[idx]])
-
-
-def reduce_sh(g: Gaussians, degree: int = 0) -> Gaussians:
-    """Drop the SH coefficients above ``degree`` (degree 0 keeps only the DC, i.e. view-independent colour).
-
-    Args:
-        g: input Gaussians (not modified).
-        degree: target SH degree, ``0 <= degree <= g.sh_degree``.
-
-    Returns:
-        New Gaussians with ``sh [N, (degree + 1)^2, 3]``, the kept coefficients unchanged.
-    """
-    if not isinstance(degree, int) or isinstance(degree, bool) or not 0 <= degree <= g.sh_degree:
-        raise ValueError(f"degree must be an int in 0..{g.sh_degree} (the model's degree), got {degree!r}")
-    return _fresh(g.with_sh_degree(degree))
-
-
-def prune_by_opacity(g: Gaussians, fraction: float = 0.5) -> Gaussians:
-    """Remove the ``round(fraction * N)`` Gaussians of lowest opacity (deterministic).
-
-    Ties are broken by index (stable sort: the lower index is removed first); survivors keep their order.
-
-    Args:
-        g: input Gaussians (not modified).
-        fraction: fraction removed, in ``[0, 1]`` (count rounded half up).
-
-    Returns:
-        New Gaussians with the ``N - round(fraction * N)`` most opaque entries.
-    """
-    _check_fraction(fraction)
-    n = len(g)
-    k = _round_half_up(fraction * n)
-    order = torch.sort(g.opacity_logits.detach(), stable=True).indices
-    keep = order[k:].sort().values
-    return _fresh(g)[keep]
-
-
-def _quantize_columns(t: Tensor, bits: int) -> Tensor:
-    n = t.shape[0]
-    if n == 0:
-        return t.clone()
-    x = t.detach().reshape(n, -1).to(torch.float64)
-    lo = x.min(dim=0).values
-    hi = x.max(dim=0).values
-    rng = hi - lo
-    levels = 2**bits - 1
-    step = torch.where(rng > 0, rng / levels, torch.ones_like(rng))
-    q = torch.round((x - lo) / step).clamp(0, levels)
-    y = torch.where(rng > 0, lo + q * step, x)
-    return y.to(t.dtype).reshape(t.shape)
-
-
-def quantize(g: Gaussians, bits: int = 8) -> Gaussians:
-    """Per-column min-max uniform quantisation of every raw attribute, dequantised back.
-
-    Every scalar column (``means[:, j]``, ``log_scales[:, j]``, ``quats[:, j]``, ``opacity_logits``,
-    ``sh[:, k, c]``) is mapped to ``2^bits`` levels between its own min and max (computed in float64) and
-    back, so the error per element is at most ``(max - min) / (2 * (2^bits - 1))`` (``range / 510`` for
-    8 bits), plus the final cast to the model's dtype. Constant columns are unchanged.
-
-    Args:
-        g: input Gaussians (not modified).
-        bits: bits per value, ``1..16``.
-
-    Returns:
-        New Gaussians with quantised values.
-    """
-    if not isinstance(bits, int) or isinstance(bits, bool) or not 1 <= bits <= 16:
-        raise ValueError(f"bits must be an int in 1..16, got {bits!r}")
-    return Gaussians(**{name: _quantize_columns(t, bits) for name, t in g.parameters().items()})
-
-
-def finetune(g: Gaussians, cameras: Sequence["Camera"], *, steps: int = 300, quality: int | None = 50,
-             background: tuple[float, float, float] = (0.0, 0.0, 0.0), seed: int = 0) -> Gaussians:
-    """Fine-tunes the model for ``steps`` iterations on its own renders (an attacker without the photos).
-
-    The targets are the model's renders of ``cameras``, laundered through real JPEG at ``quality`` (the
-    attacker's attempt to wash the watermark out of the training targets; ``None`` keeps the renders as
-    they are, so the loss starts at zero and the attack only checks that plain fine-tuning keeps the
-    mark). Training is :func:`gsw.train.train` started from ``g`` with INRIA's fine-stage settings: L1 +
-    0.2 D-SSIM, Adam on every parameter (positions at the final INRIA rate ``1.6e-6 x extent``), one view
-    per step, no densification and no opacity reset. Runs on ``g``'s device and needs the compiled
-    extension.
-
-    Args:
-        g: input Gaussians (not modified).
-        cameras: the views the attacker renders and trains on.
-        steps: optimisation steps, ``>= 1``.
-        quality: JPEG quality of the targets in ``1..100``, or None for the plain renders.
-        background: render background.
-        seed: view order.
-
-    Returns:
-        New, fine-tuned Gaussians.
-    """
-    from gsw.render.rasterize import rasterize
-    from gsw.train import TrainConfig, train
-
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be an int >= 1, got {steps!r}")
-    if not cameras:
-        raise ValueError("finetune needs at least one camera")
-    with torch.no_grad():
-        targets = torch.stack([rasterize(g, cam, background=background).image.clamp(0.0, 1.0) for cam in cameras])
-    if quality is not None:
-        targets = jpeg(targets, quality=quality)
-    cfg = TrainConfig(iterations=steps, sh_degree=g.sh_degree, position_lr_init=TrainConfig.position_lr_final,
-                      densify_until_iter=0, opacity_reset_interval=0, seed=seed, log_interval=steps,
-                      device=str(g.device))
-    with torch.enable_grad():
-        return train((list(cameras), targets), config=cfg, init=_fresh(g), progress=False,
-                     background=background).gaussians
-
-
-#: Model attacks at the paper's strengths (plus the extra ones at their defaults); call as ``fn(g)``.
-MODEL_ATTACKS: dict[str, Callable[[Gaussians], Gaussians]] = {
-    "parameter_noise": parameter_noise,
-    "parameter_noise_attributes": parameter_noise_attributes,
-    "remove": remove_random,
-    "clone": clone_random,
-    "reduce_sh": reduce_sh,
-    "prune_by_opacity": prune_by_opacity,
-    "quantize": quantize,
-}
-
-#: Model attacks that render the model, at their defaults; call as ``fn(g, cameras, background=bg)``
-#: (:func:`bind_model_attacks` turns them into ``fn(g)``).
-VIEW_MODEL_ATTACKS: dict[str, Callable[..., Gaussians]] = {
-    "finetune": finetune,
-}
-
-
-ModelAttack = Callable[[Gaussians], Gaussians]
-
-
-#: Every model attack name (:data:`MODEL_ATTACKS` and :data:`VIEW_MODEL_ATTACKS`).
-MODEL_ATTACK_NAMES: tuple[str, ...] = (*MODEL_ATTACKS, *VIEW_MODEL_ATTACKS)
-
-
-def bind_model_attacks(names: Sequence[str], cameras: Sequence["Camera"],
-                       background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> dict[str, ModelAttack]:
-    """Model attacks by name, as ``fn(g)``: those of :data:`VIEW_MODEL_ATTACKS` bound to ``cameras``.
-
-    Args:
-        names: keys of :data:`MODEL_ATTACKS` or :data:`VIEW_MODEL_ATTACKS`.
-        cameras: the views a view attack renders (e.g. the embedding views).
-        background: their render background.
-
-    Returns:
-        name -> attack.
-    """
-    unknown = [n for n in names if n not in MODEL_ATTACK_NAMES]
-    if unknown:
-        raise KeyError(f"unknown model attacks {unknown}; choose from {list(MODEL_ATTACK_NAMES)}")
-    return {n: MODEL_ATTACKS[n] if n in MODEL_ATTACKS else
-            functools.partial(VIEW_MODEL_ATTACKS[n], cameras=list(cameras), background=tuple(background))
-            for n in names}

@@ -62,10 +62,10 @@ def _publish(tmp: Path, output: Path) -> None:
 
 def _embed_config(args: argparse.Namespace):
     from gsw.mark.embed import EmbedConfig
-    from gsw.mark.loss import LossWeights
+    from gsw.mark.loss import lpips_weights
 
     lpips_net = None if args.lpips == "none" else args.lpips
-    weights = LossWeights(lpips=0.0) if lpips_net is None else LossWeights()
+    weights = lpips_weights(lpips_net)
     if args.message_weight is not None:
         weights = dataclasses.replace(weights, message=args.message_weight)
     return EmbedConfig(epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask,
@@ -85,7 +85,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import gsw
     from gsw.mark.embed import EmbedConfig, embed, verify
     from gsw.data.images import write_image
-    from gsw.mark.loss import LossWeights
+    from gsw.mark.loss import lpips_weights
     from gsw.metrics.image import psnr, ssim
     from gsw.scenes import default_scene
 
@@ -100,7 +100,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"{torch.get_num_threads()} threads", flush=True)
     lpips_net = None if args.lpips == "none" else args.lpips
     cfg = EmbedConfig(epochs=args.epochs, background=bg, seed=args.seed, lpips_net=lpips_net,
-                      weights=LossWeights() if lpips_net else LossWeights(lpips=0.0))
+                      weights=lpips_weights(lpips_net))
     res = embed(g, cams, message=_message_arg(args), num_bits=args.bits, config=cfg,
                 progress=not args.no_progress)
     held_out = default_cameras_between(cams, args.size)
@@ -450,7 +450,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def _add_eval_grid_parser(sub) -> None:
-    from gsw.attacks.ops import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
+    from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
     from gsw.eval.grid import METHODS, PAPER_MODEL_ATTACKS, GridSpec
 
     default = GridSpec()

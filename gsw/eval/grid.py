@@ -50,9 +50,10 @@ import torch
 from torch import Tensor
 
 from gsw._atomic import atomic_write
-from gsw.attacks.ops import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS, bind_model_attacks
+from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS, bind_model_attacks
 from gsw.camera import Camera
 from gsw.mark.embed import EmbedConfig, embed
+from gsw.mark.loss import lpips_weights
 from gsw.eval.report import evaluate_watermark
 from gsw.stats import DETECTION_FPR
 from gsw.gaussians import Gaussians
@@ -142,7 +143,7 @@ def lpips_loss_overrides(net: str | None) -> dict[str, Any]:
     Returns:
         Overrides for :attr:`GridSpec.embed`.
     """
-    return {"lpips_net": net} if net else {"lpips_net": None, "weights": {"lpips": 0.0}}
+    return {"lpips_net": net} if net else {"lpips_net": None, "weights": {"lpips": lpips_weights(None).lpips}}
 
 
 def method_config(method: str, base: EmbedConfig | None = None) -> EmbedConfig:
@@ -203,10 +204,10 @@ class GridSpec:
         bits: message lengths (32, 48, 64 with the shipped decoders).
         seeds: seeds of the message, view order and train-time attacks.
         epochs: embedding epochs.
-        image_attacks: keys of :data:`gsw.attacks.ops.IMAGE_ATTACKS` (the paper's strengths).
-        model_attacks: keys of :data:`gsw.attacks.ops.MODEL_ATTACKS` or :data:`gsw.attacks.ops.VIEW_MODEL_ATTACKS`
+        image_attacks: keys of :data:`gsw.attacks.presets.IMAGE_ATTACKS` (the paper's strengths).
+        model_attacks: keys of :data:`gsw.attacks.presets.MODEL_ATTACKS` or :data:`gsw.attacks.presets.VIEW_MODEL_ATTACKS`
             (``finetune`` trains on renders of the embedding views).
-        sweeps: keys of :data:`gsw.attacks.ops.SWEEPS`: robustness curves over their values.
+        sweeps: keys of :data:`gsw.attacks.presets.SWEEPS`: robustness curves over their values.
         embed: further EmbedConfig overrides for every method (``"weights"`` as a dict), applied before the
             method's own; ``epochs``, ``seed`` and ``background`` are set by the grid.
         fpr: false-positive rate of a detection.
@@ -248,7 +249,7 @@ class GridSpec:
                              "(the grid sets them)")
         for method in self.methods:
             cfg = self.config(method, 0)
-            if cfg.lpips_net is None and cfg.weights.lpips != 0:
+            if cfg.weights != lpips_weights(cfg.lpips_net, cfg.weights):
                 raise ValueError(f"method {method}: lpips_net is None but the LPIPS loss weight is "
                                  f"{cfg.weights.lpips}; also override weights.lpips = 0")
 

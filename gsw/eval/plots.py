@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from gsw._atomic import atomic_write
-from gsw.attacks.ops import SWEEPS
+from gsw.attacks.presets import SWEEPS
 
 __all__ = ["require_matplotlib", "plot_robustness", "plot_difference_maps", "plot_grid"]
 

@@ -5,9 +5,9 @@ For a watermarked model, its original and the embedded message, over a set of (h
 * invisibility: PSNR / SSIM / LPIPS (VGG) of the watermarked renders against the original renders;
 * clean detection: bit accuracy and the share of views at p <= 1e-6, for the watermarked and
   for the original (unmarked) model;
-* image attacks (:data:`gsw.attacks.ops.IMAGE_ATTACKS`, and optionally the official code's variants)
+* image attacks (:data:`gsw.attacks.presets.IMAGE_ATTACKS`, and optionally the official code's variants)
   applied to the watermarked renders;
-* model attacks (:data:`gsw.attacks.ops.MODEL_ATTACKS`) applied to the watermarked model before
+* model attacks (:data:`gsw.attacks.presets.MODEL_ATTACKS`) applied to the watermarked model before
   rendering;
 * optionally the same attacks on the original model's renders (the false positives under attack).
 
@@ -23,7 +23,7 @@ from typing import Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from gsw.attacks.ops import IMAGE_ATTACKS, MODEL_ATTACKS, OFFICIAL_ATTACKS
+from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACKS, OFFICIAL_ATTACKS
 from gsw.camera import Camera
 from gsw.mark.embed import verify
 from gsw.gaussians import Gaussians

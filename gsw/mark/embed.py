@@ -25,6 +25,7 @@ from gsw.mark.mask import UpdateMask
 from gsw.mark.loss import LossWeights, WatermarkLoss
 from gsw.mark.message import (MessageLike, as_message,
                           message_to_hex)
+from gsw.metrics.image import psnr
 from gsw.render.rasterize import rasterize
 from gsw.progress import Progress
 from gsw.stats import DETECTION_FPR, binomial_p_value, fisher_combined_p_value
@@ -107,7 +108,7 @@ class EmbedResult:
 def _perturbed(g: Gaussians, rng: random.Random, tgen: torch.Generator, sigma: float) -> Gaussians:
     """A differentiable model attack for train-time sampling, one of two at random: N(0, sigma^2) on every
     raw parameter but the positions, or the view-dependent SH dropped (degree 0).  The evaluation's
-    :func:`gsw.attacks.ops.parameter_noise_attributes` / :func:`gsw.attacks.ops.reduce_sh` return detached copies;
+    :func:`gsw.attacks.model.parameter_noise_attributes` / :func:`gsw.attacks.model.reduce_sh` return detached copies;
     these keep the graph so the clean parameters learn a message that survives them."""
     if rng.random() < 0.5:
         def noisy(t: Tensor) -> Tensor:
@@ -116,11 +117,6 @@ def _perturbed(g: Gaussians, rng: random.Random, tgen: torch.Generator, sigma: f
         return Gaussians(g.means, noisy(g.log_scales), noisy(g.quats), noisy(g.opacity_logits), noisy(g.sh))
     return Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits,
                      torch.cat([g.sh[:, :1], torch.zeros_like(g.sh[:, 1:])], dim=1))
-
-
-def _psnr(a: Tensor, b: Tensor) -> float:
-    mse = float(((a - b) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()
 
 
 def _load_decoder(num_bits: int, decoder: torch.nn.Module | None, device: torch.device) -> torch.nn.Module:
@@ -240,7 +236,7 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
                 terms.update(loss=float(loss.detach()), bit_acc=acc)
                 history.append(terms)
                 bar.update(loss=f"{terms['loss']:.4f}", bits=f"{acc:.3f}",
-                           psnr=f"{_psnr(render.detach(), originals[v]):.1f}")
+                           psnr=f"{float(psnr(render.detach(), originals[v])):.1f}")
     timings["finetune"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -251,7 +247,7 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
         for cam, orig in zip(cameras, originals):
             img = rasterize(result, cam, background=bg).image
             accs.append(float(((dec.decode_image(img.clamp(0, 1).unsqueeze(0))[0] > 0).float() == target).float().mean()))
-            psnrs.append(_psnr(img.clamp(0, 1), orig.clamp(0, 1)))
+            psnrs.append(float(psnr(img.clamp(0, 1), orig.clamp(0, 1))))
     timings["evaluate"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return EmbedResult(result, bits, message_to_hex(bits) if num_bits % 4 == 0 else "", prune, split,

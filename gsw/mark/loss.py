@@ -8,7 +8,7 @@ the frozen decoder (logits; bit = logit > 0).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -24,6 +24,20 @@ class LossWeights:
     lpips: float = 0.2
     subband: float = 0.3
     message: float = 0.15  # paper: 0.4 (BENCHMARKS.md §6a: the weight that keeps >= 35 dB)
+
+
+def lpips_weights(net: str | None, weights: LossWeights | None = None) -> LossWeights:
+    """The loss weights that go with the LPIPS network ``net``: the rule "LPIPS off => its weight 0".
+
+    Args:
+        net: "vgg" or "alex", or None for no LPIPS term.
+        weights: the weights with the term on (default: :class:`LossWeights`).
+
+    Returns:
+        ``weights``, with ``lpips = 0`` when ``net`` is None.
+    """
+    weights = LossWeights() if weights is None else weights
+    return weights if net is not None else replace(weights, lpips=0.0)
 
 
 def subband_l1(image: Tensor, target: Tensor, levels: int = LEVELS) -> Tensor:
@@ -68,9 +82,9 @@ class WatermarkLoss(nn.Module):
         self.decoder = decoder.eval().requires_grad_(False)
         self.weights = weights
         self.logit_scale = float(logit_scale)
+        if weights != lpips_weights(lpips_net, weights):
+            raise ValueError("LPIPS is disabled but its weight is not 0")
         if lpips_net is None:
-            if weights.lpips != 0:
-                raise ValueError("LPIPS is disabled but its weight is not 0")
             self.lpips = None
         else:
             from gsw.metrics.lpips import LPIPS

@@ -33,18 +33,28 @@ def _batched(img: Tensor, ref: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def mse(img: Tensor, ref: Tensor) -> Tensor:
-    """Mean squared error per image: ``[B]`` (or a scalar for unbatched input)."""
+    """Mean squared error per image: ``[B]`` (or a scalar for unbatched ``[C, H, W]`` input)."""
     a, b = _batched(img, ref)
     out = (a - b).pow(2).flatten(1).mean(1)
     return out[0] if img.dim() == 3 else out
 
 
 def psnr(img: Tensor, ref: Tensor, data_range: float = 1.0) -> Tensor:
-    """Peak signal-to-noise ratio in dB, per image (``[B]`` or scalar); ``inf`` for identical images.
+    """Peak signal-to-noise ratio in dB, per image: ``-10 log10(mse / data_range^2)``.
 
-    Batched inputs give one PSNR per image (average them for a dataset score, as INRIA does).
+    The one PSNR of the package (embedding, decoder evaluation, reports). Identical images give ``inf`` (no
+    clamping of the MSE). Computed in the inputs' dtype.
+
+    Args:
+        img: ``[C, H, W]`` or ``[B, C, H, W]``.
+        ref: same shape.
+        data_range: ``L``, the peak value.
+
+    Returns:
+        ``[B]`` (one PSNR per image; average them for a dataset score, as INRIA does) or a scalar for unbatched
+        input.
     """
-    return 10.0 * torch.log10(data_range**2 / mse(img, ref))
+    return -10.0 * torch.log10(mse(img, ref) / data_range**2)
 
 
 def ssim(img: Tensor, ref: Tensor, *, window_size: int = 11, data_range: float = 1.0,

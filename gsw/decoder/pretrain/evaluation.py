@@ -13,15 +13,10 @@ import torch
 from gsw.decoder.dwt import ll_subband
 from gsw.decoder.hidden import bit_accuracy
 from gsw.attacks.layers import NoiseLayer, draws_per_batch
+from gsw.metrics.image import psnr
 from gsw.stats import binomial_p_value, false_positive_threshold
 
-__all__ = ["psnr", "eval_attacks", "unbiasedness", "fair_max_dev", "max_dev_p_value", "same_size_groups"]
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per-image PSNR (dB) of images in [0,1]: [B,...] -> [B]."""
-    mse = (a.float() - b.float()).pow(2).flatten(1).mean(1)
-    return -10.0 * torch.log10(mse.clamp_min(1e-12))
+__all__ = ["eval_attacks", "unbiasedness", "fair_max_dev", "max_dev_p_value", "same_size_groups"]
 
 
 def same_size_groups(images: Sequence[torch.Tensor], n: int) -> list[list[int]]:
