@@ -10,7 +10,7 @@ import pytest
 from gsw.attacks.ops import gaussian_noise, jpeg, remove_random
 from gsw.cli.main import main
 from gsw.data import save_inria_model
-from gsw.mark.embed import verify
+from gsw.mark.detect import verify
 from gsw.eval.report import DETECTION_FPR, evaluate_watermark
 from gsw.render.rasterize import rasterize
 from gsw.scenes import default_scene

@@ -17,7 +17,8 @@ from gsw.scenes import default_scene
 from gsw.cli.train import add_train_parser, config_from_args
 from gsw.train.optim import GaussianAdam
 from gsw.progress import Progress
-from gsw.train.trainer import TrainConfig, _State, init_box, random_init, resolve_device, train
+from gsw.train import TrainConfig, init_box, random_init, resolve_device, train
+from gsw.train.densify import _State
 
 SIZE = 48
 HAS_CUDA = torch.cuda.is_available() and bool(gsw.build_info()["cuda"])
