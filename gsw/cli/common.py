@@ -113,14 +113,15 @@ def add_device_option(parser: argparse.ArgumentParser, default: str = "auto") ->
                              "CPU; default: %(default)s)")
 
 
-def add_background_options(parser: argparse.ArgumentParser, default: str) -> None:
-    """``--white`` / ``--black``: the render background (``args.background`` is None when neither is given)."""
+def add_background_options(parser: argparse.ArgumentParser, default_help: str, default: str | None = None) -> None:
+    """``--white`` / ``--black``: the background (``args.background``: ``"white"``, ``"black"`` or ``default``;
+    None stands for "the model's, else black", see :func:`background_of`)."""
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--white", dest="background", action="store_const", const="white",
-                       help=f"white background ({default})")
+                       help=f"white background ({default_help})")
     group.add_argument("--black", dest="background", action="store_const", const="black",
                        help="black background")
-    parser.set_defaults(background=None)
+    parser.set_defaults(background=default)
 
 
 def background_of(args: argparse.Namespace, stored: Sequence[float] | None = None) -> tuple[float, float, float]:

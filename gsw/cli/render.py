@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gsw.cli.common import BACKGROUNDS, positive_int, print_json, reading
+from gsw.cli.common import add_background_options, background_of, positive_int, print_json, reading
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -17,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     render.add_argument("--radius", type=float, default=None, help="orbit radius")
     render.add_argument("--width", type=positive_int, default=512)
     render.add_argument("--height", type=positive_int, default=512)
-    render.add_argument("--white", action="store_true", help="white background")
+    add_background_options(render, "default: black")
     render.add_argument("--output", required=True, help="output folder")
     render.add_argument("--force", action="store_true", help="allow writing next to the model")
     render.set_defaults(func=cmd_render)
@@ -48,7 +48,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         radius = args.radius or float(3.0 * (g.means - center).norm(dim=1).median())
         cams = orbit_cameras(center.tolist(), radius, args.orbit, width=args.width, height=args.height)
     out_dir.mkdir(parents=True, exist_ok=True)
-    bg = BACKGROUNDS["white" if args.white else "black"]
+    bg = background_of(args)
     with torch.no_grad():
         for i, cam in enumerate(cams):
             out = rasterize(g, cam, background=bg)

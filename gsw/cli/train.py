@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from gsw.cli.common import add_device_option
+from gsw.cli.common import add_background_options, add_device_option, background_of
 
 __all__ = ["add_train_parser", "register", "run_train", "config_from_args"]
 
@@ -35,12 +35,7 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help="keep INRIA's absolute schedule (densify 500..15000) whatever --iterations is")
     p.add_argument("--downscale", type=float, default=1.0, help="image size divisor (e.g. 4: 800 -> 200)")
     p.add_argument("--sh-degree", type=int, default=3, choices=(0, 1, 2, 3))
-    bg = p.add_mutually_exclusive_group()
-    bg.add_argument("--white", dest="background", action="store_const", const="white",
-                    help="composite RGBA images on white (default)")
-    bg.add_argument("--black", dest="background", action="store_const", const="black",
-                    help="composite RGBA images on black")
-    p.set_defaults(background="white")
+    add_background_options(p, "default; RGBA images are composited on it", default="white")
     p.add_argument("--init", default="random",
                    help="'random' (INRIA box init), 'points' (dataset point cloud) or a .ply model to start from")
     p.add_argument("--init-points", type=int, default=100_000, help="number of random initial Gaussians")
@@ -105,7 +100,7 @@ def run_train(args: argparse.Namespace) -> int:
     from gsw.data.loaders import detect_format, holdout_indices, load_dataset  # noqa: PLC0415
     from gsw.train import train  # noqa: PLC0415
 
-    background = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
+    background = background_of(args)
     cfg = config_from_args(args)
     if args.data == "default":
         full = _default_scene_views(args.scene_size, background)
