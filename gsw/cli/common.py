@@ -56,7 +56,7 @@ def add_message_options(parser: argparse.ArgumentParser, *, claim: bool) -> None
         group.add_argument("--message", metavar="HEX", help="the embedded message, in hex")
         group.add_argument("--key", metavar="SECRET", help="the secret key the message was derived from")
     else:
-        group.add_argument("--message", metavar="HEX", help="hex message (default: random)")
+        group.add_argument("--message", metavar="HEX", help="hex message (default: drawn from --seed)")
         group.add_argument("--key", metavar="SECRET", help="derive the message from a secret key")
     source = "the hex message, the model's watermark.json" if claim else "the hex message"
     add_bits_option(group, None, f"message length (default: from {source}, else {DEFAULT_BITS})")
