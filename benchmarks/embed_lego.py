@@ -32,7 +32,7 @@ def _mean(xs):
 def main() -> int:
     import gsw
     from gsw.data import load_inria_model, load_nerf_synthetic
-    from gsw.mark.embed import EmbedConfig, embed, verify
+    from gsw.mark import EmbedConfig, embed, verify
     from gsw.mark.fgd import PRUNE_THRESHOLD, fgd_prune
     from gsw.mark.loss import LossWeights, lpips_weights
     from gsw.metrics.image import psnr, ssim

@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 from gsw.data.loaders import load_nerf_synthetic
-from gsw.train.trainer import TrainConfig, resolve_device, train
+from gsw.train import TrainConfig, resolve_device, train
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "lego"

@@ -12,10 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 
+import gsw.eval.grid.run as grid_run
+import gsw.eval.grid.spec as grid_spec
 import gsw.eval.grid as grid
 from gsw.cli.main import main
 from gsw.data import save_inria_model, write_image
-from gsw.mark.embed import EmbedConfig
+from gsw.mark import EmbedConfig
 from gsw.mark.loss import LossWeights
 from gsw.eval.grid import (METHODS, GridMismatchError, GridSpec, aggregate, apply_overrides, decoder_fingerprint,
                       default_grid_scene, detection_rate, detection_rates, load_grid_scene, lpips_loss_overrides,
@@ -244,13 +246,13 @@ def test_tiny_grid_writes_cells_and_tables(tiny_grid, tiny_scene) -> None:
 def embed_calls(monkeypatch) -> list[int]:
     """The seeds of the cells that :func:`gsw.eval.grid.run_grid` embeds (i.e. recomputes), in order."""
     calls: list[int] = []
-    real_embed = grid.embed
+    real_embed = grid_run.embed
 
     def counting_embed(*args, **kwargs):
         calls.append(kwargs["config"].seed)
         return real_embed(*args, **kwargs)
 
-    monkeypatch.setattr(grid, "embed", counting_embed)
+    monkeypatch.setattr(grid_run, "embed", counting_embed)
     return calls
 
 
@@ -310,7 +312,7 @@ def test_rerun_recomputes_cells_of_another_decoder_or_changed_defaults(tiny_grid
     class ChangedDefaults(EmbedConfig):
         lr_f_rest: float = 2 * EmbedConfig.lr_f_rest
 
-    monkeypatch.setattr(grid, "EmbedConfig", ChangedDefaults)
+    monkeypatch.setattr(grid_spec, "EmbedConfig", ChangedDefaults)
     with pytest.warns(RuntimeWarning, match="other settings"):
         again = run_grid(spec, tiny_scene, out, progress=False, decoder_for=other_decoder)
     assert calls == [0, 0] and again.computed == 1

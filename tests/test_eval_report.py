@@ -10,7 +10,7 @@ import pytest
 from gsw.attacks import gaussian_noise, jpeg, remove_random
 from gsw.cli.main import main
 from gsw.data import save_inria_model
-from gsw.mark.embed import verify
+from gsw.mark.detect import verify
 from gsw.eval.report import DETECTION_FPR, evaluate_watermark
 from gsw.render.rasterize import rasterize
 from gsw.scenes import default_scene
@@ -78,3 +78,29 @@ def test_cli_eval(scene, tmp_path, capsys) -> None:
     assert set(data["model_attacks"]) >= {"parameter_noise", "remove", "clone", "quantize"}
     assert out.read_text().startswith("| measure | value |")
     assert main(["eval", str(tmp_path / "marked"), "--original", str(tmp_path / "orig")]) == 2
+
+
+def test_cli_eval_reads_the_models_watermark_json(scene, tmp_path, capsys) -> None:
+    from gsw.cli.metadata import watermark_record, write_watermark_json
+    from gsw.mark.embed import EmbedConfig
+    from gsw.mark.message import message_from_key
+
+    changed = scene.gaussians.clone()
+    changed.sh[:, 0] += 0.05
+    save_inria_model(tmp_path / "orig", scene.gaussians, scene.cameras, iteration=1)
+    save_inria_model(tmp_path / "marked", changed, scene.cameras, iteration=1)
+    write_watermark_json(tmp_path / "marked", watermark_record(
+        num_bits=48, background=(1.0, 1.0, 1.0), cameras=scene.cameras, decoder="-", config=EmbedConfig(), stats={}))
+    args = ["eval", str(tmp_path / "marked"), "--original", str(tmp_path / "orig"), "--key", "k", "--lpips", "none",
+            "--views", "1", "--device", "cpu", "--json"]
+    assert main(args) == 0
+    data = json.loads(capsys.readouterr().out)
+    message = message_from_key("k", 48)
+    for bg, flag in (((1.0, 1.0, 1.0), []), ((0.0, 0.0, 0.0), ["--black"])):
+        expected = evaluate_watermark(changed, scene.gaussians, scene.cameras[:1], message, background=bg,
+                                      lpips_net=None, image_attacks={}, model_attacks={})
+        if flag:
+            assert main([*args, *flag]) == 0
+            data = json.loads(capsys.readouterr().out)
+        assert data["clean"]["p_values"] == pytest.approx(expected.clean.p_values)
+        assert data["psnr"] == pytest.approx(expected.psnr)

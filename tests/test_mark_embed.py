@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gsw.mark.embed import EmbedConfig, embed, extract, verify
+from gsw.mark import EmbedConfig, embed, extract, verify
 from gsw.mark.loss import LossWeights
 from gsw.scenes import default_scene
 

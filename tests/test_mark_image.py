@@ -67,12 +67,12 @@ def test_a_custom_decoder_of_another_length_is_named():
 def test_bad_messages_and_settings_are_named():
     with pytest.raises(ValueError, match="expected 32"):
         gsw.embed_image(_photo(), [1, 0, 1], config=FAST, progress=False)
-    bad = [gsw.ImageEmbedConfig(steps=-1), gsw.ImageEmbedConfig(psnr=0.0)]
-    if not torch.cuda.is_available():
-        bad.append(gsw.ImageEmbedConfig(device="cuda"))
-    for cfg in bad:
+    for cfg in [gsw.ImageEmbedConfig(steps=-1), gsw.ImageEmbedConfig(psnr=0.0), gsw.ImageEmbedConfig(device="tpu")]:
         with pytest.raises(ValueError):
             gsw.embed_image(_photo(), config=cfg, progress=False)
+    if not torch.cuda.is_available():  # gsw.device.resolve_device: an unusable device is a RuntimeError
+        with pytest.raises(RuntimeError, match="device 'cuda' requested"):
+            gsw.embed_image(_photo(), config=gsw.ImageEmbedConfig(device="cuda"), progress=False)
 
 
 def test_cli_embed_image_then_verify(tmp_path, capsys):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 
@@ -14,10 +13,12 @@ from gsw.data.loaders import load_inria_model
 from gsw.io.ply import load_ply
 from gsw.render.rasterize import rasterize
 from gsw.scenes import default_scene
-from gsw.cli.train import add_train_parser, config_from_args
+from gsw.cli.main import build_parser, main
+from gsw.cli.train import config_from_args
 from gsw.train.optim import GaussianAdam
 from gsw.progress import Progress
-from gsw.train.trainer import TrainConfig, _State, init_box, random_init, resolve_device, train
+from gsw.train import TrainConfig, init_box, random_init, resolve_device, train
+from gsw.train.densify import _State
 
 SIZE = 48
 HAS_CUDA = torch.cuda.is_available() and bool(gsw.build_info()["cuda"])
@@ -119,6 +120,9 @@ def test_time_budget_stops_early(scene_views, tmp_path):
 
 
 def test_resolve_device(monkeypatch):
+    import gsw.device
+
+    assert resolve_device is gsw.device.resolve_device  # one device rule (training, embedding, the CLI)
     assert resolve_device("cpu") == resolve_device(torch.device("cpu")) == torch.device("cpu")
     expected = torch.device("cuda", torch.cuda.current_device()) if HAS_CUDA else torch.device("cpu")
     assert resolve_device("auto") == resolve_device() == expected
@@ -145,9 +149,9 @@ def test_unavailable_cuda_device_is_a_clear_error(scene_views, tmp_path, capsys)
         train((scene.cameras[:2], images[:2]), config=_small_config(iterations=1, device="cuda"),
               output_dir=tmp_path / "lib", progress=False)
     assert not (tmp_path / "lib").exists()  # refused before anything was written
-    args = _cli(["train", "default", "-o", str(tmp_path / "cli"), "--device", "cuda", "--no-progress"])
-    assert args.func(args) == 2
-    assert "device 'cuda' requested" in capsys.readouterr().err
+    assert main(["train", "default", "-o", str(tmp_path / "cli"), "--device", "cuda", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("gsw train: error: device 'cuda' requested") and err.count("\n") == 1
     assert not (tmp_path / "cli").exists()
 
 
@@ -295,9 +299,7 @@ def test_bad_inputs(scene_views):
 
 
 def _cli(argv):
-    parser = argparse.ArgumentParser(prog="gsw")
-    add_train_parser(parser.add_subparsers(dest="command"))
-    return parser.parse_args(argv)
+    return build_parser().parse_args(argv)
 
 
 def test_cli_default_scene(tmp_path, capsys):
@@ -315,9 +317,9 @@ def test_cli_default_scene(tmp_path, capsys):
 
 
 def test_cli_bad_data(tmp_path, capsys):
-    args = _cli(["train", str(tmp_path / "missing"), "-o", str(tmp_path / "o"), "--no-progress"])
-    assert args.func(args) == 2
-    assert "not found" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "missing"), "-o", str(tmp_path / "o"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("gsw train: error: ") and "not found" in err and not (tmp_path / "o").exists()
     args = _cli(["train", "x", "-o", "y", "--black", "--device", "cpu", "--time-budget-s", "30"])
     assert args.background == "black"
     cfg = config_from_args(args)

@@ -1,20 +1,14 @@
-"""``gsw train``: command-line front end of :func:`gsw.train.train`.
-
-Hook into the main CLI with::
-
-    sub = parser.add_subparsers(dest="command")
-    add_train_parser(sub)          # sets func=run_train on the sub-parser
-    args = parser.parse_args(); args.func(args)
-"""
+"""``gsw train``: command-line front end of :func:`gsw.train.train` (``register`` adds it to the `gsw` parser)."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-__all__ = ["add_train_parser", "run_train", "config_from_args"]
+from gsw.cli.common import add_background_options, add_device_option, background_of
+
+__all__ = ["add_train_parser", "register", "run_train", "config_from_args"]
 
 
 def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -41,12 +35,7 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help="keep INRIA's absolute schedule (densify 500..15000) whatever --iterations is")
     p.add_argument("--downscale", type=float, default=1.0, help="image size divisor (e.g. 4: 800 -> 200)")
     p.add_argument("--sh-degree", type=int, default=3, choices=(0, 1, 2, 3))
-    bg = p.add_mutually_exclusive_group()
-    bg.add_argument("--white", dest="background", action="store_const", const="white",
-                    help="composite RGBA images on white (default)")
-    bg.add_argument("--black", dest="background", action="store_const", const="black",
-                    help="composite RGBA images on black")
-    p.set_defaults(background="white")
+    add_background_options(p, "default; RGBA images are composited on it", default="white")
     p.add_argument("--init", default="random",
                    help="'random' (INRIA box init), 'points' (dataset point cloud) or a .ply model to start from")
     p.add_argument("--init-points", type=int, default=100_000, help="number of random initial Gaussians")
@@ -57,9 +46,7 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--images", default=None, help="image folder for an INRIA model folder used as DATA")
     p.add_argument("--save-iterations", type=int, nargs="*", default=[], help="extra checkpoint iterations")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="auto",
-                   help="'auto' (CUDA when gsw was built with it and a GPU is visible, else CPU; default), 'cpu', "
-                        "'cuda' or 'cuda:N'")
+    add_device_option(p)
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="stop training after this many seconds of optimisation (the model reached is still saved "
                         "and evaluated)")
@@ -67,6 +54,11 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
     p.add_argument("--scene-size", type=int, default=128, help="image size of the built-in scene ('default')")
     p.set_defaults(func=run_train)
     return p
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``train``."""
+    add_train_parser(subparsers)
 
 
 def config_from_args(args: argparse.Namespace):
@@ -77,7 +69,7 @@ def config_from_args(args: argparse.Namespace):
         ValueError: a bad ``--device`` or ``--time-budget-s``.
         RuntimeError: ``--device`` names a CUDA device that is not usable.
     """
-    from gsw.train.trainer import TrainConfig, resolve_device  # noqa: PLC0415
+    from gsw.train import TrainConfig, resolve_device  # noqa: PLC0415
 
     overrides = dict(sh_degree=args.sh_degree, init_points=args.init_points, max_gaussians=args.max_gaussians,
                      seed=args.seed, save_iterations=tuple(args.save_iterations),
@@ -103,33 +95,30 @@ def _default_scene_views(size: int, background: tuple[float, float, float]):
 
 
 def run_train(args: argparse.Namespace) -> int:
-    """Run ``gsw train`` for parsed arguments; returns the exit status."""
-    from gsw.data.loaders import DatasetError, detect_format, holdout_indices, load_dataset  # noqa: PLC0415
-    from gsw.train.trainer import train  # noqa: PLC0415
+    """Run ``gsw train`` for parsed arguments; returns the exit status (errors propagate to :func:`gsw.cli.main.main`,
+    which reports them)."""
+    from gsw.data.loaders import detect_format, holdout_indices, load_dataset  # noqa: PLC0415
+    from gsw.train import train  # noqa: PLC0415
 
-    background = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
-    try:
-        cfg = config_from_args(args)
-        if args.data == "default":
-            full = _default_scene_views(args.scene_size, background)
-            if args.holdout_every >= 2:
-                tr_idx, te_idx = holdout_indices(len(full), args.holdout_every)
-                train_set, test_set = full.subset(tr_idx), full.subset(te_idx)
-            else:
-                train_set, test_set = full, None
+    background = background_of(args)
+    cfg = config_from_args(args)
+    if args.data == "default":
+        full = _default_scene_views(args.scene_size, background)
+        if args.holdout_every >= 2:
+            tr_idx, te_idx = holdout_indices(len(full), args.holdout_every)
+            train_set, test_set = full.subset(tr_idx), full.subset(te_idx)
         else:
-            kw = dict(downscale=args.downscale, background=background, holdout_every=args.holdout_every,
-                      images_dir=args.images)
-            fmt = detect_format(args.data)
-            data_path = Path(args.data)
-            has_test_file = fmt == "nerf_synthetic" and (
-                (data_path.parent if data_path.is_file() else data_path) / "transforms_test.json").is_file()
-            split_views = args.holdout_every >= 2 or has_test_file
-            train_set = load_dataset(args.data, "train" if split_views or fmt == "nerf_synthetic" else "all", **kw)
-            test_set = load_dataset(args.data, "test", **kw) if split_views and not args.no_eval else None
-    except (DatasetError, FileNotFoundError, ValueError, RuntimeError) as exc:  # RuntimeError: unusable --device
-        print(f"gsw train: error: {exc}", file=sys.stderr)
-        return 2
+            train_set, test_set = full, None
+    else:
+        kw = dict(downscale=args.downscale, background=background, holdout_every=args.holdout_every,
+                  images_dir=args.images)
+        fmt = detect_format(args.data)
+        data_path = Path(args.data)
+        has_test_file = fmt == "nerf_synthetic" and (
+            (data_path.parent if data_path.is_file() else data_path) / "transforms_test.json").is_file()
+        split_views = args.holdout_every >= 2 or has_test_file
+        train_set = load_dataset(args.data, "train" if split_views or fmt == "nerf_synthetic" else "all", **kw)
+        test_set = load_dataset(args.data, "test", **kw) if split_views and not args.no_eval else None
     if args.no_eval:
         test_set = None
     init = args.init

@@ -12,7 +12,7 @@ For a watermarked model, its original and the embedded message, over a set of (h
 * optionally the same attacks on the original model's renders (the false positives under attack).
 
 Every :class:`Detection` keeps its per-view p-values, so rates at other false-positive rates can be
-computed afterwards (:mod:`gsw.grid`).
+computed afterwards (:mod:`gsw.eval.grid`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from torch import Tensor
 
 from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACKS, OFFICIAL_ATTACKS
 from gsw.camera import Camera
-from gsw.mark.embed import verify
+from gsw.mark.detect import message_num_bits, verify
 from gsw.gaussians import Gaussians
 from gsw.mark.message import MessageLike, as_message
 from gsw.metrics.image import psnr, ssim
@@ -40,7 +40,7 @@ class Detection:
     Attributes:
         bit_accuracy: mean over the views of the fraction of matching bits.
         detected_views: share of the views with p-value <= :data:`DETECTION_FPR`.
-        p_values: per view, the binomial p-value of its matching bits (:func:`gsw.mark.embed.verify`).
+        p_values: per view, the binomial p-value of its matching bits (:func:`gsw.mark.detect.verify`).
     """
 
     bit_accuracy: float
@@ -113,7 +113,7 @@ def evaluate_watermark(watermarked: Gaussians, original: Gaussians, cameras: Seq
         original: the model before embedding (the reference renders).
         cameras: the evaluation views (use views not seen during embedding).
         message: the embedded message (bits, hex or `"key:<secret>"`).
-        num_bits: message length (inferred from bits/hex).
+        num_bits: message length (inferred from bits/hex, :func:`gsw.mark.detect.message_num_bits`).
         background: render background.
         image_attacks: name -> attack on [3, H, W] images (default: the paper's table).
         model_attacks: name -> attack on Gaussians (default: all of :mod:`gsw.attacks`).
@@ -130,8 +130,7 @@ def evaluate_watermark(watermarked: Gaussians, original: Gaussians, cameras: Seq
     if not cameras:
         raise ValueError("evaluate_watermark needs at least one camera")
     if num_bits is None:
-        num_bits = (4 * len(message.lower().removeprefix("0x")) if isinstance(message, str)
-                    and not message.startswith("key:") else int(torch.as_tensor(message).numel()))
+        num_bits = message_num_bits(message)
     bits = as_message(message, num_bits)
     image_attacks = dict(IMAGE_ATTACKS if image_attacks is None else image_attacks)
     if official:

@@ -111,7 +111,8 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
     Returns:
         One :class:`ImageEmbedResult` per image, in input order (``seconds``: the image's share of its batch).
     """
-    from gsw.mark.embed import _load_decoder
+    from gsw.device import resolve_device
+    from gsw.mark.detect import load_decoder_for
     from gsw.decoder.dwt import ll_subband
     from gsw.decoder.pretrain.evaluation import same_size_groups
     from gsw.mark.refine import watermark_images
@@ -125,12 +126,7 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     if len(images) == 0:
         raise ValueError("no images given")
-    if cfg.device == "auto":
-        device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    else:
-        device = torch.device(cfg.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"device {cfg.device!r} requested but no CUDA device is available")
+    device = resolve_device(cfg.device)
     checked = []
     for i, img in enumerate(images):
         try:
@@ -138,7 +134,7 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
         except (TypeError, ValueError) as err:
             raise type(err)(f"image {i}: {err}" if len(images) > 1 else str(err)) from None
     bits = as_message(message, num_bits, seed=cfg.seed if message is None else None)
-    dec = _load_decoder(num_bits, decoder, device)
+    dec = load_decoder_for(num_bits, decoder, device)
     chunks = same_size_groups(checked, batch_size)
     results: list[ImageEmbedResult | None] = [None] * len(checked)
     hex_message = message_to_hex(bits) if num_bits % 4 == 0 else ""

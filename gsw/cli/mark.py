@@ -1,0 +1,295 @@
+"""`gsw embed`, `gsw embed-image`, `gsw extract`, `gsw verify`: putting the watermark in and reading it back."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from gsw.cli.common import (DEFAULT_BITS, add_background_options, add_bits_option, add_device_option,
+                            add_message_options, background_of, check_output, message_from_args, output_folder,
+                            positive_int, print_json, read_images, reading)
+from gsw.stats import DETECTION_FPR
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``embed``, ``embed-image``, ``extract`` and ``verify``."""
+    _add_embed_parser(subparsers)
+    _add_embed_image_parser(subparsers)
+    ext = subparsers.add_parser("extract", help="read the message bits of images")
+    ext.add_argument("images", nargs="+")
+    add_bits_option(ext, DEFAULT_BITS, "message length (default: %(default)s)")
+    ext.add_argument("--json", action="store_true")
+    ext.set_defaults(func=cmd_extract)
+
+    ver = subparsers.add_parser("verify", help="test images or a model for a message (exit 0 = detected)")
+    ver.add_argument("images", nargs="*")
+    ver.add_argument("--model", help="INRIA model folder to render instead of images (its watermark.json gives the "
+                                     "bit length, background and resolution)")
+    add_message_options(ver, claim=True)
+    add_background_options(ver, "default: the model's watermark.json, else black")
+    ver.add_argument("--fpr", type=float, default=DETECTION_FPR, help="false-positive rate of the decision")
+    add_device_option(ver)
+    ver.add_argument("--json", action="store_true")
+    ver.set_defaults(func=cmd_verify)
+
+
+def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
+    emb = subparsers.add_parser("embed", help="watermark a model, writing a new INRIA model folder")
+    emb.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
+    emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
+    emb.add_argument("--images", help="folder of the training images (optional, for FGD)")
+    emb.add_argument("--output", required=True, help="new model folder (never the input)")
+    emb.add_argument("--force", action="store_true", help="replace an existing output folder")
+    add_message_options(emb, claim=False)
+    emb.add_argument("--epochs", type=positive_int, default=8)
+    emb.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
+    emb.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
+    emb.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
+    emb.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
+    emb.add_argument("--model-attack-prob", type=float, default=0.0,
+                     help="train-time model-attack probability (parameter noise / SH degree 0)")
+    emb.add_argument("--message-weight", type=float, default=None,
+                     help="weight of the message loss (default: LossWeights.message)")
+    add_background_options(emb, "default: black")
+    emb.add_argument("--seed", type=int, default=0)
+    add_device_option(emb)
+    emb.add_argument("--no-progress", action="store_true")
+    emb.add_argument("--json", action="store_true")
+    emb.set_defaults(func=cmd_embed)
+
+
+def _add_embed_image_parser(subparsers: argparse._SubParsersAction) -> None:
+    from gsw.mark.image import ImageEmbedConfig
+
+    emi = subparsers.add_parser("embed-image", help="watermark 2-D images (PNG out), readable by extract/verify")
+    emi.add_argument("images", nargs="+", help="input images (PNG, JPEG, ...; alpha is composited on black)")
+    emi.add_argument("--output", required=True,
+                     help="new .png file (one input) or new folder of <name>.png files (several); never an input")
+    emi.add_argument("--force", action="store_true", help="replace an existing output")
+    emi.add_argument("--batch", type=positive_int, default=8,
+                     help="same-size images optimised together (default %(default)s)")
+    add_message_options(emi, claim=False)
+    emi.add_argument("--psnr", type=float, default=ImageEmbedConfig.psnr,
+                     help="PSNR of the watermark in dB (higher = fainter and less robust; default %(default)s)")
+    emi.add_argument("--steps", type=int, default=ImageEmbedConfig.steps,
+                     help="optimisation steps (more = more robust, linear time; default %(default)s)")
+    emi.add_argument("--seed", type=int, default=0)
+    add_device_option(emi)
+    emi.add_argument("--no-progress", action="store_true")
+    emi.add_argument("--json", action="store_true")
+    emi.set_defaults(func=cmd_embed_image)
+
+
+# ------------------------------------------------------------------------------------------------ embed
+
+
+def embed_config(args: argparse.Namespace):
+    """The :class:`~gsw.mark.embed.EmbedConfig` of `gsw embed`'s options."""
+    from gsw.mark.embed import EmbedConfig
+    from gsw.mark.loss import lpips_weights
+
+    lpips_net = None if args.lpips == "none" else args.lpips
+    weights = lpips_weights(lpips_net)
+    if args.message_weight is not None:
+        weights = dataclasses.replace(weights, message=args.message_weight)
+    return EmbedConfig(epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask,
+                       lpips_net=lpips_net, attacks=args.attacks, model_attacks=args.model_attack_prob,
+                       seed=args.seed, weights=weights, background=background_of(args))
+
+
+def _load_model(args: argparse.Namespace):
+    """(gaussians, cameras, images or None, input paths) from an INRIA folder or PLY + cameras."""
+    from gsw.camera import load_inria_cameras
+    from gsw.io import load_gaussians
+
+    src = Path(args.input)
+    if src.is_dir():
+        from gsw.data import load_inria_model
+
+        with reading(src):
+            model = load_inria_model(src, images_dir=args.images, background=background_of(args))
+        return model.gaussians, model.cameras, model.images, [src]
+    if not args.cameras:
+        raise ValueError(f"{src} is a file: pass --cameras cameras.json (or give an INRIA model folder)")
+    with reading(args.cameras):
+        cameras = load_inria_cameras(args.cameras)
+    return load_gaussians(src), cameras, None, [src, Path(args.cameras)]
+
+
+def cmd_embed(args: argparse.Namespace) -> int:
+    """Watermarks a model; writes a new INRIA model folder (with ``watermark.json``) atomically."""
+    from gsw.cli.metadata import watermark_record, write_watermark_json
+    from gsw.data import save_inria_model
+    from gsw.decoder.zoo import load_decoder
+    from gsw.device import resolve_device
+    from gsw.eval.grid import decoder_fingerprint
+    from gsw.mark.embed import embed
+
+    message, num_bits = message_from_args(args, required=False)
+    config = embed_config(args)
+    device = resolve_device(args.device)
+    g, cams, images, inputs = _load_model(args)
+    output = Path(args.output)
+    with output_folder(output, inputs, args.force) as tmp:
+        res = embed(g.to(device), cams, message=message, num_bits=num_bits,
+                    images=None if images is None else list(images.to(device)), config=config,
+                    progress=not args.no_progress)
+        save_inria_model(tmp, res.gaussians, cams, iteration=0)
+        stats = dict(gaussians_in=len(g), gaussians_out=len(res.gaussians),
+                     pruned=res.prune.num_removed if res.prune else 0,
+                     split=res.split.num_split if res.split else 0,
+                     mean_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
+                     mean_psnr=sum(res.psnr) / len(res.psnr), timings=res.timings)
+        record = watermark_record(num_bits=num_bits, background=config.background, cameras=cams,
+                                  decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats)
+        write_watermark_json(tmp, record)
+    if args.json:
+        print_json(dict(message=res.message_hex, bits=res.message.int().tolist(), output=str(output), **record))
+    else:
+        print(f"embedded {res.message_hex} into {output}: {len(res.gaussians):,} Gaussians, "
+              f"mean bit accuracy {100 * stats['mean_bit_accuracy']:.2f} %, mean PSNR {stats['mean_psnr']:.2f} dB "
+              "(keep the message: the model folder does not store it)")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ embed-image
+
+
+def _image_targets(sources: list[Path], output: Path, force: bool) -> list[Path]:
+    """Output file per input: ``output`` itself (one input, a .png) or ``output/<stem>.png``."""
+    if len(sources) == 1:
+        if output.suffix.lower() != ".png":
+            raise ValueError(f"output {output} must be a .png (a lossy format would weaken the watermark before "
+                             "it ships)")
+        check_output(output, sources, force)
+        return [output]
+    stems = [s.stem for s in sources]
+    if len(set(stems)) != len(stems):
+        raise ValueError("several inputs share a file name; their outputs (<name>.png) would collide")
+    return [output / f"{stem}.png" for stem in stems]
+
+
+def cmd_embed_image(args: argparse.Namespace) -> int:
+    """Watermarks 2-D images; writes new PNGs atomically; exit status 1 if one is not detectable.
+
+    One input: ``--output`` is the new .png file. Several: ``--output`` is a new folder that receives
+    ``<input stem>.png`` for each input (written into a temporary folder renamed into place).
+    """
+    import torch
+
+    from gsw.data.images import read_image, write_image
+    from gsw.mark.image import ImageEmbedConfig, embed_images
+
+    sources, output = [Path(p) for p in args.images], Path(args.output)
+    message, num_bits = message_from_args(args, required=False)
+    targets = _image_targets(sources, output, args.force)
+    images = read_images(sources)
+    cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
+
+    def run():
+        return embed_images(images, message, num_bits=num_bits, config=cfg, batch_size=args.batch,
+                            progress=not args.no_progress)
+
+    if len(sources) == 1:
+        results = run()
+        output.parent.mkdir(parents=True, exist_ok=True)
+        write_image(output, results[0].image)
+    else:
+        with output_folder(output, sources, args.force) as tmp:
+            results = run()
+            for target, res in zip(targets, results):
+                write_image(tmp / target.name, res.image)
+    for target, res in zip(targets, results):
+        if not torch.equal(read_image(target), res.image.cpu()):
+            raise RuntimeError(f"{target} does not hold the image that was verified")
+    rows = [dict(image=str(t), source=str(s), message=r.message_hex, psnr=r.psnr, bit_accuracy=r.bit_accuracy,
+                 p_value=r.p_value, seconds=r.seconds) for t, s, r in zip(targets, sources, results)]
+    if args.json:
+        print_json(dict(message=results[0].message_hex, bits=results[0].message.int().tolist(), images=rows))
+    else:
+        for r in rows:
+            print(f"embedded {r['message']} into {r['image']}: PSNR {r['psnr']:.2f} dB, read back "
+                  f"{100 * r['bit_accuracy']:.2f} % of the bits (p = {r['p_value']:.2e}) in {r['seconds']:.1f} s")
+    weak = [r["image"] for r in rows if r["p_value"] > DETECTION_FPR]
+    if weak:
+        print(f"gsw embed-image: warning: not detectable at p <= {DETECTION_FPR:g}: {', '.join(weak)} "
+              "(raise --steps or lower --psnr)", file=sys.stderr)
+        return 1
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ extract, verify
+
+
+def cmd_extract(args: argparse.Namespace) -> int:
+    """Reads the message bits of images."""
+    from gsw.mark.detect import extract
+
+    results = []
+    for path, img in zip(args.images, read_images(args.images)):
+        ext = extract(img, num_bits=args.bits)
+        results.append(dict(image=path, bits=ext.bits[0].int().tolist(),
+                            hex=ext.hex[0] if args.bits % 4 == 0 else None))
+    if args.json:
+        print_json(results)
+    else:
+        for r in results:
+            print(f"{r['hex'] or ''.join(map(str, r['bits']))}  {r['image']}")
+    return 0
+
+
+def _model_views(folder: str, info, device):
+    """((gaussians, cameras), view names) of ``verify --model``: the cameras at the embedding resolution."""
+    from gsw.cli.metadata import at_resolution
+    from gsw.data import load_inria_model
+
+    with reading(folder):
+        model = load_inria_model(folder)
+    cameras = model.cameras if info is None else at_resolution(model.cameras, info)
+    return (model.gaussians.to(device), cameras), [c.name or f"view {i}" for i, c in enumerate(cameras)]
+
+
+def _warn_if_other_decoder(info, num_bits: int) -> None:
+    """A model embedded with another decoder than the one this gsw ships does not read back: say so."""
+    from gsw.decoder.zoo import load_decoder
+    from gsw.eval.grid import decoder_fingerprint
+
+    if info is not None and num_bits == info.num_bits and decoder_fingerprint(load_decoder(num_bits)) != info.decoder:
+        print(f"gsw verify: warning: the model was watermarked with another {num_bits}-bit decoder "
+              f"(gsw {info.gsw_version}, {info.path}); detection may fail", file=sys.stderr)
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    """Tests images or a model for a message; exit status 0 if detected at the FPR, else 1."""
+    from gsw.cli.metadata import read_watermark_json
+    from gsw.device import resolve_device
+    from gsw.mark.detect import verify
+
+    if args.model and args.images:
+        raise ValueError("pass images or --model, not both")
+    if not args.model and not args.images:
+        raise ValueError("pass images or --model")
+    info = read_watermark_json(args.model) if args.model else None
+    message, num_bits = message_from_args(args, required=True, stored_bits=None if info is None else info.num_bits)
+    background = background_of(args, None if info is None else info.background)
+    device = resolve_device(args.device)
+    if args.model:
+        source, names = _model_views(args.model, info, device)
+    else:
+        source, names = [img.to(device) for img in read_images(args.images)], list(args.images)
+    _warn_if_other_decoder(info, num_bits)
+    v = verify(source, message, num_bits=num_bits, background=background)
+    detected = v.detected(args.fpr)
+    if args.json:
+        print_json(dict(detected=detected, p_value=v.p_value, fpr=args.fpr, num_bits=num_bits,
+                        background=list(background) if args.model else None,
+                        views=[dict(name=n, bit_accuracy=a, p_value=p)
+                               for n, a, p in zip(names, v.bit_accuracy, v.p_values)]))
+    else:
+        for n, a, p in zip(names, v.bit_accuracy, v.p_values):
+            print(f"{100 * a:6.2f} %  p={p:.2e}  {n}")
+        print(f"{'DETECTED' if detected else 'not detected'}: combined p-value {v.p_value:.2e} "
+              f"(threshold {args.fpr:g})")
+    return 0 if detected else 1

@@ -1,0 +1,190 @@
+"""`gsw embed` / `extract` / `verify` / `embed-image` options: model folders, watermark.json, devices, outputs."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from gsw.camera import save_inria_cameras
+from gsw.cli.main import build_parser, main
+from gsw.cli.mark import embed_config
+from gsw.data import load_inria_model, save_inria_model, write_image
+from gsw.decoder.zoo import load_decoder
+from gsw.eval.grid import decoder_fingerprint
+from gsw.mark import verify
+from gsw.mark.message import message_from_key, message_to_hex
+from gsw.scenes import default_scene
+
+KEY = "studio-secret-7"
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _run(argv: list[str]) -> tuple[int, str]:
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        rc = main(argv)
+    return rc, out.getvalue()
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    scene = default_scene(width=48, height=48, n_cameras=4, detail=0.4)
+    folder = tmp_path_factory.mktemp("model")
+    save_inria_model(folder, scene.gaussians, scene.cameras, iteration=100)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def marked(model_dir, tmp_path_factory) -> tuple[Path, dict, dict]:
+    """A 48-bit, white-background model embedded from a key on the CPU: (folder, stdout summary, input digest)."""
+    before = _digest(model_dir)
+    out = tmp_path_factory.mktemp("marked") / "m"
+    rc, text = _run(["embed", str(model_dir), "--output", str(out), "--key", KEY, "--bits", "48", "--white",
+                     "--epochs", "1", "--lpips", "none", "--device", "cpu", "--no-progress", "--json"])
+    assert rc == 0
+    return out, json.loads(text), before
+
+
+def test_embed_writes_a_new_folder_and_never_touches_the_input(model_dir, marked, tmp_path) -> None:
+    out, summary, before = marked
+    assert summary["message"] == message_to_hex(message_from_key(KEY, 48)) and len(summary["bits"]) == 48
+    assert (out / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
+    assert (out / "cameras.json").is_file() and (out / "watermark.json").is_file()
+    assert _digest(model_dir) == before
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".")]  # no temporary left
+    # refuses to overwrite an existing output, or to write into the input
+    args = ["--epochs", "1", "--lpips", "none", "--no-progress"]
+    assert main(["embed", str(model_dir), "--output", str(out), *args]) == 2
+    assert main(["embed", str(model_dir), "--output", str(model_dir / "sub"), *args]) == 2
+    assert _digest(model_dir) == before
+
+
+def test_watermark_json_records_what_verify_needs(marked) -> None:
+    out, summary, _ = marked
+    record = json.loads((out / "watermark.json").read_text())
+    assert (record["num_bits"], record["background"], record["resolution"]) == (48, [1.0] * 3,
+                                                                                  {"width": 48, "height": 48})
+    assert record["decoder"]["fingerprint"] == decoder_fingerprint(load_decoder(48))
+    assert record["gsw_version"] and record["embedding"]["epochs"] == 1
+    assert {k: summary[k] for k in record} == record  # --json prints the record plus the message
+
+
+def _bit_lists(obj: object, n: int) -> list:
+    if isinstance(obj, dict):
+        return [x for v in obj.values() for x in _bit_lists(v, n)]
+    if isinstance(obj, list):
+        own = [obj] if len(obj) == n and all(v in (0, 1) for v in obj) else []
+        return own + [x for v in obj for x in _bit_lists(v, n)]
+    return []
+
+
+def test_no_output_file_holds_the_message_or_the_key(marked) -> None:
+    out, summary, _ = marked
+    message = summary["message"]
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert len(files) >= 3
+    for path in files:
+        data = path.read_bytes().lower()
+        for secret in (KEY.lower(), message, "".join(map(str, summary["bits"]))):
+            assert secret.encode() not in data, (path, secret)
+    assert _bit_lists(json.loads((out / "watermark.json").read_text()), 48) == []
+
+
+def _verify_json(argv: list[str]) -> dict:
+    rc, text = _run(["verify", *argv, "--fpr", "1.0", "--device", "cpu", "--json"])
+    assert rc == 0
+    return json.loads(text)
+
+
+def test_verify_model_uses_the_stored_bits_background_and_resolution(marked, tmp_path, capsys) -> None:
+    out, _, _ = marked
+    model = load_inria_model(out)
+    message = message_from_key(KEY, 48)
+    white = verify((model.gaussians, model.cameras), message, background=(1.0, 1.0, 1.0))
+    black = verify((model.gaussians, model.cameras), message, background=(0.0, 0.0, 0.0))
+    assert white.p_values != black.p_values  # the background changes what the decoder reads
+    report = _verify_json(["--model", str(out), "--key", KEY])  # no --bits, no --white
+    assert (report["num_bits"], report["background"]) == (48, [1.0, 1.0, 1.0])
+    assert [v["p_value"] for v in report["views"]] == pytest.approx(white.p_values)
+    report = _verify_json(["--model", str(out), "--key", KEY, "--black"])
+    assert [v["p_value"] for v in report["views"]] == pytest.approx(black.p_values)
+    # cameras.json at twice the size: rendered at the embedding resolution all the same
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    save_inria_cameras([c.scaled(2.0) for c in model.cameras], copy / "cameras.json")
+    report = _verify_json(["--model", str(copy), "--key", KEY])
+    assert [v["p_value"] for v in report["views"]] == pytest.approx(white.p_values)
+    # a hex message of another length than the model's is refused, naming the file
+    assert main(["verify", "--model", str(out), "--message", "0123abcd"]) == 2
+    assert "watermark.json" in capsys.readouterr().err
+    (copy / "watermark.json").write_text("{")
+    assert main(["verify", "--model", str(copy), "--key", KEY]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("gsw verify: error: ") and str(copy / "watermark.json") in err
+
+
+def test_extract_and_verify_images(model_dir, tmp_path, capsys) -> None:
+    out = tmp_path / "renders"
+    assert main(["render", str(model_dir / "point_cloud" / "iteration_100" / "point_cloud.ply"),
+                 "--cameras", str(model_dir / "cameras.json"), "--output", str(out)]) == 0
+    pngs = sorted(str(p) for p in out.glob("*.png"))
+    assert len(pngs) == 4
+    capsys.readouterr()
+    assert main(["extract", *pngs, "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 4 and all(len(r["hex"]) == 8 for r in rows)
+    assert main(["verify", *pngs, "--message", rows[0]["hex"], "--fpr", "1e-6"]) in (0, 1)
+    # 16 hex digits without --bits: a 64-bit message
+    assert _verify_json([*pngs[:1], "--message", "0123456789abcdef"])["num_bits"] == 64
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["verify", "x.png", "--message", "0123abcd", "--key", "k"], "not both"),
+    (["verify", "x.png", "--key", ""], "--key is empty"),
+    (["verify", "x.png", "--message", "0123abcd01"], "--bits"),
+    (["verify", "x.png"], "--message HEX or --key SECRET"),
+    (["embed-image", "x.png", "--output", "y.png", "--message", "0123abcd", "--key", "k"], "not both"),
+    (["embed", "in", "--output", "out", "--key", ""], "--key is empty"),
+])
+def test_bad_message_options_are_errors(argv, match, capsys) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert match in err and err.count("\n") == 1
+
+
+def test_bad_cli_inputs(tmp_path, capsys) -> None:
+    assert main(["embed", str(tmp_path / "missing"), "--output", str(tmp_path / "o")]) == 2
+    assert main(["extract", str(tmp_path / "nope.png")]) == 2
+    assert "error" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["embed", "x", "--output", "y", "--bits", "31"])
+    img = tmp_path / "a.png"
+    write_image(img, torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(0)))
+    for argv in (["verify", str(img), "--key", "k"], ["embed-image", str(img), "--output", str(tmp_path / "b.png")]):
+        assert main([*argv, "--device", "tpu"]) == 2  # one device rule everywhere
+        assert "device must be 'auto', 'cpu', 'cuda' or 'cuda:N'" in capsys.readouterr().err
+    assert main(["verify", str(img), "--key", "k", "--device", "cpu"]) == 1
+
+
+def test_embed_robustness_flags_reach_the_config() -> None:
+    from gsw.mark.loss import LossWeights
+
+    args = build_parser().parse_args(["embed", "in", "--output", "out", "--attacks", "0.5",
+                                      "--model-attack-prob", "0.5", "--message-weight", "0.1"])
+    cfg = embed_config(args)
+    assert (cfg.attacks, cfg.model_attacks, cfg.weights.message) == (0.5, 0.5, 0.1)
+    assert cfg.background == (0.0, 0.0, 0.0)
+    default = embed_config(build_parser().parse_args(["embed", "in", "--output", "out", "--white"]))
+    assert default.model_attacks == 0.0 and default.weights.message == LossWeights().message
+    assert default.background == (1.0, 1.0, 1.0)
