@@ -593,6 +593,9 @@ def build_parser() -> argparse.ArgumentParser:
     from gsw.cli.train import add_train_parser, run_train
 
     add_train_parser(sub).set_defaults(func=run_train)
+    from gsw.cli.decoder import register as register_decoder
+
+    register_decoder(sub)
 
     render = sub.add_parser("render", help="render a .ply/.splat model to PNGs")
     render.add_argument("model", help="INRIA point_cloud.ply or .splat file")
