@@ -23,6 +23,7 @@ __all__ = ["register", "run_export", "run_train"]
 
 
 def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
@@ -43,6 +44,7 @@ def _add_options(group: argparse._ArgumentGroup, defaults: Any, specs: list[tupl
 
 
 def _add_train_model_options(p: argparse.ArgumentParser, d: Any) -> None:
+    """Options of the networks and of the joint training (defaults from ``d``, a ``PretrainOptions``)."""
     _add_options(p.add_argument_group("networks"), d, [
         ("--channels", _positive_int, "network width (64 ships; small widths for tests)"),
         ("--enc-blocks", _positive_int, "encoder Conv-BN blocks"),
@@ -73,6 +75,7 @@ def _add_train_model_options(p: argparse.ArgumentParser, d: Any) -> None:
 
 
 def _add_train_eval_options(p: argparse.ArgumentParser, d: Any) -> None:
+    """Options of the whitening, the encoder fine-tune, the evaluation and the run files."""
     _add_options(p.add_argument_group("whitening"), d, [
         ("--shipped-whitening", bool, "use the package's whitening (the decoders must be the shipped ones)"),
         ("--whiten-mode", ("pca", "zca"), "whitening"),
@@ -108,6 +111,7 @@ def _add_train_eval_options(p: argparse.ArgumentParser, d: Any) -> None:
 
 
 def _add_train_parser(sub: argparse._SubParsersAction) -> None:
+    """``gsw decoder train``."""
     from gsw.decoder.pretrain.pipeline import PretrainOptions  # noqa: PLC0415
 
     d = PretrainOptions(data="", output="")
@@ -133,6 +137,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_export_parser(sub: argparse._SubParsersAction) -> None:
+    """``gsw decoder export``."""
     p = sub.add_parser(
         "export", help="install decoders (weights + manifest) and write their report",
         description="Save the decoders of a run folder (or re-save the shipped ones, --shipped) as "
@@ -184,6 +189,7 @@ def _device(name: str) -> str:
 
 
 def _check_new_output(path: Path, force: bool, what: str) -> None:
+    """Refuse a non-empty existing folder (or a file) at ``path`` unless ``force``."""
     if path.exists() and not path.is_dir():
         raise ValueError(f"{what} {path} exists and is not a folder")
     if path.is_dir() and any(path.iterdir()) and not force:
@@ -204,6 +210,7 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def _log(msg: str) -> None:
+    """A progress line of ``gsw decoder export`` on stderr."""
     print(f"gsw decoder export: {msg}", file=sys.stderr, flush=True)
 
 
@@ -236,6 +243,7 @@ def _export_targets(args: argparse.Namespace) -> tuple[Path, Path | None]:
 
 
 def _read_report(path: Path) -> dict[str, Any]:
+    """A decoder report JSON, with an error naming the file when it is not one."""
     try:
         rep = json.loads(path.read_text())
     except json.JSONDecodeError as e:

@@ -19,18 +19,19 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
 def _read_image(path: Path) -> np.ndarray:
-    """One photo as uint8 [H,W,3] (kornia_rs when installed, else Pillow)."""
-    try:
-        import kornia_rs
+    """One photo as uint8 [H,W,3]: JPEGs through kornia_rs (libjpeg-turbo) when installed, the rest (and JPEGs
+    without kornia_rs) through Pillow, alpha dropped."""
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        try:
+            import kornia_rs
 
-        return np.asarray(kornia_rs.read_image_jpeg(str(path), "rgb")) if path.suffix.lower() in (
-            ".jpg",
-            ".jpeg",
-        ) else np.asarray(kornia_rs.read_image(str(path)))[..., :3]
-    except ImportError:
-        from PIL import Image
+            return np.asarray(kornia_rs.read_image_jpeg(str(path), "rgb"))
+        except ImportError:
+            pass
+    from PIL import Image
 
-        return np.asarray(Image.open(path).convert("RGB"))
+    with Image.open(path) as im:
+        return np.array(im.convert("RGB"))
 
 
 def photo_paths(folder: str | Path) -> list[Path]:

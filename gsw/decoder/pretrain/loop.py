@@ -56,6 +56,7 @@ def chunks(n: int, k: int) -> list[slice]:
 
 
 def _layers(cfg: TrainConfig) -> dict[str, NoiseLayer]:
+    """The training noise layers ``cfg`` selects, by name."""
     layers = training_noise_layers(cfg.jpeg_mode)
     if cfg.noise_layers is not None:
         layers = {n: layers[n] for n in cfg.noise_layers}
@@ -116,15 +117,18 @@ class _HostTrainer:
         self.t_last = self.t_ckpt = self.t_val = time.perf_counter()
 
     def _print(self, msg: str) -> None:
+        """``msg`` on stdout with the bit length, when verbose."""
         if self.verbose:
             print(f"[k={self.cfg.num_bits}] {msg}", flush=True)
 
     def progress(self) -> float:
+        """Fraction of the budget (steps, or seconds of training) done."""
         if self.cfg.time_budget_s is not None:
             return min(1.0, self.state["elapsed"] / self.cfg.time_budget_s)
         return min(1.0, self.state["step"] / max(1, self.cfg.steps))
 
     def save(self) -> None:
+        """Write the checkpoint (atomically), when there is one."""
         if self.ckpt_path is not None:
             self.state.update(encoder=self.enc.state_dict(), decoder=self.dec.state_dict(),
                               optimizer=self.opt.state_dict())
@@ -177,10 +181,12 @@ class _HostTrainer:
         self.t_val = self.t_last = time.perf_counter()
 
     def checkpoint(self) -> None:
+        """Save; the time it takes is not training time."""
         self.save()
         self.t_ckpt = self.t_last = time.perf_counter()
 
     def finish(self) -> dict[str, Any]:
+        """Eval mode, a last checkpoint, and the state :func:`train` returns."""
         self.enc.eval()
         self.dec.eval()
         self.save()

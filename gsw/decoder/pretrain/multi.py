@@ -79,6 +79,7 @@ def _decoder_input(images: torch.Tensor, channels_last: bool) -> torch.Tensor:
 
 
 def _to_cl(m: torch.nn.Module, on: bool) -> torch.nn.Module:
+    """``m`` with its convolutions in channels-last memory format when ``on``."""
     if on:
         for mod in m.modules():  # only the convolutions (a TemplateEncoder's templates are 5-D)
             if isinstance(mod, torch.nn.Conv2d):
@@ -133,6 +134,7 @@ class _MultiRun:
         self.balance_on = cfg.balance > 0 and not finetune
 
     def progress(self) -> float:
+        """Fraction of the budget (steps, or seconds of training) done."""
         if self.cfg.time_budget_s is not None:
             return min(1.0, self.elapsed / self.cfg.time_budget_s)
         return min(1.0, self.step / max(1, self.cfg.steps))
@@ -216,6 +218,7 @@ class _MultiRun:
         return lrf, psnr, strength
 
     def _tick(self) -> None:
+        """Count the time since the last tick as training time."""
         now = time.perf_counter()
         self.elapsed += now - self.t_last
         self.t_last = now
@@ -241,6 +244,7 @@ class _MultiRun:
         return entry
 
     def train_mode(self) -> None:
+        """Back to training mode after a validation (decoders stay frozen in a fine-tune)."""
         for e in self.encoders:
             e.train()
         if not self.finetune:
@@ -259,6 +263,7 @@ class _MultiRun:
         return v
 
     def finish(self) -> dict[str, Any]:
+        """Networks in eval mode (decoders trainable again after a fine-tune) and the run's summary."""
         if self.dev.type == "cuda":
             torch.cuda.synchronize()
         for mod in (*self.encoders, *self.decoders):

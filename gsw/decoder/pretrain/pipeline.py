@@ -204,9 +204,11 @@ class _Pretraining:
         return self.opts.deadline_s - (time.perf_counter() - self.t0)
 
     def log(self, msg: str) -> None:
+        """``msg`` on stderr, with the seconds since the start."""
         print(f"[{time.perf_counter() - self.t0:6.1f}s] {msg}", file=sys.stderr, flush=True)
 
     def load_data(self) -> None:
+        """Photos of ``data/train`` and ``data/val``, their device banks and the training configuration."""
         o, dev = self.opts, self.device
         if dev.type == "cuda":
             torch.backends.cudnn.benchmark = True
@@ -246,6 +248,7 @@ class _Pretraining:
         self.log(f"trained {st['step']} steps in {st['elapsed']:.0f} s ({st['steps_per_s']:.2f} steps/s)")
 
     def whiten(self) -> None:
+        """Fit (or take the shipped) whitening of every decoder; the fine-tune targets follow ``ft_target``."""
         o = self.opts
         torch.backends.cudnn.benchmark = False  # evaluation sees many image sizes
         torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False  # whitening in float32
@@ -262,6 +265,7 @@ class _Pretraining:
                         else [WhiteningLayer(k).to(self.device) for k in self.cfg.bits])
 
     def init_metas(self) -> None:
+        """The run metadata of every bit length (``k{bits}.json``)."""
         o, st, dev = self.opts, self.st, self.device
         dev_name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else (platform.processor() or "cpu")
         self.metas = {k: {
@@ -298,6 +302,7 @@ class _Pretraining:
                                     t_end=t_end)
 
     def _whitened(self, i: int, targets: list[WhiteningLayer]) -> Callable[[torch.Tensor], torch.Tensor]:
+        """LL2 -> logits of decoder ``i`` followed by ``targets[i]``."""
         return lambda ll: targets[i](self.decs[i](ll).float())
 
     def eval_initial(self) -> None:
