@@ -3,7 +3,7 @@
 Three checks on bsds500/val photos at full size, each against the shipped *raw* decoder
 (``load_decoder(k).decoder``, before whitening), PSNR fixed by rescaling the residual, 8-bit rounding:
 
-1. ``psnr``: a pre-training encoder (``--encoder-run``: a ``train_decoder.py`` run holding ``encoder_ft``)
+1. ``psnr``: a pre-training encoder (``--encoder-run``: a ``gsw decoder train`` run holding ``encoder_ft``)
    at several PSNRs. If accuracy does not grow with the watermark's strength, the errors are in the code the
    encoder writes, not noise.
 2. ``direct``: each photo's pixels optimised against the decoder (Adam, residual projected to the PSNR):
@@ -33,24 +33,24 @@ import itertools
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
+import torch
+import torch.nn.functional as F
+
+from gsw.attacks.layers import paper_attacks, training_noise_layers
+from gsw.decoder.dwt import ll_subband
+from gsw.decoder.hidden import scale_to_psnr
+from gsw.decoder.pretrain.data import load_images
+from gsw.decoder.pretrain.encoders import embed_scaled, load_run_encoder
+from gsw.decoder.pretrain.evaluation import eval_attacks
+from gsw.metrics.image import psnr as psnr_db
+from gsw.decoder.zoo import load_decoder
+from gsw.mark.refine import SCHEDULES, watermark_images
+from gsw.stats import bootstrap_ci95
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "gsw"))
-
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
-
-from watermark.dwt import ll_subband  # noqa: E402
-from watermark.evaluation import bootstrap_ci95, eval_attacks  # noqa: E402
-from gsw.metrics.image import psnr as psnr_db  # noqa: E402
-from watermark.noise import paper_attacks, training_noise_layers  # noqa: E402
-from watermark.image import watermark_images  # noqa: E402
-from watermark.refine import SCHEDULES, scale_to_psnr  # noqa: E402
-from watermark.training import embed_scaled, load_images, load_run_encoder  # noqa: E402
-from watermark.zoo import load_decoder  # noqa: E402
 
 
 def _accuracy(dec, y: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
@@ -174,7 +174,7 @@ def _write(path: str, res: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "bsds500"))
-    ap.add_argument("--encoder-run", default=None, help="train_decoder.py run with encoder_ft (for the sweep)")
+    ap.add_argument("--encoder-run", default=None, help="`gsw decoder train` run with encoder_ft (for the sweep)")
     ap.add_argument("--psnr-levels", type=float, nargs="+", default=[30.0, 28.0, 26.0, 24.0])
     ap.add_argument("--sweep-photos", type=int, default=50)
     ap.add_argument("--direct-photos", type=int, nargs=2, default=[6, 12], metavar=("K48", "K64"))

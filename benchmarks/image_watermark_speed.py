@@ -3,8 +3,7 @@
 Times ``gsw.mark.refine.watermark_images`` with ``ImageEmbedConfig``'s defaults (or the given settings) on
 bsds500/val photos at full size (481x321 or 321x481), one photo at a time (what ``gsw embed-image`` does) and
 in batches (throughput), against the shipped whitened decoder, and records the bit accuracy read back after
-8-bit rounding. Runs without the compiled extension (it imports ``gsw/watermark`` only), so it also runs on a
-machine where only torch and kornia are installed.
+8-bit rounding.
 
     python benchmarks/image_watermark_speed.py --device cuda --photos 8 --batch 8 --out speed.json
 """
@@ -14,20 +13,18 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
 from pathlib import Path
 
+import torch
+
+from gsw.decoder.dwt import ll_subband
+from gsw.decoder.pretrain.data import load_images
+from gsw.decoder.pretrain.evaluation import same_size_groups
+from gsw.decoder.zoo import load_decoder
+from gsw.mark.refine import ImageEmbedConfig, watermark_images
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "gsw"))
-
-import torch  # noqa: E402
-
-from watermark.dwt import ll_subband  # noqa: E402
-from watermark.evaluation import same_size_groups  # noqa: E402
-from watermark.image import ImageEmbedConfig, watermark_images  # noqa: E402
-from watermark.training import load_images  # noqa: E402
-from watermark.zoo import load_decoder  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:

@@ -104,7 +104,7 @@ def test_manifest_matches_files():
 def test_unmarked_val_photos_decode_to_chance():
     val = require(DATA / "bsds500" / "val")
     from gsw.decoder.pretrain.evaluation import unbiasedness
-    from gsw.decoder.pretrain.training import load_images
+    from gsw.decoder.pretrain.data import load_images
 
     images = [img[:, :128, :128] for img in load_images(val, limit=20)]
     res = unbiasedness(load_decoder(32), images, 32, num_messages=200, seed=0)

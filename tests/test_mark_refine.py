@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from gsw.decoder import load_decoder
-from gsw.decoder.pretrain import training as T
+from gsw.decoder.pretrain import encoders as T
 from gsw.decoder.dwt import ll_subband
 from gsw.metrics.image import psnr
 from gsw.decoder.hidden import HiddenDecoder, HiddenEncoder

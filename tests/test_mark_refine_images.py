@@ -9,7 +9,7 @@ from gsw.mark.refine import watermark_images
 from gsw.decoder.dwt import ll_subband
 from gsw.metrics.image import psnr
 from gsw.mark.refine import ATTACKS
-from gsw.decoder.pretrain.training import MultiConfig
+from gsw.decoder.pretrain.config import MultiConfig
 
 
 def _photos(n: int, size: int = 96, seed: int = 1) -> torch.Tensor:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["ConvBNAct", "HiddenEncoder", "HiddenDecoder", "bits_from_logits", "bit_accuracy"]
+__all__ = ["ConvBNAct", "HiddenEncoder", "HiddenDecoder", "bits_from_logits", "bit_accuracy", "scale_to_psnr"]
 
 
 class ConvBNAct(nn.Sequential):
@@ -36,7 +36,7 @@ class ConvBNAct(nn.Sequential):
 class HiddenEncoder(nn.Module):
     """HiDDeN encoder: image [B,3,H,W] in [0,1] and message [B,k] in {0,1} -> residual [B,3,H,W].
 
-    The residual is unscaled; the caller sets its strength (the training code normalises it to a
+    The residual is unscaled; the caller sets its strength (:func:`scale_to_psnr` normalises it to a
     target PSNR).
     """
 
@@ -106,3 +106,9 @@ def bits_from_logits(logits: torch.Tensor) -> torch.Tensor:
 def bit_accuracy(logits: torch.Tensor, msgs: torch.Tensor) -> torch.Tensor:
     """Per-sample fraction of correctly decoded bits: logits [B,k], msgs [B,k] in {0,1} -> [B]."""
     return ((logits > 0) == (msgs > 0.5)).float().mean(dim=-1)
+
+
+def scale_to_psnr(residual: torch.Tensor, psnr: float) -> torch.Tensor:
+    """residual [B,3,H,W] rescaled per image to the RMS of ``psnr`` dB (images in [0, 1])."""
+    rms = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
+    return residual * (10.0 ** (-psnr / 20.0) / rms)

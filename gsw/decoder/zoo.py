@@ -2,7 +2,7 @@
 
 Each decoder is a pre-trained :class:`~gsw.decoder.hidden.HiddenDecoder` followed by its fitted
 :class:`~gsw.decoder.whitening.WhiteningLayer`, stored as a float32 state dict in
-``gsw/watermark/weights/hidden_k{bits}.pt``; ``weights/manifest.json`` records each file's sha256, size
+``gsw/decoder/weights/hidden_k{bits}.pt``; ``weights/manifest.json`` records each file's sha256, size
 and how it was made.  :func:`load_decoder` verifies the sha256 before loading and raises
 :class:`WeightsError` (missing file, wrong checksum, unreadable or mismatched contents).
 
@@ -24,11 +24,7 @@ from typing import Any
 import torch
 from torch import nn
 
-if __package__ and __package__.startswith("gsw."):
-    from gsw._atomic import atomic_write
-else:  # gsw/watermark imported as the top-level package ``watermark`` (benchmarks; no compiled extension)
-    from _atomic import atomic_write
-
+from gsw._atomic import atomic_write
 from gsw.decoder.dwt import LEVELS, ll_subband
 from gsw.decoder.hidden import HiddenDecoder
 from gsw.decoder.whitening import WhiteningLayer
@@ -40,6 +36,7 @@ __all__ = [
     "WatermarkDecoder",
     "load_decoder",
     "save_decoder",
+    "read_provenance",
     "record_in_manifest",
     "sha256_file",
     "weights_path",
@@ -216,3 +213,16 @@ def save_decoder(
             "meta": json.dumps(meta or {})}
     atomic_torch_save(blob, path)
     return sha256_file(path)
+
+
+def read_provenance(path: str | Path) -> dict[str, Any]:
+    """The provenance a decoder file was saved with (:func:`save_decoder`'s ``meta``; what the manifest records).
+
+    Raises:
+        WeightsError: the file is unreadable or not a gsw decoder file.
+    """
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        return dict(json.loads(blob["meta"]))
+    except Exception as e:  # noqa: BLE001 - any failure means a bad file
+        raise WeightsError(f"cannot read the provenance of decoder weights {path}: {e}") from e

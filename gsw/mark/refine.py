@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from gsw.decoder.dwt import ll_subband
+from gsw.decoder.hidden import scale_to_psnr
 from gsw.attacks.layers import TRAINING_LAYER_NAMES, GpuAttacks
 
 __all__ = ["ATTACKS", "SCHEDULES", "ImageEmbedConfig", "attack_cycle", "refine_residual", "scale_to_psnr",
@@ -41,12 +42,6 @@ __all__ = ["ATTACKS", "SCHEDULES", "ImageEmbedConfig", "attack_cycle", "refine_r
 
 #: Learning-rate schedules of :func:`refine_residual`.
 SCHEDULES = ("cosine", "constant")
-
-
-def scale_to_psnr(residual: torch.Tensor, psnr: float) -> torch.Tensor:
-    """residual [B,3,H,W] rescaled per image to the RMS of ``psnr`` dB (images in [0, 1])."""
-    rms = residual.pow(2).mean(dim=(1, 2, 3), keepdim=True).add(1e-12).sqrt()
-    return residual * (10.0 ** (-psnr / 20.0) / rms)
 
 
 def attack_cycle(
