@@ -1,4 +1,4 @@
-"""The `gsw` command line: demo, embed, embed-image, extract, verify, eval, eval-grid, train, render, info.
+"""The `gsw` command line: demo, embed, embed-image, extract, verify, eval, eval-grid, train, export, render, info.
 
 Run `gsw <command> --help` for the options of each command.
 """
@@ -593,6 +593,10 @@ def build_parser() -> argparse.ArgumentParser:
     from gsw.cli.train import add_train_parser, run_train
 
     add_train_parser(sub).set_defaults(func=run_train)
+
+    from gsw.cli.export import register as register_export
+
+    register_export(sub)
 
     render = sub.add_parser("render", help="render a .ply/.splat model to PNGs")
     render.add_argument("model", help="INRIA point_cloud.ply or .splat file")

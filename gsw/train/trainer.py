@@ -46,14 +46,13 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 import gsw
 from gsw.camera import Camera
 from gsw.constants import SH_C0, SH_COLOR_OFFSET
 from gsw.data.loaders import Dataset, save_inria_model, scene_extent
-from gsw.gaussians import Gaussians, sh_degree_to_num_coeffs
+from gsw.gaussians import Gaussians, quat_to_rotmat, sh_degree_to_num_coeffs
 from gsw.metrics.image import psnr, ssim
 from gsw.render.rasterize import rasterize
 from gsw.train.optim import GaussianAdam
@@ -378,16 +377,6 @@ def _as_views(data: Any, what: str) -> tuple[list[Camera], Tensor, Tensor | None
     raise TypeError(f"{what} must be a gsw.data.Dataset or a (cameras, images) pair, got {type(data).__name__}")
 
 
-def _quat_to_rotmat(q: Tensor) -> Tensor:
-    q = F.normalize(q, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
 @torch.no_grad()
 def evaluate(gaussians: Gaussians, cameras: Sequence[Camera], images: Tensor, *,
              background: Tensor | Sequence[float] = (1.0, 1.0, 1.0), sh_degree: int | None = None,
@@ -508,7 +497,7 @@ class _State:
             stds = scales[split].repeat(2, 1)
             stds_cpu = stds.cpu()
             samples = torch.normal(torch.zeros_like(stds_cpu), stds_cpu, generator=gen).to(self.device)
-            rots = _quat_to_rotmat(p["quats"].detach()[split]).repeat(2, 1, 1)
+            rots = quat_to_rotmat(p["quats"].detach()[split]).repeat(2, 1, 1)
             child_means = (rots @ samples[:, :, None])[:, :, 0] + p["means"].detach()[split].repeat(2, 1)
             child = {k: v.detach()[split].repeat(2, *([1] * (v.dim() - 1))) for k, v in p.items()}
             child["means"] = child_means
