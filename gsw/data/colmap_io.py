@@ -196,7 +196,7 @@ def _read_cameras_txt(path: Path) -> dict[int, ColmapCamera]:
     for number, words in _data_lines(path):
         if not words:
             continue
-        camera_id, model, width, height = _parse(words, (int, str, int, int), path, number, "a camera")
+        camera_id, model, width, height = _parse(words, (int, str, int, int), path, number, "camera line")
         if model not in _MODEL_IDS:
             raise ColmapError(f"{path}:{number}: unknown camera model {model!r}")
         count = _MODEL_IDS[model][1]
@@ -218,7 +218,7 @@ def _read_images_txt(path: Path) -> list[ColmapImage]:
             continue
         if len(words) < 10:
             raise ColmapError(f"{path}:{number}: an image line needs IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
-        values = _parse(words, (int,) + (float,) * 7 + (int,), path, number, "an image")
+        values = _parse(words, (int,) + (float,) * 7 + (int,), path, number, "image line")
         name = " ".join(words[9:])
         images.append(ColmapImage(values[0], tuple(values[1:5]), tuple(values[5:8]), values[8], name))
         i += 2  # the next line lists the 2-D points (possibly empty)
@@ -230,7 +230,7 @@ def _read_points_txt(path: Path) -> tuple[np.ndarray, np.ndarray]:
     for number, words in _data_lines(path):
         if not words:
             continue
-        values = _parse(words, (int, float, float, float, int, int, int), path, number, "a 3-D point")
+        values = _parse(words, (int, float, float, float, int, int, int), path, number, "point line")
         if any(not 0 <= c <= 255 for c in values[4:7]):
             raise ColmapError(f"{path}:{number}: point colour outside 0..255")
         points.append(values[1:4])
