@@ -95,7 +95,8 @@ def test_file_layout(tmp_path):
     assert [ln.split()[-1] for ln in lines if ln.startswith("property uint")] == list(VERTEX_PROPERTIES)
     assert sum(ln.startswith("property uchar f_rest_") for ln in lines) == 24
     assert len(body) == 2 * 18 * 4 + 300 * 16 + 300 * 24
-    assert model_format(tmp_path / "m.compressed.ply") == "compressed-ply" and is_compressed_ply(tmp_path / "m.compressed.ply")
+    assert model_format(tmp_path / "m.compressed.ply") == "compressed-ply"
+    assert is_compressed_ply(tmp_path / "m.compressed.ply")
     save_gaussians(g, tmp_path / "plain.ply")
     assert model_format(tmp_path / "plain.ply") == "ply" and not is_compressed_ply(tmp_path / "plain.ply")
 

@@ -125,6 +125,17 @@ def test_files_are_in_rub_coordinates(tmp_path):
     sh_red = (raw[9 + 1 + 3 + 3 + 3 :: 3][:3].astype(float) - 128) / 128
     np.testing.assert_allclose(sh_red, [-0.25, -0.5, -0.75], atol=0.5 / 128)  # flips of y, z: [-1, -1, +1]
     torch.testing.assert_close(load_spz(tmp_path / "m.spz").means, g.means)
+    # legacy files holding the PLY's axes: axes="RDF" stores and loads them unflipped
+    save_spz(g, tmp_path / "rdf.spz", version=2, sh1_bits=8, axes="RDF")
+    raw = np.frombuffer(gzip.decompress((tmp_path / "rdf.spz").read_bytes())[16:], dtype=np.uint8)
+    assert int.from_bytes(bytes(raw[3:6]), "little", signed=True) == 2 * 4096
+    legacy, flipped = load_spz(tmp_path / "rdf.spz", axes="RDF"), load_spz(tmp_path / "rdf.spz")
+    torch.testing.assert_close(legacy.means, g.means)
+    torch.testing.assert_close(flipped.means, g.means * torch.tensor([1.0, -1.0, -1.0]))
+    torch.testing.assert_close(flipped.quats, legacy.quats * torch.tensor([1.0, 1.0, -1.0, -1.0]))
+    torch.testing.assert_close(flipped.sh[0, 1:, 0], legacy.sh[0, 1:, 0] * torch.tensor([-1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match="axes must be one of"):
+        load_spz(tmp_path / "rdf.spz", axes="LUF")
 
 
 def test_sh_flip_table_matches_the_basis():

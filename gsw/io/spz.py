@@ -22,7 +22,8 @@ then, when ``flags & 0x2``, vendor extension records, then the attributes, each 
 SPZ stores RUB coordinates (x right, y up, z back; OpenGL / three.js) while INRIA PLY files are RDF (x right,
 y down, z forward). Like Niantic's own PLY converters, reading flips the y and z axes into RDF (positions,
 quaternions ``(w, x, -y, -z)`` and the SH coefficients odd in y*z) and writing flips them back, so a model
-renders identically from the same :mod:`gsw.camera` cameras after a round trip.
+renders identically from the same :mod:`gsw.camera` cameras after a round trip. Files written before the
+library fixed RUB (early 2025 tools stored the PLY's axes unchanged) load with ``axes="RDF"``.
 
 Supported: reading versions 1, 2 and 3 (extension records are skipped; an SH degree 4 file is rejected as
 :class:`~gsw.gaussians.Gaussians` holds degrees 0-3), writing versions 2 and 3 (default 3). The zstd-based
@@ -66,7 +67,18 @@ _FLAG_ANTIALIASED = 0x1
 _FLAG_EXTENSIONS = 0x2
 _SQRT1_2 = math.sqrt(0.5)
 _MAX_EXTENSION_BYTES = 1 << 20  # extension records are small (camera limits, quantisation parameters)
-_FLIP_P = np.array([1.0, -1.0, -1.0])  # RUB <-> RDF on x, y, z (an involution)
+_AXES = ("RUB", "RDF")
+
+
+def _flips(axes: str, num_rest: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sign flips (positions ``[3]``, quaternions ``(w, x, y, z)`` ``[4]``, SH rest ``[num_rest, 1]``) between
+    the file's axes and RDF; the flip is its own inverse."""
+    if axes not in _AXES:
+        raise ValueError(f"axes must be one of {_AXES}, got {axes!r}")
+    if axes == "RDF":
+        return np.ones(3), np.ones(4), np.ones((num_rest, 1))
+    return (np.array([1.0, -1.0, -1.0]), np.array([1.0, 1.0, -1.0, -1.0]),
+            np.asarray(SH_FLIP_RUB_RDF[:num_rest])[:, None])
 
 
 class SpzError(ValueError):
@@ -152,7 +164,7 @@ def _pack_smallest_three(q: np.ndarray) -> np.ndarray:
     return comp.astype("<u4").view(np.uint8).reshape(n, 4)
 
 
-def _decode(fields: tuple[int, ...], body: bytes) -> Gaussians:
+def _decode(fields: tuple[int, ...], body: bytes, axes: str) -> Gaussians:
     _, version, n, degree, frac, _, _ = fields
     k = (degree + 1) ** 2
     data = np.frombuffer(body, dtype=np.uint8)
@@ -181,10 +193,10 @@ def _decode(fields: tuple[int, ...], body: bytes) -> Gaussians:
         xyzw = np.concatenate([xyz, np.sqrt(np.maximum(0.0, 1.0 - (xyz * xyz).sum(1)))[:, None]], axis=1)
     sh_rest = (take(3 * (k - 1)).reshape(n, k - 1, 3) - 128.0) / 128.0
     sh = np.concatenate([((colors / 255.0 - 0.5) / SPZ_COLOR_SCALE)[:, None], sh_rest], axis=1)
-    # RUB -> RDF
-    positions = positions * _FLIP_P
-    quats = np.stack([xyzw[:, 3], xyzw[:, 0], -xyzw[:, 1], -xyzw[:, 2]], axis=1)
-    sh[:, 1:] *= np.asarray(SH_FLIP_RUB_RDF[: k - 1])[:, None]
+    flip_p, flip_q, flip_sh = _flips(axes, k - 1)
+    positions = positions * flip_p
+    quats = np.stack([xyzw[:, 3], xyzw[:, 0], xyzw[:, 1], xyzw[:, 2]], axis=1) * flip_q
+    sh[:, 1:] *= flip_sh
     alpha = torch.from_numpy(alphas).clamp(ALPHA_EPS, 1.0 - ALPHA_EPS)
     return Gaussians(
         means=torch.from_numpy(positions).float(),
@@ -195,11 +207,13 @@ def _decode(fields: tuple[int, ...], body: bytes) -> Gaussians:
     )
 
 
-def load_spz(path: str | os.PathLike) -> Gaussians:
+def load_spz(path: str | os.PathLike, *, axes: str = "RUB") -> Gaussians:
     """Load an ``.spz`` file (versions 1-3).
 
     Args:
         path: the ``.spz`` file.
+        axes: the file's axes: ``"RUB"`` (the SPZ specification; converted to RDF) or ``"RDF"`` (legacy files
+            holding a PLY's axes; loaded as stored).
 
     Returns:
         :class:`~gsw.gaussians.Gaussians` on the CPU in float32, in file order, converted to the INRIA/PLY
@@ -213,7 +227,7 @@ def load_spz(path: str | os.PathLike) -> Gaussians:
     """
     path = Path(path)
     fields, body = _inflate(path.read_bytes(), path)
-    g = _decode(fields, body)
+    g = _decode(fields, body, axes)
     try:
         return g.check_finite()
     except ValueError as exc:
@@ -248,7 +262,7 @@ def _u8(values: np.ndarray) -> np.ndarray:
 
 
 def save_spz(gaussians: Gaussians, path: str | os.PathLike, *, version: int = 3, sh1_bits: int = 5,
-             sh_rest_bits: int = 4, fractional_bits: int | None = None) -> None:
+             sh_rest_bits: int = 4, fractional_bits: int | None = None, axes: str = "RUB") -> None:
     """Write a model as an ``.spz`` file, atomically.
 
     Args:
@@ -259,6 +273,7 @@ def save_spz(gaussians: Gaussians, path: str | os.PathLike, *, version: int = 3,
         sh_rest_bits: precision of the degree-2 and 3 coefficients, 1-8 (default 4).
         fractional_bits: fixed-point fraction bits of the positions; default 12 (Niantic's, 1/4096 units),
             fewer when a coordinate beyond 2048 would overflow.
+        axes: the file's axes, ``"RUB"`` (the specification: y and z flipped from the model's RDF) or ``"RDF"``.
 
     Raises:
         SpzError: NaN/Inf values, a bad option, or positions beyond the 24-bit range.
@@ -274,20 +289,22 @@ def save_spz(gaussians: Gaussians, path: str | os.PathLike, *, version: int = 3,
     except ValueError as exc:
         raise SpzError(f"refusing to write {path}: {exc}") from None
     n, k = g.num_gaussians, g.sh.shape[1]
-    positions = g.means.numpy() * _FLIP_P  # RDF -> RUB
+    flip_p, flip_q, flip_sh = _flips(axes, k - 1)
+    positions = g.means.numpy() * flip_p
     frac = _fractional_bits(positions, fractional_bits, path)
     fixed = np.rint(positions * (1 << frac)).astype(np.int64) & 0xFFFFFF
     position_bytes = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, fixed >> 16], axis=-1).astype(np.uint8)
     wxyz = g.quats.numpy().copy()
     wxyz[np.linalg.norm(wxyz, axis=1) == 0] = (1.0, 0.0, 0.0, 0.0)  # a zero quaternion: identity
     wxyz /= np.linalg.norm(wxyz, axis=1, keepdims=True)
-    xyzw = np.stack([wxyz[:, 1], -wxyz[:, 2], -wxyz[:, 3], wxyz[:, 0]], axis=1)
+    wxyz *= flip_q
+    xyzw = np.stack([wxyz[:, 1], wxyz[:, 2], wxyz[:, 3], wxyz[:, 0]], axis=1)
     if version == 3:
         rotations = _pack_smallest_three(xyzw)
     else:
         xyzw *= np.where(xyzw[:, 3:] < 0, -1.0, 1.0)
         rotations = _u8(xyzw[:, :3] * 127.5 + 127.5)
-    sh_rest = g.sh[:, 1:].numpy() * np.asarray(SH_FLIP_RUB_RDF[: k - 1])[:, None]
+    sh_rest = g.sh[:, 1:].numpy() * flip_sh
     sh_bytes = np.concatenate([_quantise_sh(sh_rest[:, :3], sh1_bits), _quantise_sh(sh_rest[:, 3:], sh_rest_bits)],
                               axis=1)
     header = _HEADER.pack(SPZ_MAGIC, version, n, g.sh_degree, frac, 0, 0)
