@@ -15,6 +15,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gsw.camera import Camera
+from gsw.gaussians import Gaussians
 from gsw.io.formats import WRITABLE_FORMATS
 
 __all__ = ["register", "run_export"]
@@ -55,7 +57,7 @@ def _output_format(output: Path, requested: str | None) -> str:
     return requested
 
 
-def _load(model: Path):
+def _load(model: Path) -> tuple[Gaussians, list[Camera] | None, dict | None]:
     """(gaussians, cameras or None, watermark.json content or None)."""
     from gsw.io import load_gaussians  # noqa: PLC0415
 
@@ -83,7 +85,7 @@ def _message(args: argparse.Namespace, info: dict | None) -> tuple[Any, int | No
     return None, None, ""
 
 
-def _check_views(gaussians, cameras, n: int, size: int) -> tuple[list, str]:
+def _check_views(gaussians: Gaussians, cameras: list[Camera] | None, n: int, size: int) -> tuple[list[Camera], str]:
     from gsw.io.convert import orbit_views  # noqa: PLC0415
 
     if n < 1:

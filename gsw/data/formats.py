@@ -15,6 +15,7 @@ from typing import Any
 from gsw.data.colmap import load_colmap
 from gsw.data.colmap_io import find_colmap_model
 from gsw.data.llff import load_llff
+from gsw.data.loaders import Dataset
 from gsw.data.nerfstudio import is_nerfstudio_transforms, load_nerfstudio
 
 __all__ = ["EXTRA_FORMATS", "SUPPORTED_DATASETS", "detect_extra_format", "load_extra_dataset"]
@@ -47,7 +48,7 @@ def detect_extra_format(path: str | os.PathLike) -> str | None:
 
 
 def load_extra_dataset(fmt: str, path: str | os.PathLike, split: str, *, downscale: float, background: Any,
-                       holdout_every: int, undistort: bool, images_dir: str | os.PathLike | None):
+                       holdout_every: int, undistort: bool, images_dir: str | os.PathLike | None) -> Dataset:
     """Load a dataset of one of :data:`EXTRA_FORMATS` with :func:`gsw.data.load_dataset`'s arguments.
 
     ``images_dir`` applies to COLMAP and LLFF; ``undistort`` to COLMAP and nerfstudio.
