@@ -22,11 +22,13 @@ then, when ``flags & 0x2``, vendor extension records, then the attributes, each 
 SPZ stores RUB coordinates (x right, y up, z back; OpenGL / three.js) while INRIA PLY files are RDF (x right,
 y down, z forward). Like Niantic's own PLY converters, reading flips the y and z axes into RDF (positions,
 quaternions ``(w, x, -y, -z)`` and the SH coefficients odd in y*z) and writing flips them back, so a model
-renders identically from the same :mod:`gsw.camera` cameras after a round trip. Files written before the
-library fixed RUB (early 2025 tools stored the PLY's axes unchanged) load with ``axes="RDF"``.
+renders identically from the same :mod:`gsw.camera` cameras after a round trip. Files written without that
+conversion (Niantic's library with an ``UNSPECIFIED`` source frame stores a PLY's axes unchanged) load as
+stored with ``axes="RDF"``.
 
-Supported: reading versions 1, 2 and 3 (extension records are skipped; an SH degree 4 file is rejected as
-:class:`~gsw.gaussians.Gaussians` holds degrees 0-3), writing versions 2 and 3 (default 3). The zstd-based
+Supported: reading versions 1, 2 and 3 (extension records are skipped; the antialiased flag is ignored, gsw
+renders without that compensation; an SH degree 4 file is rejected as :class:`~gsw.gaussians.Gaussians` holds
+degrees 0-3), writing versions 2 and 3 (default 3). The zstd-based
 "NGSP" container of version 4 is not supported and is rejected with a message saying so.
 
 Example:
@@ -63,7 +65,6 @@ SH_FLIP_RUB_RDF = (-1.0, -1.0, 1.0, -1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 
 """Sign of SH coefficients 1..15 under the RUB <-> RDF flip ``(x, y, z) -> (x, -y, -z)``."""
 
 _HEADER = struct.Struct("<IIIBBBB")
-_FLAG_ANTIALIASED = 0x1
 _FLAG_EXTENSIONS = 0x2
 _SQRT1_2 = math.sqrt(0.5)
 _MAX_EXTENSION_BYTES = 1 << 20  # extension records are small (camera limits, quantisation parameters)
@@ -212,7 +213,7 @@ def load_spz(path: str | os.PathLike, *, axes: str = "RUB") -> Gaussians:
 
     Args:
         path: the ``.spz`` file.
-        axes: the file's axes: ``"RUB"`` (the SPZ specification; converted to RDF) or ``"RDF"`` (legacy files
+        axes: the file's axes: ``"RUB"`` (the SPZ specification; converted to RDF) or ``"RDF"`` (files
             holding a PLY's axes; loaded as stored).
 
     Returns:
