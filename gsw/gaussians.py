@@ -28,7 +28,7 @@ from torch import Tensor
 
 __all__ = [
     "Gaussians", "cat_gaussians", "sh_degree_to_num_coeffs", "num_coeffs_to_sh_degree", "rgb_to_sh_dc",
-    "sh_dc_to_rgb",
+    "sh_dc_to_rgb", "quat_to_rotmat", "rotmat_to_quat",
 ]
 
 _MAX_DEGREE = 3
@@ -100,6 +100,57 @@ def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
     from gsw.constants import SH_C0, SH_COLOR_OFFSET  # noqa: PLC0415 - needs the compiled extension
 
     return (rgb - SH_COLOR_OFFSET) / SH_C0
+
+
+
+def quat_to_rotmat(q: Tensor) -> Tensor:
+    """Rotation matrices of quaternions ``(w, x, y, z)`` (normalised first).
+
+    Args:
+        q: ``[..., 4]`` quaternions.
+
+    Returns:
+        ``[..., 3, 3]`` rotation matrices (``R @ v`` rotates ``v``).
+    """
+    q = torch.nn.functional.normalize(q, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(r: Tensor) -> Tensor:
+    """Unit quaternions ``(w, x, y, z)`` with ``w >= 0`` of rotation matrices (inverse of :func:`quat_to_rotmat`).
+
+    Each quaternion is computed from the largest of ``1 + trace`` and ``1 + 2 r_ii - trace`` (Shepperd's
+    method), which keeps it accurate for every rotation angle.
+
+    Args:
+        r: ``[..., 3, 3]`` rotation matrices.
+
+    Returns:
+        ``[..., 4]`` unit quaternions.
+    """
+    m = r.reshape(-1, 3, 3)
+    r00, r11, r22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    trace = r00 + r11 + r22
+    # Candidate k has its k-th component (w, x, y, z) computed from the diagonal, the others from sums.
+    four = torch.stack([1 + trace, 1 + 2 * r00 - trace, 1 + 2 * r11 - trace, 1 + 2 * r22 - trace], dim=1)
+    big = torch.sqrt(four.clamp_min(1e-12))  # 2 |q_k|
+    d21, d02, d10 = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    s10, s20, s21 = m[:, 1, 0] + m[:, 0, 1], m[:, 2, 0] + m[:, 0, 2], m[:, 2, 1] + m[:, 1, 2]
+    candidates = torch.stack([
+        torch.stack([big[:, 0] ** 2, d21, d02, d10], dim=1) / (2 * big[:, :1]),
+        torch.stack([d21, big[:, 1] ** 2, s10, s20], dim=1) / (2 * big[:, 1:2]),
+        torch.stack([d02, s10, big[:, 2] ** 2, s21], dim=1) / (2 * big[:, 2:3]),
+        torch.stack([d10, s20, s21, big[:, 3] ** 2], dim=1) / (2 * big[:, 3:4]),
+    ], dim=1)
+    q = candidates[torch.arange(len(m)), four.argmax(dim=1)]
+    q = torch.nn.functional.normalize(q, dim=-1)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.reshape(r.shape[:-2] + (4,))
 
 
 @dataclass(eq=False)

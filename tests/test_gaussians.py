@@ -169,3 +169,22 @@ def test_rgb_sh_dc_conversion_pair():
     torch.testing.assert_close(sh_dc_to_rgb(rgb_to_sh_dc(rgb)), rgb, rtol=0, atol=1e-15)
     assert rgb_to_sh_dc(torch.full((3,), 0.5)).abs().max() == 0  # mid grey is f_dc = 0
     assert sh_dc_to_rgb(torch.zeros(2, 3, dtype=torch.float16)).dtype == torch.float16
+
+
+
+def test_quaternion_matrix_round_trip():
+    from gsw.gaussians import quat_to_rotmat, rotmat_to_quat
+    from gsw.render._reference import _quat_to_rotmat
+
+    q = torch.nn.functional.normalize(torch.randn(2000, 4, dtype=torch.float64), dim=1)
+    half_turns = torch.tensor([[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 0.6, 0.8, 0], [1, 0, 0, 0.0]],
+                              dtype=torch.float64)  # trace -1 (and identity): the hard cases
+    q = torch.cat([q, half_turns])
+    r = quat_to_rotmat(q)
+    torch.testing.assert_close(r, _quat_to_rotmat(q))
+    torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(len(q), 3, 3))
+    back = rotmat_to_quat(r)
+    assert (back[:, 0] >= 0).all()
+    torch.testing.assert_close(back, torch.where(q[:, :1] < 0, -q, q), atol=1e-12, rtol=0)
+    assert rotmat_to_quat(r[:2000].reshape(20, 100, 3, 3)).shape == (20, 100, 4)
+    torch.testing.assert_close(quat_to_rotmat(3 * q[:4]), r[:4])  # unnormalised input

@@ -1,4 +1,5 @@
-"""Dataset loaders (NeRF-synthetic, instant-ngp, INRIA model folders), image IO and lens undistortion.
+"""Dataset loaders (NeRF-synthetic, instant-ngp, INRIA model folders, COLMAP, LLFF, nerfstudio), image IO and lens
+undistortion.
 
 Example:
     >>> from gsw.data import load_nerf_synthetic
@@ -9,6 +10,8 @@ Example:
 
 from __future__ import annotations
 
+from gsw.data.colmap import camera_to_colmap, colmap_cameras, load_colmap
+from gsw.data.colmap_io import ColmapError, ColmapModel, read_colmap_model, write_colmap_model
 from gsw.data.distortion import (
     Distortion,
     distort_normalized,
@@ -18,6 +21,7 @@ from gsw.data.distortion import (
     undistort_pixels,
 )
 from gsw.data.images import ImageError, read_image, resize_image, write_image
+from gsw.data.llff import load_llff
 from gsw.data.loaders import (
     MIN_IMAGE_SIZE,
     Dataset,
@@ -32,6 +36,7 @@ from gsw.data.loaders import (
     save_inria_model,
     scene_extent,
 )
+from gsw.data.nerfstudio import load_nerfstudio, normalise_cameras, read_dataparser_transforms
 
 __all__ = [
     "Dataset", "DatasetError", "Distortion", "ImageError", "InriaModel", "MIN_IMAGE_SIZE",
@@ -39,4 +44,6 @@ __all__ = [
     "load_inria_model", "load_instant_ngp", "load_nerf_synthetic", "read_image", "resize_image",
     "save_inria_model", "scene_extent", "undistort_image", "undistort_normalized",
     "undistort_pixels", "write_image",
+    "ColmapError", "ColmapModel", "camera_to_colmap", "colmap_cameras", "load_colmap", "load_llff",
+    "load_nerfstudio", "normalise_cameras", "read_colmap_model", "read_dataparser_transforms", "write_colmap_model",
 ]

@@ -265,14 +265,19 @@ def load_instant_ngp(path: str | os.PathLike, split: str = "all", *, downscale: 
 
 
 def detect_format(path: str | os.PathLike) -> str:
-    """``"nerf_synthetic"``, ``"instant_ngp"`` or ``"inria"`` for a dataset path (folder or transforms file).
+    """``"nerf_synthetic"``, ``"instant_ngp"``, ``"inria"``, or ``"colmap"`` / ``"llff"`` / ``"nerfstudio"``
+    (:mod:`gsw.data.formats`) for a dataset path (folder or transforms file).
 
     Raises:
         DatasetError: when nothing recognisable is there.
     """
+    from gsw.data.formats import SUPPORTED_DATASETS, detect_extra_format  # noqa: PLC0415 - COLMAP, LLFF, nerfstudio
+
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"dataset path not found: {path}")
+    if (extra := detect_extra_format(path)) is not None:
+        return extra
     if path.is_file():
         if path.name.startswith("transforms") and path.suffix == ".json":
             return "instant_ngp" if path.name == "transforms.json" else "nerf_synthetic"
@@ -283,9 +288,7 @@ def detect_format(path: str | os.PathLike) -> str:
         return "instant_ngp"
     if (path / "cameras.json").exists() or (path / "point_cloud").is_dir():
         return "inria"
-    raise DatasetError(
-        f"unknown dataset format in {path}: expected transforms_train.json (NeRF-synthetic), transforms.json "
-        "(instant-ngp) or cameras.json + point_cloud/ (INRIA model folder)")
+    raise DatasetError(f"unknown dataset format in {path}: expected {SUPPORTED_DATASETS}")
 
 
 def load_dataset(path: str | os.PathLike, split: str = "train", *, downscale: float = 1,
@@ -299,6 +302,11 @@ def load_dataset(path: str | os.PathLike, split: str = "train", *, downscale: fl
     (``points``/``point_colors``).
     """
     fmt = detect_format(path)
+    from gsw.data.formats import EXTRA_FORMATS, load_extra_dataset  # noqa: PLC0415 - COLMAP, LLFF, nerfstudio
+
+    if fmt in EXTRA_FORMATS:
+        return load_extra_dataset(fmt, path, split, downscale=downscale, background=background,
+                                  holdout_every=holdout_every, undistort=undistort, images_dir=images_dir)
     if fmt == "nerf_synthetic":
         p = Path(path)
         return load_nerf_synthetic(p.parent if p.is_file() else p, split, downscale=downscale,

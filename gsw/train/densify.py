@@ -10,19 +10,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from gsw.camera import Camera
-from gsw.gaussians import Gaussians
+from gsw.gaussians import quat_to_rotmat, Gaussians
 from gsw.train.config import TrainConfig
 from gsw.train.optim import GaussianAdam
-
-
-def _quat_to_rotmat(q: Tensor) -> Tensor:
-    q = F.normalize(q, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def _position_lr(step: int, cfg: TrainConfig, extent: float) -> float:
@@ -137,7 +127,7 @@ class _State:
             stds = scales[split].repeat(2, 1)
             stds_cpu = stds.cpu()
             samples = torch.normal(torch.zeros_like(stds_cpu), stds_cpu, generator=gen).to(self.device)
-            rots = _quat_to_rotmat(p["quats"].detach()[split]).repeat(2, 1, 1)
+            rots = quat_to_rotmat(p["quats"].detach()[split]).repeat(2, 1, 1)
             child_means = (rots @ samples[:, :, None])[:, :, 0] + p["means"].detach()[split].repeat(2, 1)
             child = {k: v.detach()[split].repeat(2, *([1] * (v.dim() - 1))) for k, v in p.items()}
             child["means"] = child_means
