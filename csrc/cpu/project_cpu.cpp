@@ -7,7 +7,13 @@ namespace gsw::cpu {
 
 template <typename T>
 void project_forward(const ProjectParams<T>& p) {
-  parallel_items(p.N, [&](int64_t i) { project_gaussian(p, i, p.sh_degree); });
+  parallel_items(p.N, [&](int64_t i) {
+    project_gaussian(p, i, p.sh_degree);
+    if (p.nonfinite) {
+      const int32_t bad = nonfinite_fields(p, i);
+      if (bad) __atomic_fetch_or(p.nonfinite, bad, __ATOMIC_RELAXED);
+    }
+  });
 }
 
 template <typename T>

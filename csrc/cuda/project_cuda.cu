@@ -14,7 +14,12 @@ constexpr int kThreads = 256;
 template <typename T, int DEG>
 __global__ void __launch_bounds__(kThreads) project_forward_kernel(const ProjectParams<T> p) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i < p.N) project_gaussian(p, i, DEG);
+  if (i >= p.N) return;
+  project_gaussian(p, i, DEG);
+  if (p.nonfinite) {  // validation: flag, never synchronise (the binning reads the flag)
+    const int32_t bad = nonfinite_fields(p, i);
+    if (bad) atomicOr(p.nonfinite, bad);
+  }
 }
 
 // 128-bit moves of per-Gaussian coefficient arrays (float32 only).

@@ -328,8 +328,13 @@ def reference_project(
         mid = _c(0.5, means) * (a_d + c_d)
         disc = mid * mid - det
         floor_ = _c(K.EIGEN_FLOOR, means)
-        l1 = mid + torch.sqrt(torch.where(disc > floor_, disc, floor_))
-        radius = torch.ceil(_c(K.RADIUS_SIGMAS, means) * torch.sqrt(l1))
+        sigma = torch.sqrt(mid + torch.sqrt(torch.where(disc > floor_, disc, floor_)))
+        # Opacity-aware (footprint_radius): min(ceil(3 sigma), ceil(e sigma) + 1), e the extent in sigmas
+        # where alpha can reach ALPHA_MIN; 0 where it never can.
+        skip = torch.log(_c(K.ALPHA_MIN, means) / torch.sigmoid(opacity_logits)) - _c(K.SKIP_LOG_MARGIN, means)
+        extent = torch.sqrt(torch.where(skip < 0, _c(-2.0, means) * skip, zero))
+        radius = torch.minimum(torch.ceil(_c(K.RADIUS_SIGMAS, means) * sigma), torch.ceil(extent * sigma) + one)
+        radius = torch.where(extent > 0, radius, zero)
         radius = torch.where(ok, radius, torch.zeros_like(radius)).to(torch.int32)
         means2d_det = torch.stack([torch.where(ok, m2x, zero), torch.where(ok, m2y, zero)], -1)
         rects = reference_tile_rects(means2d_det, radius, width, height)
