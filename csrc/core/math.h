@@ -20,8 +20,10 @@
 
 #if defined(__CUDACC__)
 #define GSW_HD __host__ __device__ __forceinline__
+#define GSW_UNROLL _Pragma("unroll")
 #else
 #define GSW_HD inline
+#define GSW_UNROLL
 #endif
 
 namespace gsw {
@@ -134,9 +136,11 @@ GSW_HD uint32_t infinity_bits(float) { return 0x7f800000u; }
 GSW_HD uint64_t infinity_bits(double) { return 0x7ff0000000000000ull; }
 
 // Whether x[0..n) are all finite (no NaN, no +-Inf): one max over the magnitude patterns.
+// Unrolled on the device when n is known, so x may be a register array.
 template <typename T>
 GSW_HD bool all_finite(const T* x, int n) {
   decltype(magnitude_bits(T(0))) m = 0;
+  GSW_UNROLL
   for (int k = 0; k < n; ++k) {
     const auto b = magnitude_bits(x[k]);
     m = b > m ? b : m;
