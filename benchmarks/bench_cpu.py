@@ -1,4 +1,7 @@
-"""CPU rasterizer benchmark: forward, forward+backward and contribution on synthetic frustum scenes.
+"""CPU rasterizer benchmark: forward, forward+backward and contribution on synthetic scenes.
+
+Scene families: `gsw.scenes.frustum_scene` (camera `Camera.from_fov(0.8, W, H)`) and the heavier
+`gsw.scenes.heavy_scene` (`Camera.from_fov(radians(60), W, H)`), seed 0.
 
 Each configuration runs in its own subprocess so its peak resident memory is its own. Prints a
 markdown table and writes `benchmarks/results/cpu.json` and `cpu.md`.
@@ -18,14 +21,15 @@ import sys
 import time
 from pathlib import Path
 
-CONFIGS = [  # (N, width, height, sh_degree)
-    (10_000, 256, 256, 0), (10_000, 256, 256, 3),
-    (100_000, 800, 800, 0), (100_000, 800, 800, 3),
-    (1_000_000, 800, 800, 0), (1_000_000, 800, 800, 3),
+CONFIGS = [  # (family, N, width, height, sh_degree)
+    ("frustum", 10_000, 256, 256, 0), ("frustum", 10_000, 256, 256, 3),
+    ("frustum", 100_000, 800, 800, 0), ("frustum", 100_000, 800, 800, 3),
+    ("frustum", 1_000_000, 800, 800, 0), ("frustum", 1_000_000, 800, 800, 3),
+    ("heavy", 100_000, 800, 800, 3),
 ]
-REFERENCE_CONFIG = (2_000, 128, 128, 3)  # small enough for the dense pure-PyTorch reference
-TARGETS_MS = {(100_000, 800, 800, 3): 400.0, (1_000_000, 800, 800, 3): 1500.0,
-              (1_000_000, 800, 800, 0): 1500.0}
+REFERENCE_CONFIG = ("frustum", 2_000, 128, 128, 3)  # small enough for the dense pure-PyTorch reference
+TARGETS_MS = {("frustum", 100_000, 800, 800, 3): 400.0, ("frustum", 1_000_000, 800, 800, 3): 1500.0,
+              ("frustum", 1_000_000, 800, 800, 0): 1500.0}
 
 
 def _median(xs: list[float]) -> float:
@@ -41,22 +45,29 @@ def _peak_rss_mb() -> float:
     return float("nan")
 
 
-def run_single(n: int, width: int, height: int, sh_degree: int, repeats: int, reference: bool) -> dict:
+def run_single(family: str, n: int, width: int, height: int, sh_degree: int, repeats: int,
+               reference: bool) -> dict:
     """Times one configuration in this process."""
+    import math
+
     import torch
 
     from gsw.camera import Camera
     from gsw.render.rasterize import contribution_from_projection, rasterize
-    from gsw.scenes import frustum_scene
+    from gsw.scenes import frustum_scene, heavy_scene
 
-    cam = Camera.from_fov(0.8, width, height)
-    g = frustum_scene(n, cam, sh_degree=sh_degree, seed=0)
+    if family == "heavy":
+        cam = Camera.from_fov(math.radians(60), width, height)
+        g = heavy_scene(n, cam, sh_degree=sh_degree, seed=0)
+    else:
+        cam = Camera.from_fov(0.8, width, height)
+        g = frustum_scene(n, cam, sh_degree=sh_degree, seed=0)
     params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
     weights = torch.rand(3, height, width, generator=torch.Generator().manual_seed(0))
 
-    def forward():
+    def forward(validate: bool = False):
         with torch.no_grad():
-            return rasterize(g, cam, validate=False)
+            return rasterize(g, cam, validate=validate)
 
     def forward_backward():
         for p in params:
@@ -81,10 +92,11 @@ def run_single(n: int, width: int, height: int, sh_degree: int, repeats: int, re
         return 1e3 * _median(times)
 
     out = forward()
-    result = dict(n=n, width=width, height=height, sh_degree=sh_degree,
+    result = dict(family=family, n=n, width=width, height=height, sh_degree=sh_degree,
                   visible=int(out.visible.sum()), intersections=int(out.bins.num_intersections),
                   mean_alpha=float(out.alpha.mean()),
-                  forward_ms=timeit(forward), forward_backward_ms=timeit(forward_backward))
+                  forward_ms=timeit(forward), forward_validate_ms=timeit(lambda: forward(True)),
+                  forward_backward_ms=timeit(forward_backward))
     contrib()
     result["contribution_ms"] = 1e3 * _median([contrib() for _ in range(repeats)])
     if reference:
@@ -123,20 +135,22 @@ def machine_info() -> dict:
 def to_markdown(machine: dict, rows: list[dict]) -> str:
     lines = [f"CPU: {machine['cpu']}, {machine['cores']} cores, {machine['threads']} torch threads; "
              f"torch {machine['torch']}, gsw {machine['gsw']}, compiler {machine['build']['compiler']}; "
-             f"{machine['date']}. Synthetic frustum scene (`gsw.scenes.frustum_scene`, seed 0), "
-             "median of the repeats after one warm-up, `validate=False` (no NaN scan); fwd+bwd = render + `image.sum().backward()` "
+             f"{machine['date']}. Synthetic scenes (`gsw.scenes.frustum_scene` / `heavy_scene`, seed 0), "
+             "median of the repeats after one warm-up, `validate=False` (+val: `validate=True`, the default); "
+             "fwd+bwd = render + `image.sum().backward()` "
              "to all Gaussian parameters; contribution = 3-channel weight map on the same view.",
              "",
-             "| N | image | SH | intersections | forward ms | fwd+bwd ms | contribution ms | "
+             "| scene | N | image | SH | intersections | forward ms | +val ms | fwd+bwd ms | contribution ms | "
              "contrib/fwd | peak RSS MB | target fwd+bwd |",
-             "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
-        key = (r["n"], r["width"], r["height"], r["sh_degree"])
+        key = (r["family"], r["n"], r["width"], r["height"], r["sh_degree"])
         target = TARGETS_MS.get(key)
         verdict = "" if target is None else (
             f"<= {target:.0f} ms: {'met' if r['forward_backward_ms'] <= target else 'NOT met'}")
-        lines.append(f"| {r['n']:,} | {r['width']}x{r['height']} | {r['sh_degree']} | "
-                     f"{r['intersections']:,} | {r['forward_ms']:.1f} | {r['forward_backward_ms']:.1f} | "
+        lines.append(f"| {r['family']} | {r['n']:,} | {r['width']}x{r['height']} | {r['sh_degree']} | "
+                     f"{r['intersections']:,} | {r['forward_ms']:.1f} | {r['forward_validate_ms']:.1f} | "
+                     f"{r['forward_backward_ms']:.1f} | "
                      f"{r['contribution_ms']:.1f} | {r['contribution_ms'] / r['forward_ms']:.2f} | "
                      f"{r['peak_rss_mb']:.0f} | {verdict} |")
     ref = [r for r in rows if "reference_forward_ms" in r]
@@ -153,13 +167,14 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="only the small configurations")
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
-    parser.add_argument("--single", nargs=4, type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--single", nargs=5, help=argparse.SUPPRESS)
     parser.add_argument("--reference", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.single:
-        print(json.dumps(run_single(*args.single, repeats=args.repeats, reference=args.reference)))
+        family, *sizes = args.single
+        print(json.dumps(run_single(family, *map(int, sizes), repeats=args.repeats, reference=args.reference)))
         return 0
-    configs = [c for c in CONFIGS if not args.quick or c[0] <= 10_000]
+    configs = [c for c in CONFIGS if not args.quick or c[1] <= 10_000]
     rows = []
     for cfg in [REFERENCE_CONFIG] + configs:
         cmd = [sys.executable, __file__, "--single", *map(str, cfg), "--repeats", str(args.repeats)]
@@ -168,7 +183,7 @@ def main() -> int:
         proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
         row = json.loads(proc.stdout.strip().splitlines()[-1])
         rows.append(row)
-        print(f"N={row['n']:>9,} {row['width']}x{row['height']} SH{row['sh_degree']}: forward "
+        print(f"{row['family']:8s} N={row['n']:>9,} {row['width']}x{row['height']} SH{row['sh_degree']}: forward "
               f"{row['forward_ms']:8.1f} ms, fwd+bwd {row['forward_backward_ms']:8.1f} ms, "
               f"contribution {row['contribution_ms']:8.1f} ms, peak RSS {row['peak_rss_mb']:.0f} MB",
               flush=True)

@@ -1,20 +1,31 @@
-"""gsw CUDA rasterizer vs gsplat 1.5.3, side by side on identical scenes (one GPU, one run).
+"""gsw CUDA rasterizer vs gsplat 1.5.3 (both of its modes), side by side on identical scenes (one GPU, one run).
 
-Scenes: `gsw.scenes.frustum_scene(N, Camera.from_fov(0.8, W, H), sh_degree=3, seed=0)` for
-N in {100k, 1M, 3M} at 800x800 and 1920x1080, float32 on the GPU. Timed (CUDA events, median of
-`--reps` after `--warmup` untimed runs), whole pipeline from the raw Gaussian tensors to the
-image:
+Scene families (float32 on the GPU, SH degree 3):
 
-* forward: `gsw.rasterize` / `gsplat.rasterization` under `torch.no_grad()`;
-* forward+backward: the same with gradients, loss = sum(image * fixed random weights),
-  `loss.backward()` (gradients reset before each run, outside the timed region);
-* contribution (gsw only): `gsw.contribution(g, cam, weights[3, H, W])`, reported against
-  gsw's forward.
+* ``frustum``: `gsw.scenes.frustum_scene(N, Camera.from_fov(0.8, W, H), seed=0)` (coverage 4, opacity logits
+  N(0, 1)), the light family;
+* ``heavy``: `gsw.scenes.heavy_scene(N, Camera.from_fov(radians(60), W, H), seed=0)` (depth uniform 2-12, world
+  scale exp(N(-4.6, 0.5)) x 0.5 x depth, opacity logits N(0, 2), DC uniform in [-1, 1]);
+* ``ply``: a trained model read from `--ply` (e.g. ../shared/data/ply/sh3_fixture/point_cloud.ply), seen from
+  2.5 times its 90 % radius (60 degree field of view, z up).
 
-gsplat gets pre-activated scales/opacities (its API takes them; the activation is not timed) and
-default settings otherwise (packed, 16x16 tiles, eps2d 0.3 as ours). Peak memory is
-`torch.cuda.max_memory_allocated()` during one run minus what was allocated before it (the
-scene and, for gsplat, its activated inputs).
+Timed (CUDA events, median of `--reps` after `--warmup` untimed runs), whole pipeline from the raw Gaussian
+tensors to the image:
+
+* forward: `gsw.rasterize` / `gsplat.rasterization` under `torch.no_grad()`; gsw with `validate=False`, with
+  `validate=True` (the default: a device-side NaN/Inf flag, no extra synchronisation) and with the host check
+  `Gaussians.check_finite()` that `validate=True` did before (one synchronisation per field);
+* forward+backward: the same with gradients, loss = sum(image * fixed random weights), `loss.backward()`
+  (gradients reset before each run, outside the timed region);
+* contribution (gsw only): `gsw.contribution(g, cam, weights[3, H, W])`, reported against gsw's forward.
+
+gsplat runs with `packed=True` (its default) and `packed=False`; each gsw time is compared with the faster
+mode of that measurement. gsplat gets pre-activated scales/opacities (its API takes them; the activation is
+not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak memory is
+`torch.cuda.max_memory_allocated()` during one run minus what was allocated before it.
+
+`--breakdown` also times each gsw op alone, with the opacity-aware footprints and with INRIA's 3-sigma
+footprints (the same splats, the radii of fully opaque ones), which is the before/after of that change.
 
     python benchmarks/bench_cuda.py --out benchmarks/results/cuda.json --md benchmarks/results/cuda.md
 """
@@ -23,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import statistics
 import subprocess
@@ -34,11 +46,13 @@ import torch
 import gsw
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
-from gsw.scenes import frustum_scene
+from gsw.scenes import frustum_scene, heavy_scene
+
+GSPLAT_MODES = {"packed": True, "unpacked": False}
 
 
 def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
-              before: Callable[[], None] | None = None) -> tuple[float, list[float]]:
+              before: Callable[[], None] | None = None) -> float:
     """Median milliseconds of `fn` over `reps` runs (CUDA events), after `warmup` runs."""
     for _ in range(warmup):
         if before:
@@ -55,10 +69,11 @@ def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
         end.record()
         end.synchronize()
         times.append(start.elapsed_time(end))
-    return statistics.median(times), times
+    return statistics.median(times)
 
 
 def peak_mb(fn: Callable[[], object], before: Callable[[], None] | None = None) -> float:
+    """Extra GPU memory (MiB) allocated at the peak of one run of `fn`."""
     if before:
         before()
     torch.cuda.synchronize()
@@ -71,11 +86,17 @@ def peak_mb(fn: Callable[[], object], before: Callable[[], None] | None = None) 
     return (peak - base) / 2**20
 
 
-def env_info() -> dict[str, object]:
+def env_info(commit: str) -> dict[str, object]:
     info: dict[str, object] = dict(
         gpu=torch.cuda.get_device_name(), torch=torch.__version__, cuda=torch.version.cuda,
-        python=platform.python_version(), gsw_build=gsw.build_info(),
+        python=platform.python_version(), gsw_build=gsw.build_info(), gsw_commit=commit,
         date=time.strftime("%Y-%m-%d %H:%M:%S %Z"))
+    try:
+        import gsplat
+
+        info["gsplat"] = gsplat.__version__
+    except ImportError:
+        info["gsplat"] = None
     try:
         info["driver"] = subprocess.run(
             ["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
@@ -85,98 +106,151 @@ def env_info() -> dict[str, object]:
     return info
 
 
-def bench_config(n: int, width: int, height: int, reps: int, warmup: int, use_gsplat: bool,
-                 breakdown: bool) -> dict[str, object]:
-    cam = Camera.from_fov(0.8, width, height)
-    g = frustum_scene(n, cam, sh_degree=3, seed=0, device="cuda")
-    gen = torch.Generator(device="cpu").manual_seed(1)
-    w_img = torch.rand(3, height, width, generator=gen).cuda()
-    w_contrib = torch.rand(3, height, width, generator=gen).cuda()
-    row: dict[str, object] = dict(N=n, width=width, height=height)
+def ply_camera(g: Gaussians, width: int, height: int) -> Camera:
+    """A 60-degree camera 2.5 radii (90 % quantile) from the model's median point, slightly above it, z up."""
+    m = g.means.detach().float().cpu()
+    centre = m.median(0).values
+    r = float((m - centre).norm(dim=1).quantile(0.9))
+    eye = centre + torch.tensor([0.0, -2.5 * r, 0.5 * r])
+    return Camera.look_at(tuple(eye.tolist()), tuple(centre.tolist()), (0.0, 0.0, 1.0), math.radians(60), width, height)
 
-    # ---------------------------------------------------------------- gsw
-    def gsw_fwd():
+
+def make_scene(family: str, n: int, width: int, height: int, ply: str | None,
+               device: str = "cuda") -> tuple[Gaussians, Camera]:
+    if family == "frustum":
+        cam = Camera.from_fov(0.8, width, height)
+        return frustum_scene(n, cam, sh_degree=3, seed=0, device=device), cam
+    if family == "heavy":
+        cam = Camera.from_fov(math.radians(60), width, height)
+        return heavy_scene(n, cam, sh_degree=3, seed=0, device=device), cam
+    if family == "ply":
+        from gsw.io.ply import load_ply
+
+        g = load_ply(ply)
+        return g.to(device), ply_camera(g, width, height)
+    raise ValueError(f"unknown scene family {family!r}")
+
+
+def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.Tensor, reps: int,
+              warmup: int) -> tuple[dict[str, float], torch.Tensor]:
+    """gsw's timings and peaks for one scene; returns them and the forward image."""
+    def fwd(validate: bool = False, host_check: bool = False):
         with torch.no_grad():
-            return gsw.rasterize(g, cam, validate=False).image
+            if host_check:
+                g.check_finite()
+            return gsw.rasterize(g, cam, validate=validate).image
 
-    params = [t.detach().clone().requires_grad_() for t in
-              (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
+    params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
     g_train = Gaussians(*params)
 
-    def reset_gsw():
+    def reset():
         for p in params:
             p.grad = None
 
-    def gsw_fwdbwd():
-        out = gsw.rasterize(g_train, cam, validate=False)
+    def fwdbwd(validate: bool = False):
+        out = gsw.rasterize(g_train, cam, validate=validate)
         (out.image * w_img).sum().backward()
         return params[0].grad
 
-    def gsw_contrib():
+    def contrib():
         return gsw.contribution(g, cam, w_contrib).values
 
-    out = gsw.rasterize(g, cam)
-    row["intersections"] = int(out.bins.num_intersections)
-    row["visible"] = int(out.visible.sum())
-    row["gsw_fwd_ms"], _ = cuda_time(gsw_fwd, reps, warmup)
-    row["gsw_fwdbwd_ms"], _ = cuda_time(gsw_fwdbwd, reps, warmup, reset_gsw)
-    row["gsw_contrib_ms"], _ = cuda_time(gsw_contrib, reps, warmup)
-    row["gsw_fwd_peak_mb"] = peak_mb(gsw_fwd)
-    row["gsw_fwdbwd_peak_mb"] = peak_mb(gsw_fwdbwd, reset_gsw)
-    row["gsw_contrib_peak_mb"] = peak_mb(gsw_contrib)
-    row["contrib_over_fwd"] = row["gsw_contrib_ms"] / row["gsw_fwd_ms"]
-    gsw_image = gsw_fwd()
-    reset_gsw()
+    r: dict[str, float] = {}
+    r["gsw_fwd_ms"] = cuda_time(fwd, reps, warmup)
+    r["gsw_fwd_validate_ms"] = cuda_time(lambda: fwd(True), reps, warmup)
+    r["gsw_fwd_hostcheck_ms"] = cuda_time(lambda: fwd(False, True), reps, warmup)
+    r["gsw_fwd_ms_again"] = cuda_time(fwd, reps, warmup)  # the spread of one measurement
+    r["gsw_fwd_validate_ms_again"] = cuda_time(lambda: fwd(True), reps, warmup)
+    r["gsw_fwdbwd_ms"] = cuda_time(fwdbwd, reps, warmup, reset)
+    r["gsw_fwdbwd_validate_ms"] = cuda_time(lambda: fwdbwd(True), reps, warmup, reset)
+    r["gsw_contrib_ms"] = cuda_time(contrib, reps, warmup)
+    r["gsw_fwd_peak_mb"] = peak_mb(fwd)
+    r["gsw_fwdbwd_peak_mb"] = peak_mb(fwdbwd, reset)
+    r["gsw_contrib_peak_mb"] = peak_mb(contrib)
+    image = fwd()
+    reset()
+    return r, image
 
-    if breakdown:
-        row["gsw_breakdown_ms"] = stage_breakdown(g, cam, w_img, reps, warmup)
 
-    # ---------------------------------------------------------------- gsplat
-    if use_gsplat:
-        import gsplat
+def bench_gsplat(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int,
+                 gsw_image: torch.Tensor) -> dict[str, float]:
+    """gsplat 1.5.3's timings and peaks in both modes, and its image difference to gsw's."""
+    import gsplat
 
-        scales = g.log_scales.exp().contiguous()
-        opac = torch.sigmoid(g.opacity_logits).contiguous()
-        viewmats = cam.viewmat.float().cuda()[None]
-        Ks = cam.K.float().cuda()[None]
+    scales = g.log_scales.exp().contiguous()
+    opac = torch.sigmoid(g.opacity_logits).contiguous()
+    viewmats = cam.viewmat.float().to(g.means.device)[None]
+    Ks = cam.K.float().to(g.means.device)[None]
+    W, H = cam.width, cam.height
+    gp = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, scales, opac, g.sh)]
+    w_hwc = w_img.permute(1, 2, 0)[None].contiguous()
 
-        def gs_fwd():
+    def reset():
+        for p in gp:
+            p.grad = None
+
+    r: dict[str, float] = {}
+    for mode, packed in GSPLAT_MODES.items():
+        def fwd():
             with torch.no_grad():
-                return gsplat.rasterization(g.means, g.quats, scales, opac, g.sh, viewmats, Ks,
-                                            width, height, sh_degree=3)[0]
+                return gsplat.rasterization(g.means, g.quats, scales, opac, g.sh, viewmats, Ks, W, H, sh_degree=3,
+                                            packed=packed)[0]
 
-        gp = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, scales, opac, g.sh)]
-        w_hwc = w_img.permute(1, 2, 0)[None].contiguous()
-
-        def reset_gs():
-            for p in gp:
-                p.grad = None
-
-        def gs_fwdbwd():
-            img = gsplat.rasterization(*gp, viewmats, Ks, width, height, sh_degree=3)[0]
+        def fwdbwd():
+            img = gsplat.rasterization(*gp, viewmats, Ks, W, H, sh_degree=3, packed=packed)[0]
             (img * w_hwc).sum().backward()
             return gp[0].grad
 
-        row["gsplat_fwd_ms"], _ = cuda_time(gs_fwd, reps, warmup)
-        row["gsplat_fwdbwd_ms"], _ = cuda_time(gs_fwdbwd, reps, warmup, reset_gs)
-        row["gsplat_fwd_peak_mb"] = peak_mb(gs_fwd)
-        row["gsplat_fwdbwd_peak_mb"] = peak_mb(gs_fwdbwd, reset_gs)
-        gs_image = gs_fwd()[0].permute(2, 0, 1)
-        diff = (gs_image - gsw_image).abs()
-        row["image_mean_abs_diff_vs_gsplat"] = float(diff.mean())
-        row["image_max_abs_diff_vs_gsplat"] = float(diff.max())
-        row["fwd_ratio"] = row["gsw_fwd_ms"] / row["gsplat_fwd_ms"]
-        row["fwdbwd_ratio"] = row["gsw_fwdbwd_ms"] / row["gsplat_fwdbwd_ms"]
-        row["fwdbwd_peak_ratio"] = row["gsw_fwdbwd_peak_mb"] / row["gsplat_fwdbwd_peak_mb"]
-        row["fwd_peak_ratio"] = row["gsw_fwd_peak_mb"] / row["gsplat_fwd_peak_mb"]
-        del gp, scales, opac
-    del g, params, g_train
+        r[f"gsplat_{mode}_fwd_ms"] = cuda_time(fwd, reps, warmup)
+        r[f"gsplat_{mode}_fwdbwd_ms"] = cuda_time(fwdbwd, reps, warmup, reset)
+        r[f"gsplat_{mode}_fwd_peak_mb"] = peak_mb(fwd)
+        r[f"gsplat_{mode}_fwdbwd_peak_mb"] = peak_mb(fwdbwd, reset)
+        diff = (fwd()[0].permute(2, 0, 1) - gsw_image).abs()
+        r[f"image_mean_abs_diff_vs_gsplat_{mode}"] = float(diff.mean())
+        r[f"image_max_abs_diff_vs_gsplat_{mode}"] = float(diff.max())
+    reset()
+    return r
+
+
+def compare(row: dict[str, object]) -> None:
+    """Adds each measurement's faster gsplat mode and gsw's ratio to it (< 1: gsw faster / smaller)."""
+    for key in ("fwd_ms", "fwdbwd_ms", "fwd_peak_mb", "fwdbwd_peak_mb"):
+        modes = [m for m in GSPLAT_MODES if f"gsplat_{m}_{key}" in row]
+        if not modes:
+            continue
+        best = min(modes, key=lambda m: row[f"gsplat_{m}_{key}"])
+        row[f"gsplat_best_{key}_mode"] = best
+        row[f"ratio_{key}"] = row[f"gsw_{key}"] / row[f"gsplat_{best}_{key}"]
+
+
+def bench_case(family: str, n: int, width: int, height: int, args: argparse.Namespace) -> dict[str, object]:
+    g, cam = make_scene(family, n, width, height, args.ply, args.device)
+    gen = torch.Generator(device="cpu").manual_seed(1)
+    w_img = torch.rand(3, height, width, generator=gen).to(args.device)
+    w_contrib = torch.rand(3, height, width, generator=gen).to(args.device)
+    out = gsw.rasterize(g, cam)
+    row: dict[str, object] = dict(family=family, N=len(g), width=width, height=height,
+                                  intersections=int(out.bins.num_intersections), visible=int(out.visible.sum()),
+                                  alpha_mean=float(out.alpha.mean()))
+    del out
+    timings, image = bench_gsw(g, cam, w_img, w_contrib, args.reps, args.warmup)
+    row.update(timings)
+    # two interleaved measurements of each (fwd, +val, host, fwd, +val)
+    row["validate_overhead"] = ((row["gsw_fwd_validate_ms"] + row["gsw_fwd_validate_ms_again"])
+                                / (row["gsw_fwd_ms"] + row["gsw_fwd_ms_again"]) - 1)
+    row["contrib_over_fwd"] = row["gsw_contrib_ms"] / row["gsw_fwd_ms"]
+    if args.breakdown:
+        row["gsw_breakdown_ms"] = stage_breakdown(g, cam, w_img, args.reps, args.warmup)
+    if not args.no_gsplat:
+        row.update(bench_gsplat(g, cam, w_img, args.reps, args.warmup, image))
+        compare(row)
+    del g, image
     torch.cuda.empty_cache()
     return row
 
 
 def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int) -> dict[str, float]:
-    """Median ms of each op of the gsw pipeline (forward and backward), timed separately."""
+    """Median ms of each gsw op alone; binning and blending with opacity-aware and with 3-sigma radii."""
     from gsw import _C
     from gsw.render.rasterize import _camera_args
 
@@ -184,99 +258,122 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
     W, H = cam.width, cam.height
     ins = (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)
     radii, m2d, conics, depths, colors, opac = _C.project_forward(*ins, sh_degree=3, **ca)
-    bins = _C.bin_gaussians(m2d, radii, depths, W, H)
-    bg = torch.zeros(3, device="cuda")
-    image, alpha, depth, final_T, n_contrib = _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
-                                                                    bins=bins, width=W, height=H)
+    # INRIA's footprints: the radii of the same splats at full opacity (the blended opacities stay the real ones).
+    wide = _C.project_forward(g.means, g.quats, g.log_scales, torch.full_like(g.opacity_logits, 20.0), g.sh,
+                              sh_degree=3, **ca)[0]
+    bg = torch.zeros(3, device=g.means.device)
     v_img = w_img.contiguous()
-    v_a, v_d = torch.zeros_like(alpha), torch.zeros_like(depth)
-    grads = _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins, width=W, height=H,
-                                  final_T=final_T, n_contrib=n_contrib, v_image=v_img, v_alpha=v_a, v_depth=v_d)
-    stages = {
-        "project_fwd": lambda: _C.project_forward(*ins, sh_degree=3, **ca),
-        "bin": lambda: _C.bin_gaussians(m2d, radii, depths, W, H),
-        "blend_fwd": lambda: _C.rasterize_forward(m2d, conics, colors, opac, depths, bg, bins=bins,
-                                                  width=W, height=H),
-        "blend_bwd": lambda: _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins, width=W,
-                                                   height=H, final_T=final_T, n_contrib=n_contrib,
-                                                   v_image=v_img, v_alpha=v_a, v_depth=v_d),
-        "project_bwd": lambda: _C.project_backward(*ins, sh_degree=3, **ca, radii=radii, conics=conics,
-                                                   colors=colors, opacities=opac, v_means2d=grads[0],
-                                                   v_conics=grads[1], v_depths=grads[4],
-                                                   v_colors=grads[2], v_opacities=grads[3]),
-        "contribution_kernel": lambda: _C.contribution(m2d, conics, opac, bins=bins, width=W, height=H,
-                                                       weights=v_img),
-    }
-    return {k: cuda_time(f, reps, warmup)[0] for k, f in stages.items()}
+    res: dict[str, float] = {"project_fwd": cuda_time(lambda: _C.project_forward(*ins, sh_degree=3, **ca), reps, warmup)}
+    for tag, rad in (("", radii), ("_3sigma", wide)):
+        bins = _C.bin_gaussians(m2d, rad, depths, W, H)
+        res["M" + tag] = float(bins.num_intersections)
+        image, alpha, depth, final_T, n_contrib = _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
+                                                                        bins=bins, width=W, height=H)
+        bwd = lambda: _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins,  # noqa: E731
+                                            width=W, height=H, final_T=final_T, n_contrib=n_contrib, v_image=v_img)
+        res["bin" + tag] = cuda_time(lambda: _C.bin_gaussians(m2d, rad, depths, W, H), reps, warmup)
+        res["blend_fwd" + tag] = cuda_time(lambda: _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
+                                                                         bins=bins, width=W, height=H), reps, warmup)
+        res["blend_bwd" + tag] = cuda_time(bwd, reps, warmup)
+        res["contribution_kernel" + tag] = cuda_time(
+            lambda: _C.contribution(m2d, conics, opac, bins=bins, width=W, height=H, weights=v_img), reps, warmup)
+        if not tag:
+            grads = bwd()
+            res["project_bwd"] = cuda_time(lambda: _C.project_backward(
+                *ins, sh_degree=3, **ca, radii=radii, conics=conics, colors=colors, opacities=opac,
+                v_means2d=grads[0], v_conics=grads[1], v_depths=grads[4], v_colors=grads[2],
+                v_opacities=grads[3]), reps, warmup)
+        else:
+            res["image_max_abs_diff_3sigma"] = float((image - _C.rasterize_forward(
+                m2d, conics, colors, opac, depths, bg, bins=_C.bin_gaussians(m2d, radii, depths, W, H),
+                width=W, height=H)[0]).abs().max())
+    return res
+
+
+def _f(r: dict[str, object], key: str, fmt: str = "{:.2f}") -> str:
+    return fmt.format(r[key]) if key in r else "-"
+
+
+def _gsplat_pair(r: dict[str, object], key: str, fmt: str = "{:.2f}") -> str:
+    return " / ".join(_f(r, f"gsplat_{m}_{key}", fmt) for m in GSPLAT_MODES)
 
 
 def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int, warmup: int) -> str:
     b = env["gsw_build"]
     lines = [
-        "# gsw CUDA rasterizer " + ("vs gsplat 1.5.3" if any("gsplat_fwd_ms" in r for r in rows)
-                                     else "(gsplat not run: its columns are empty)"),
-        "",
+        f"# gsw CUDA rasterizer vs gsplat {env.get('gsplat') or '(not run)'} (packed / unpacked)", "",
         f"GPU: {env['gpu']} (driver {env['driver']}); torch {env['torch']}, CUDA {env['cuda']}, "
-        f"Python {env['python']}; gsw CUDA archs {b.get('cuda_archs')}; {env['date']}.",
-        "",
-        "Scene: `frustum_scene(N, Camera.from_fov(0.8, W, H), sh_degree=3, seed=0)`, float32. "
-        f"Median of {reps} runs after {warmup} warm-up runs, CUDA events, whole pipeline "
-        "(projection + SH, binning/sort, blending; backward through everything). "
-        "Peak = extra GPU memory during one run (MiB). Ratio = gsw / gsplat (< 1: gsw faster).",
-        "",
-        "| N | size | M | gsw fwd | gsplat fwd | ratio | gsw fwd+bwd | gsplat fwd+bwd | ratio | "
-        "gsw contrib | contrib / fwd | peak fwd+bwd gsw / gsplat | peak fwd gsw / gsplat |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"Python {env['python']}; gsw {env.get('gsw_commit', '?')}, CUDA archs {b.get('cuda_archs')}; {env['date']}.",
+        "", f"Median of {reps} runs after {warmup} warm-up runs, CUDA events, ms. gsw fwd: `validate=False`; "
+        "+val: `validate=True` (device flag) and its overhead (mean of two interleaved measurements of each); host: the former `check_finite()` + render. "
+        "gsplat: packed / unpacked; ratio = gsw / the faster gsplat mode (named). Peaks: extra MiB.", "",
+        "| scene | N | size | M | gsw fwd | +val | val overhead | host check | gsplat fwd | ratio | gsw fwd+bwd "
+        "| gsplat fwd+bwd | ratio | contrib | contrib/fwd | peak fwd+bwd gsw / gsplat | peak fwd gsw / gsplat |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        gs = "gsplat_fwd_ms" in r
-        f = lambda k, fmt="{:.2f}": fmt.format(r[k]) if k in r else "-"  # noqa: E731
+        if "error" in r:
+            lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | {r['error']} |")
+            continue
+        mode = lambda k: f" ({r[f'gsplat_best_{k}_mode']})" if f"gsplat_best_{k}_mode" in r else ""  # noqa: E731
         lines.append(
-            f"| {r['N']:,} | {r['width']}x{r['height']} | {r['intersections']:,} | {f('gsw_fwd_ms')} | "
-            f"{f('gsplat_fwd_ms')} | {f('fwd_ratio')} | {f('gsw_fwdbwd_ms')} | {f('gsplat_fwdbwd_ms')} | "
-            f"**{f('fwdbwd_ratio')}** | {f('gsw_contrib_ms')} | {f('contrib_over_fwd')} | "
-            f"{f('gsw_fwdbwd_peak_mb', '{:.0f}')} / {f('gsplat_fwdbwd_peak_mb', '{:.0f}') if gs else '-'} | "
-            f"{f('gsw_fwd_peak_mb', '{:.0f}')} / {f('gsplat_fwd_peak_mb', '{:.0f}') if gs else '-'} |")
+            f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | {r['intersections']:,} | {_f(r, 'gsw_fwd_ms')} | "
+            f"{_f(r, 'gsw_fwd_validate_ms')} | {100 * r['validate_overhead']:+.1f} % | {_f(r, 'gsw_fwd_hostcheck_ms')} | "
+            f"{_gsplat_pair(r, 'fwd_ms')} | **{_f(r, 'ratio_fwd_ms')}**{mode('fwd_ms')} | {_f(r, 'gsw_fwdbwd_ms')} | "
+            f"{_gsplat_pair(r, 'fwdbwd_ms')} | **{_f(r, 'ratio_fwdbwd_ms')}**{mode('fwdbwd_ms')} | "
+            f"{_f(r, 'gsw_contrib_ms')} | {_f(r, 'contrib_over_fwd')} | {_f(r, 'gsw_fwdbwd_peak_mb', '{:.0f}')} / "
+            f"{_gsplat_pair(r, 'fwdbwd_peak_mb', '{:.0f}')} | {_f(r, 'gsw_fwd_peak_mb', '{:.0f}')} / "
+            f"{_gsplat_pair(r, 'fwd_peak_mb', '{:.0f}')} |")
     bd = [r for r in rows if "gsw_breakdown_ms" in r]
     if bd:
-        lines += ["", "gsw stage breakdown (ms, each op timed alone):", ""]
         keys = list(bd[0]["gsw_breakdown_ms"])
-        lines.append("| N | size | " + " | ".join(keys) + " |")
-        lines.append("|---|---|" + "---|" * len(keys))
+        lines += ["", "gsw ops alone (ms; M = intersections; `_3sigma`: the same splats binned with INRIA's "
+                  "3-sigma radii, i.e. before the opacity-aware footprints):", "",
+                  "| scene | N | size | " + " | ".join(keys) + " |", "|---|---|---|" + "---|" * len(keys)]
         for r in bd:
-            lines.append(f"| {r['N']:,} | {r['width']}x{r['height']} | " +
-                         " | ".join(f"{r['gsw_breakdown_ms'][k]:.3f}" for k in keys) + " |")
-    if any("image_mean_abs_diff_vs_gsplat" in r for r in rows):
-        lines += ["", "Image difference gsw vs gsplat (mean / max abs): " + "; ".join(
-            f"{r['N']:,}@{r['width']}x{r['height']}: {r['image_mean_abs_diff_vs_gsplat']:.1e} / "
-            f"{r['image_max_abs_diff_vs_gsplat']:.1e}" for r in rows if "image_mean_abs_diff_vs_gsplat" in r)
+            vals = [f"{v:,.0f}" if k.startswith("M") else (f"{v:.1e}" if k.startswith("image") else f"{v:.3f}")
+                    for k, v in r["gsw_breakdown_ms"].items()]
+            lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | " + " | ".join(vals) + " |")
+    diffs = [r for r in rows if "image_mean_abs_diff_vs_gsplat_unpacked" in r]
+    if diffs:
+        lines += ["", "Image difference gsw vs gsplat unpacked (mean / max abs): " + "; ".join(
+            f"{r['family']} {r['N']:,}@{r['width']}x{r['height']}: {r['image_mean_abs_diff_vs_gsplat_unpacked']:.1e} / "
+            f"{r['image_max_abs_diff_vs_gsplat_unpacked']:.1e}" for r in diffs)
             + " (gsplat clamps alpha at 0.999 and sizes footprints differently; gsw follows INRIA)."]
     return "\n".join(lines) + "\n"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ns", type=int, nargs="+", default=[100_000, 1_000_000, 3_000_000])
-    ap.add_argument("--sizes", nargs="+", default=["800x800", "1920x1080"])
+    ap.add_argument("--cases", nargs="+", default=[f"{f}:{n}:1920x1080" for f in ("frustum", "heavy")
+                                                   for n in (100_000, 1_000_000, 3_000_000)],
+                    help="family:N:WxH (family frustum, heavy or ply; N is ignored for ply)")
+    ap.add_argument("--ply", default="../shared/data/ply/sh3_fixture/point_cloud.ply")
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--no-gsplat", action="store_true")
-    ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone")
+    ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (3-sigma vs opacity-aware)")
+    ap.add_argument("--commit", default="", help="gsw commit to record")
+    ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")
     ap.add_argument("--md", default="benchmarks/results/cuda.md")
     args = ap.parse_args()
     assert torch.cuda.is_available() and gsw.build_info()["cuda"], "needs a GPU and a CUDA build of gsw"
-    env = env_info()
+    env = env_info(args.commit)
     print(env, flush=True)
     rows = []
-    for size in args.sizes:
+    for case in args.cases:
+        family, n, size = case.split(":")
         w, h = (int(v) for v in size.split("x"))
-        for n in args.ns:
-            row = bench_config(n, w, h, args.reps, args.warmup, not args.no_gsplat, args.breakdown)
-            print(json.dumps(row), flush=True)
-            rows.append(row)
-    with open(args.out, "w") as f:
-        json.dump(dict(env=env, reps=args.reps, warmup=args.warmup, rows=rows), f, indent=1)
+        try:
+            row = bench_case(family, int(n), w, h, args)
+        except torch.cuda.OutOfMemoryError as e:
+            row = dict(family=family, N=int(n), width=w, height=h, error=f"out of memory: {e}"[:200])
+            torch.cuda.empty_cache()
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+        with open(args.out, "w") as f:  # after every case, so a cut-off run keeps what it measured
+            json.dump(dict(env=env, reps=args.reps, warmup=args.warmup, rows=rows), f, indent=1)
     md = to_markdown(env, rows, args.reps, args.warmup)
     with open(args.md, "w") as f:
         f.write(md)

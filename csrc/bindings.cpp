@@ -23,6 +23,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   c["ALPHA_MAX"] = gsw::ALPHA_MAX;
   c["ALPHA_MIN"] = gsw::ALPHA_MIN;
   c["T_MIN"] = gsw::T_MIN;
+  c["SKIP_LOG_MARGIN"] = gsw::SKIP_LOG_MARGIN;
   c["MAX_SH_DEGREE"] = gsw::MAX_SH_DEGREE;
   c["SH_COLOR_OFFSET"] = gsw::SH_COLOR_OFFSET;
   c["SH_C0"] = gsw::SH_C0;

@@ -21,6 +21,7 @@ EIGEN_FLOOR: float = float(_constants["EIGEN_FLOOR"])
 ALPHA_MAX: float = float(_constants["ALPHA_MAX"])
 ALPHA_MIN: float = float(_constants["ALPHA_MIN"])
 T_MIN: float = float(_constants["T_MIN"])
+SKIP_LOG_MARGIN: float = float(_constants["SKIP_LOG_MARGIN"])
 MAX_SH_DEGREE: int = int(_constants["MAX_SH_DEGREE"])
 SH_COLOR_OFFSET: float = float(_constants["SH_COLOR_OFFSET"])
 SH_C0: float = float(_constants["SH_C0"])
@@ -30,6 +31,6 @@ SH_C3: tuple[float, ...] = tuple(float(v) for v in _constants["SH_C3"])
 
 __all__ = [
     "TILE_SIZE", "NEAR_PLANE", "COV2D_DILATION", "FRUSTUM_CLAMP", "RADIUS_SIGMAS", "EIGEN_FLOOR",
-    "ALPHA_MAX", "ALPHA_MIN", "T_MIN", "MAX_SH_DEGREE", "SH_COLOR_OFFSET", "SH_C0", "SH_C1",
+    "ALPHA_MAX", "ALPHA_MIN", "T_MIN", "SKIP_LOG_MARGIN", "MAX_SH_DEGREE", "SH_COLOR_OFFSET", "SH_C0", "SH_C1",
     "SH_C2", "SH_C3",
 ]

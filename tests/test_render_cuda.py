@@ -22,7 +22,7 @@ import gsw
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
 from gsw.render.rasterize import contribution, rasterization, rasterize
-from gsw.scenes import frustum_scene, random_gaussians
+from gsw.scenes import frustum_scene, heavy_scene, random_gaussians
 
 HAS_CUDA = torch.cuda.is_available() and bool(gsw.build_info()["cuda"])
 pytestmark = [pytest.mark.cuda,
@@ -127,6 +127,16 @@ def _scene_frustum():
     return g, cam, (0.0, 0.0, 0.0), 3
 
 
+def _scene_heavy():
+    # Faint and opaque splats of a few pixels: opacity-aware footprints of every size. Made anisotropic:
+    # the rotation of an isotropic Gaussian has no effect, so its quaternion gradient is rounding noise.
+    cam = Camera.from_fov(math.radians(60), 96, 64)
+    g = heavy_scene(3000, cam, seed=2, log_scale_mean=-2.5, dtype=torch.float64)
+    g.log_scales = g.log_scales + 0.3 * torch.randn(g.log_scales.shape, generator=torch.Generator().manual_seed(3),
+                                                    dtype=torch.float64)
+    return g, cam, (0.0, 0.0, 0.0), 3
+
+
 SCENES = {
     "random_sh0": lambda: _scene_random(0, 0),
     "random_sh1": lambda: _scene_random(1, 1),
@@ -144,6 +154,7 @@ SCENES = {
     "background_offcentre": _scene_background_offcentre,
     "dense_multi_batch": _scene_dense,
     "frustum": _scene_frustum,
+    "heavy": _scene_heavy,
 }
 DTYPES = [torch.float32, torch.float64]
 
@@ -333,6 +344,44 @@ def test_mixed_devices_are_rejected() -> None:
     with pytest.raises(RuntimeError, match="quats"):
         gsw._C.project_forward(*proj_args, sh_degree=0, viewmat=make_camera().viewmat, fx=30.0, fy=30.0,
                                cx=20.0, cy=15.0, width=40, height=30)
+
+
+# ----------------------------------------------------------------------------------------- validation
+
+
+def _sync_warnings(fn) -> int:
+    """Number of host synchronisations torch's sync debug mode reports while `fn` runs."""
+    import warnings
+
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fn()
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    return sum("synchroniz" in str(w.message) for w in caught)
+
+
+def test_validation_adds_no_synchronisation_and_names_the_field() -> None:
+    cam = make_camera(64, 48)
+    g = frustum_scene(2000, cam, sh_degree=3, seed=1, device="cuda")
+    rasterize(g, cam)  # warm-up (allocator, pinned buffers)
+    with_check = _sync_warnings(lambda: rasterize(g, cam, validate=True))
+    without = _sync_warnings(lambda: rasterize(g, cam, validate=False))
+    # The former host check synchronised once per field (`bool(bad.any())`); the flags now travel with the
+    # binning's own read of the intersection count (a stream synchronisation that the debug mode does not count).
+    assert with_check == without
+    for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        bad = g.clone()
+        getattr(bad, field).view(len(g), -1)[1234, 0] = float("nan")
+        with pytest.raises(ValueError, match=f"{field}: 1 of 2000 rows"):
+            rasterize(bad, cam)
+    colors = torch.rand(len(g), 3, device="cuda")
+    colors[5, 2] = float("inf")
+    with pytest.raises(ValueError, match="colors"):
+        rasterize(g, cam, colors=colors)
 
 
 # ----------------------------------------------------------------------------------------- large scene

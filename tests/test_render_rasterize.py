@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 import sys
@@ -13,9 +14,10 @@ import torch
 import gsw
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
-from gsw.render.rasterize import bin_gaussians, blend, contribution, project, rasterization, rasterize
+from gsw.render.rasterize import (Projection, bin_gaussians, blend, contribution, project, rasterization,
+                                  rasterize)
 from gsw.render._reference import reference_contribution, reference_rasterize
-from gsw.scenes import frustum_scene, random_gaussians
+from gsw.scenes import frustum_scene, heavy_scene, random_gaussians
 
 FIXTURE = SHARED_DATA / "ply" / "sh3_fixture" / "point_cloud.ply"
 
@@ -371,3 +373,98 @@ def test_extension_uses_the_shared_libstdcxx() -> None:
 
     dynamic = subprocess.run(["readelf", "-d", _C.__file__], capture_output=True, text=True, check=True).stdout
     assert "libstdc++.so" in dynamic
+
+
+# ----------------------------------------------------------------------------------------- validation
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("field", ["means", "quats", "log_scales", "opacity_logits", "sh"])
+def test_validation_names_each_non_finite_field(field: str, value: float) -> None:
+    g = random_gaussians(12, sh_degree=2, seed=3)
+    cam = make_camera()
+    bad = g.clone()
+    getattr(bad, field).view(12, -1)[5, -1] = value  # for sh: a coefficient above degree 1
+    with pytest.raises(ValueError, match=f"{field}: 1 of 12 rows contain NaN/Inf"):
+        rasterize(bad, cam)
+    with pytest.raises(ValueError, match=field):
+        rasterize(bad, cam, sh_degree=1)  # every stored value is checked, not only the active degree
+    rasterize(bad, cam, validate=False)  # no check asked for: renders whatever comes out
+
+
+def test_validation_checks_culled_gaussians_and_the_colour_override() -> None:
+    g = random_gaussians(12, sh_degree=1, seed=4)
+    cam = make_camera()
+    behind = g.clone()
+    behind.means[2] = cam.center - 2.0 * cam.R[2]  # behind the camera: culled
+    behind.log_scales[2, 0] = float("nan")
+    with pytest.raises(ValueError, match="log_scales: 1 of 12"):
+        rasterize(behind, cam)
+    colors = torch.rand(12, 3)
+    colors[7, 1] = float("inf")
+    with pytest.raises(ValueError, match="colors"):
+        rasterize(g, cam, colors=colors)
+    out = rasterize(g, cam)  # a clean model passes, and the flags are in the projection
+    assert out.projection.nonfinite is not None and int(out.projection.nonfinite) == 0 and out.bins.nonfinite == 0
+
+
+# ----------------------------------------------------------------------------------------- opacity-aware footprints
+
+
+def test_footprint_radius_follows_the_opacity() -> None:
+    from gsw import constants as K
+
+    z, ls = 2.0, -2.0
+    cam = make_camera(64, 64, dtype=torch.float64)
+    ops = [0.002, 0.004, 0.01, 0.05, 0.2, 0.5, 0.99]
+    n = len(ops)
+    g = random_gaussians(n, sh_degree=0, seed=5, dtype=torch.float64)
+    g.means = (cam.center.double() + z * cam.R[2].double()).expand(n, 3).contiguous()
+    g.quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64).expand(n, 4).contiguous()
+    g.log_scales = torch.full((n, 3), ls, dtype=torch.float64)
+    g.opacity_logits = torch.logit(torch.tensor(ops, dtype=torch.float64))
+    radii = rasterize(g, cam).radii.tolist()
+    # Isotropic on the optical axis: both eigenvalues are var, and disc = 0 < EIGEN_FLOOR.
+    sigma = math.sqrt((cam.fx * math.exp(ls) / z) ** 2 + K.COV2D_DILATION + math.sqrt(K.EIGEN_FLOOR))
+    for op, r in zip(ops, radii):
+        skip = math.log(K.ALPHA_MIN / op) - K.SKIP_LOG_MARGIN
+        expected = 0 if skip >= 0 else min(math.ceil(K.RADIUS_SIGMAS * sigma), math.ceil(math.sqrt(-2 * skip) * sigma) + 1)
+        assert r == expected, (op, r, expected)
+    assert radii[0] == 0 and radii[-1] == math.ceil(K.RADIUS_SIGMAS * sigma) and 0 < radii[2] < radii[-1]
+
+
+def _blend_with_radii(proj: Projection, radii: torch.Tensor, cam: Camera, weights: torch.Tensor):
+    """Blends `proj`'s splats with other footprint radii; returns the outputs, the gradients and the bins."""
+    leaves = {k: getattr(proj, k).detach().clone().requires_grad_()
+              for k in ("means2d", "conics", "depths", "colors", "opacities")}
+    p = Projection(**leaves, radii=radii)
+    bins = bin_gaussians(p, cam.width, cam.height)
+    image, alpha, depth, final_T, _ = blend(p, bins, cam.width, cam.height, torch.zeros(3, dtype=proj.means2d.dtype))
+    ((image * weights).sum() + alpha.sum() + 0.1 * depth.sum()).backward()
+    return [image, alpha, depth, final_T], {k: t.grad for k, t in leaves.items()}, bins
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_opacity_aware_footprints_change_no_pixel_and_no_gradient(dtype: torch.dtype) -> None:
+    cam = Camera.from_fov(math.radians(60), 96, 64)
+    g = heavy_scene(3000, cam, seed=2, log_scale_mean=-2.5, dtype=dtype)
+    tight = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 3)
+    # INRIA's 3-sigma footprints: opaque logits size them, the blended opacities stay the real ones.
+    wide = project(g.means, g.quats, g.log_scales, torch.full_like(g.opacity_logits, 10.0), g.sh, cam, 3)
+    assert bool((tight.radii <= wide.radii).all()) and int((tight.radii < wide.radii).sum()) > 100
+    weights = torch.rand(3, cam.height, cam.width, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    outs_t, grads_t, bins_t = _blend_with_radii(tight, tight.radii, cam, weights)
+    outs_w, grads_w, bins_w = _blend_with_radii(tight, wide.radii, cam, weights)
+    assert bins_t.num_intersections < bins_w.num_intersections
+    for a, b in zip(outs_t, outs_w):
+        assert torch.equal(a, b)
+    for k in grads_t:
+        torch.testing.assert_close(grads_t[k], grads_w[k], rtol=0, atol=1e-12 if dtype == torch.float64 else 1e-7)
+
+
+def test_gsplat_style_rasterization_sizes_footprints_from_the_given_opacities() -> None:
+    cam = Camera.from_fov(math.radians(60), 64, 48)
+    g = heavy_scene(500, cam, seed=6, log_scale_mean=-2.5)
+    _, _, meta = rasterization(g.means, g.quats, g.scales, g.opacities, g.sh, cam.viewmat[None], cam.K[None],
+                               cam.width, cam.height, sh_degree=3)
+    assert torch.equal(meta["radii"][0], rasterize(g, cam).radii)

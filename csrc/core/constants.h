@@ -13,7 +13,8 @@ constexpr double NEAR_PLANE = 0.2;
 constexpr double COV2D_DILATION = 0.3;
 // The projected centre is clamped to +-FRUSTUM_CLAMP * tan(fov/2) before the EWA Jacobian.
 constexpr double FRUSTUM_CLAMP = 1.3;
-// Screen-space radius = ceil(RADIUS_SIGMAS * sqrt(largest eigenvalue)).
+// Screen-space radius = ceil(RADIUS_SIGMAS * sqrt(largest eigenvalue)), or less for faint
+// splats: as far as their alpha can reach ALPHA_MIN (footprint_radius in math.h).
 constexpr double RADIUS_SIGMAS = 3.0;
 // Upper bound of the pixel radius (keeps the int conversion defined for huge footprints).
 constexpr int MAX_RADIUS = 1 << 30;
@@ -26,8 +27,8 @@ constexpr double ALPHA_MIN = 1.0 / 255.0;
 // (that contribution is not blended).
 constexpr double T_MIN = 1e-4;
 // Implementation margin (not a rendering threshold): a splat is skipped without evaluating
-// exp() only when its exponent is below log(ALPHA_MIN / opacity) by more than this, so the
-// shortcut never changes a result.
+// exp(), or left out of a tile by the opacity-aware footprint, only when its exponent is below
+// log(ALPHA_MIN / opacity) by more than this, so neither shortcut changes a result.
 constexpr double SKIP_LOG_MARGIN = 1e-3;
 // Largest supported spherical-harmonics degree.
 constexpr int MAX_SH_DEGREE = 3;

@@ -14,13 +14,16 @@
 #pragma once
 
 #include <cmath>
+#include <cstdint>
 
 #include "constants.h"
 
 #if defined(__CUDACC__)
 #define GSW_HD __host__ __device__ __forceinline__
+#define GSW_UNROLL _Pragma("unroll")
 #else
 #define GSW_HD inline
+#define GSW_UNROLL
 #endif
 
 namespace gsw {
@@ -105,6 +108,44 @@ GSW_HD Vec3<T> matvec_t(const Mat3<T>& a, const Vec3<T>& v) {
   return {a.m[0][0] * v.x + a.m[1][0] * v.y + a.m[2][0] * v.z,
           a.m[0][1] * v.x + a.m[1][1] * v.y + a.m[2][1] * v.z,
           a.m[0][2] * v.x + a.m[1][2] * v.y + a.m[2][2] * v.z};
+}
+
+// ------------------------------------------------------------------ finite checks
+
+// |v| as an unsigned bit pattern: ordered like |v|, and NaN / Inf lie at or above the pattern of
+// infinity. Bitwise, so the check below holds under any fast-math flags.
+GSW_HD uint32_t magnitude_bits(float v) {
+#if defined(__CUDA_ARCH__)
+  return __float_as_uint(v) & 0x7fffffffu;
+#else
+  uint32_t b;
+  __builtin_memcpy(&b, &v, sizeof(b));
+  return b & 0x7fffffffu;
+#endif
+}
+GSW_HD uint64_t magnitude_bits(double v) {
+#if defined(__CUDA_ARCH__)
+  return static_cast<uint64_t>(__double_as_longlong(v)) & 0x7fffffffffffffffull;
+#else
+  uint64_t b;
+  __builtin_memcpy(&b, &v, sizeof(b));
+  return b & 0x7fffffffffffffffull;
+#endif
+}
+GSW_HD uint32_t infinity_bits(float) { return 0x7f800000u; }
+GSW_HD uint64_t infinity_bits(double) { return 0x7ff0000000000000ull; }
+
+// Whether x[0..n) are all finite (no NaN, no +-Inf): one max over the magnitude patterns.
+// Unrolled on the device when n is known, so x may be a register array.
+template <typename T>
+GSW_HD bool all_finite(const T* x, int n) {
+  decltype(magnitude_bits(T(0))) m = 0;
+  GSW_UNROLL
+  for (int k = 0; k < n; ++k) {
+    const auto b = magnitude_bits(x[k]);
+    m = b > m ? b : m;
+  }
+  return m < infinity_bits(T(0));
 }
 
 // ------------------------------------------------------------------ activations
@@ -369,14 +410,39 @@ GSW_HD Sym2<T> conic_from_cov2d_vjp(const Sym2<T>& conic, const Sym2<T>& v_conic
   return {r00, T(2) * r01, r11};
 }
 
-// Pixel radius: ceil(RADIUS_SIGMAS * sqrt(largest eigenvalue)) of the dilated covariance.
+// Exponent below which a splat of this opacity is certainly skipped (alpha < ALPHA_MIN); the
+// caller tests `power < skip_power` before paying for exp(). -inf-safe for opacity 0.
 template <typename T>
-GSW_HD int footprint_radius(const Sym2<T>& cov2d, T det) {
+GSW_HD T splat_skip_power(T opacity) {
+  return log(T(ALPHA_MIN) / opacity) - T(SKIP_LOG_MARGIN);
+}
+
+// Extent, in standard deviations, of the ellipse {power >= splat_skip_power(opacity)} outside
+// which a splat of this opacity is certainly skipped: sqrt(-2 skip_power), about
+// sqrt(2 ln(opacity / ALPHA_MIN)). 0 when it is skipped everywhere (opacity below ALPHA_MIN, NaN).
+template <typename T>
+GSW_HD T alpha_extent_sigmas(T opacity) {
+  const T skip = splat_skip_power(opacity);
+  return skip < T(0) ? sqrt(T(-2) * skip) : T(0);
+}
+
+// Pixel radius of the footprint (opacity-aware): INRIA's ceil(RADIUS_SIGMAS sqrt(l1)), l1 the
+// largest eigenvalue of the dilated covariance, or, when smaller, ceil(e sqrt(l1)) + 1 with
+// e = alpha_extent_sigmas(opacity): a faint splat reaches ALPHA_MIN only within e < RADIUS_SIGMAS
+// sigmas. The + 1 pixel covers tile_rect (INRIA's getRect), which can leave out the last pixel
+// of a radius on the right and bottom, so the tighter radius changes no rendered pixel; it only
+// drops (tile, splat) pairs that would be skipped. 0 when the splat can never reach ALPHA_MIN.
+template <typename T>
+GSW_HD int footprint_radius(const Sym2<T>& cov2d, T det, T opacity) {
+  const T extent = alpha_extent_sigmas(opacity);
+  if (!(extent > T(0))) return 0;
   const T a = cov2d.a + T(COV2D_DILATION), c = cov2d.c + T(COV2D_DILATION);
   const T mid = T(0.5) * (a + c);
   const T disc = mid * mid - det;
-  const T l1 = mid + sqrt(disc > T(EIGEN_FLOOR) ? disc : T(EIGEN_FLOOR));
-  const T r = ceil(T(RADIUS_SIGMAS) * sqrt(l1));
+  const T sigma = sqrt(mid + sqrt(disc > T(EIGEN_FLOOR) ? disc : T(EIGEN_FLOOR)));
+  const T r_max = ceil(T(RADIUS_SIGMAS) * sigma);
+  const T r_alpha = ceil(extent * sigma) + T(1);
+  const T r = r_alpha < r_max ? r_alpha : r_max;
   return r < T(MAX_RADIUS) ? static_cast<int>(r) : MAX_RADIUS;  // also maps NaN to MAX_RADIUS
 }
 
@@ -580,13 +646,6 @@ GSW_HD T splat_alpha(T opacity, T power) {
   const T alpha = a < T(ALPHA_MAX) ? a : T(ALPHA_MAX);
   const T kept = alpha < T(ALPHA_MIN) ? T(0) : alpha;
   return power > T(0) ? T(0) : kept;
-}
-
-// Exponent below which a splat of this opacity is certainly skipped (alpha < ALPHA_MIN); the
-// caller tests `power < skip_power` before paying for exp(). -inf-safe for opacity 0.
-template <typename T>
-GSW_HD T splat_skip_power(T opacity) {
-  return log(T(ALPHA_MIN) / opacity) - T(SKIP_LOG_MARGIN);
 }
 
 // Half extents (pixels) of the axis-aligned box around the 2-D mean outside which a splat is

@@ -31,6 +31,9 @@ struct ProjectParams {
   T* depths = nullptr;       // [N] view-space z
   T* colors = nullptr;       // [N, 3]
   T* opacities = nullptr;    // [N] sigmoid(logit)
+  // optional (forward): OR of the bits of nonfinite_fields (core/project.h) over all Gaussians;
+  // the caller zeroes it. Null: no check.
+  int32_t* nonfinite = nullptr;  // [1]
 };
 
 // Cotangents of stage 1: inputs are the per-Gaussian cotangents of the projected quantities,

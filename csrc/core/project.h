@@ -11,16 +11,25 @@ GSW_HD Vec3<T> load_vec3(const T* p) {
   return {p[0], p[1], p[2]};
 }
 
+// Values per Gaussian in ProjectParams::sh: 3 K SH coefficients, or 3 direct colours.
+template <typename T>
+GSW_HD int sh_values(const ProjectParams<T>& p) {
+  return p.sh_degree >= 0 ? 3 * p.K : 3;
+}
+
 // Projects Gaussian i into p.cam and writes its outputs (zeros and radius 0 when culled).
 // `degree` is the active SH degree (-1: direct colours); backends may pass a compile-time value.
+// `sh_i` holds the Gaussian's coefficients (or colours), at least the active ones: by default
+// p.sh + i * sh_values(p), or a copy in registers.
 template <typename T>
-GSW_HD void project_gaussian(const ProjectParams<T>& p, int64_t i, int degree) {
+GSW_HD void project_gaussian(const ProjectParams<T>& p, int64_t i, int degree, const T* sh_i) {
   const Camera<T>& cam = p.cam;
   T* m2 = p.means2d + 2 * i;
   T* cn = p.conics + 3 * i;
   T* col = p.colors + 3 * i;
   const Vec3<T> mean = load_vec3(p.means + 3 * i);
   const Vec3<T> pc = world_to_cam(cam, mean);
+  const T opacity = sigmoid(p.opacity_logits[i]);
   Sym2<T> conic = {T(0), T(0), T(0)};
   Projection<T> proj;
   int radius = 0;
@@ -29,7 +38,7 @@ GSW_HD void project_gaussian(const ProjectParams<T>& p, int64_t i, int degree) {
     proj = project_ewa(cam, pc, cov);
     T det;
     if (conic_from_cov2d(proj.cov2d, conic, det)) {
-      radius = footprint_radius(proj.cov2d, det);
+      radius = footprint_radius(proj.cov2d, det, opacity);
       const int tx = (cam.width + TILE_SIZE - 1) / TILE_SIZE;
       const int ty = (cam.height + TILE_SIZE - 1) / TILE_SIZE;
       int x0, y0, x1, y1;
@@ -48,17 +57,42 @@ GSW_HD void project_gaussian(const ProjectParams<T>& p, int64_t i, int degree) {
   cn[1] = conic.b;
   cn[2] = conic.c;
   p.depths[i] = pc.z;
-  p.opacities[i] = sigmoid(p.opacity_logits[i]);
+  p.opacities[i] = opacity;
   if (degree >= 0) {
     const Vec3<T> center = camera_center(cam);
     const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
-    const Vec3<T> c = sh_to_color(degree, dir, p.sh + int64_t(3) * p.K * i);
+    const Vec3<T> c = sh_to_color(degree, dir, sh_i);
     col[0] = c.x;
     col[1] = c.y;
     col[2] = c.z;
   } else {
-    for (int k = 0; k < 3; ++k) col[k] = p.sh[3 * i + k];
+    for (int k = 0; k < 3; ++k) col[k] = sh_i[k];
   }
+}
+
+// Names of the bits of ProjectParams::nonfinite (bit k: kNonFiniteFields[k]), as the
+// Gaussians' fields are called in Python.
+constexpr int kNumNonFiniteFields = 5;
+constexpr const char* kNonFiniteFields[kNumNonFiniteFields] = {"means", "quats", "log_scales",
+                                                               "opacity_logits", "sh"};
+
+constexpr int32_t kNonFiniteSh = 1 << 4;
+
+// Bitmask of the geometry inputs of Gaussian i (means, quats, log_scales, opacity_logits) that
+// hold NaN or Inf (bit k: kNonFiniteFields[k]).
+template <typename T>
+GSW_HD int32_t nonfinite_geometry(const ProjectParams<T>& p, int64_t i) {
+  return (all_finite(p.means + 3 * i, 3) ? 0 : 1) | (all_finite(p.quats + 4 * i, 4) ? 0 : 2) |
+         (all_finite(p.log_scales + 3 * i, 3) ? 0 : 4) | (all_finite(p.opacity_logits + i, 1) ? 0 : 8);
+}
+
+// Bitmask of all inputs of Gaussian i that hold NaN or Inf. Every stored value is checked:
+// culled Gaussians and SH coefficients above the active degree too; with direct colours
+// (sh_degree -1) the "sh" bit means the colours.
+template <typename T>
+GSW_HD int32_t nonfinite_fields(const ProjectParams<T>& p, int64_t i) {
+  const int n = sh_values(p);
+  return nonfinite_geometry(p, i) | (all_finite(p.sh + int64_t(n) * i, n) ? 0 : kNonFiniteSh);
 }
 
 // VJP of project_gaussian for everything but the colour: writes the cotangents of the

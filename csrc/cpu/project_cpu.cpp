@@ -7,7 +7,14 @@ namespace gsw::cpu {
 
 template <typename T>
 void project_forward(const ProjectParams<T>& p) {
-  parallel_items(p.N, [&](int64_t i) { project_gaussian(p, i, p.sh_degree); });
+  const int n = sh_values(p);
+  parallel_items(p.N, [&](int64_t i) {
+    project_gaussian(p, i, p.sh_degree, p.sh + int64_t(n) * i);
+    if (p.nonfinite) {
+      const int32_t bad = nonfinite_fields(p, i);
+      if (bad) __atomic_fetch_or(p.nonfinite, bad, __ATOMIC_RELAXED);
+    }
+  });
 }
 
 template <typename T>

@@ -7,9 +7,9 @@
 // buffers come from torch's caching allocator.
 //
 // Differences from the CPU backend (results agree to rounding):
-//  * binning sorts (tile << 32 | depth key) pairs of all intersections with cub's device radix
-//    sort (stable, so equal depths keep the Gaussian index order, as on the CPU); `fill_bins`
-//    needs the number of intersections M (the dispatcher knows it);
+//  * binning sorts the Gaussians by depth and then their intersections by tile with cub's device
+//    radix sort (both stable, so equal depths keep the Gaussian index order: the CPU's bins);
+//    `fill_bins` needs the number of intersections M (the dispatcher knows it);
 //  * rasterize_backward and contribution reduce per-splat values over a warp (shuffles) and then
 //    add them to the per-Gaussian outputs with atomics (backward: one per warp; contribution: one
 //    per tile, after summing the warps in shared memory, except the channel sums for C other than

@@ -1,13 +1,16 @@
 // CUDA tile binning: each tile's Gaussians, front to back (depth, then index), as on the CPU.
 //
-// Every (Gaussian, tile) intersection gets a 64-bit key (tile << 32 | depth key) and the pairs
-// (key, Gaussian id) are sorted with cub::DeviceRadixSort over the bits in use. The sort is
-// stable and the pairs are generated in Gaussian order, so equal depths keep the index order.
-//  * float32: the depth key is the float's bit pattern (depths are > NEAR_PLANE > 0, so bit
-//    patterns order like the values);
-//  * float64: the depth key is the Gaussian's rank in a stable sort of the double bit patterns
-//    (exactly the CPU's std::stable_sort order).
+// Two stable cub radix sorts, as the CPU's depth sort + counting sort by tile: the Gaussians are
+// sorted once by depth (N keys: the float bit pattern, which orders like the value since depths
+// are > NEAR_PLANE > 0 or exactly 0 for culled ones; 64-bit patterns for float64), their
+// intersections are emitted in that order, and the M (tile id, Gaussian id) pairs are sorted by
+// the tile id alone (log2(tiles) bits: 2 passes of 32-bit keys at 1080p, instead of 6 passes of
+// 64-bit (tile << 32 | depth) keys). Both sorts are stable, so each tile's list is in depth
+// order and equal depths keep the index order: the same bins as the CPU, bit for bit.
 #include <cub/device/device_radix_sort.cuh>
+#include <cub/device/device_scan.cuh>
+#include <algorithm>
+#include <type_traits>
 
 #include "cuda/common.cuh"
 
@@ -29,45 +32,57 @@ __global__ void count_tiles_kernel(int N, const T* __restrict__ means2d,
                             : 0;
 }
 
-__device__ __forceinline__ uint32_t depth_key(const float* depths, const uint32_t*, int g) {
-  return __float_as_uint(depths[g]);
-}
-__device__ __forceinline__ uint32_t depth_key(const double*, const uint32_t* rank, int g) {
-  return rank[g];
+// Depth sort keys: the bit pattern (non-negative values order like their patterns).
+__device__ __forceinline__ uint32_t depth_bits(float d) { return __float_as_uint(d); }
+__device__ __forceinline__ uint64_t depth_bits(double d) { return static_cast<uint64_t>(__double_as_longlong(d)); }
+
+template <typename T, typename K>
+__global__ void depth_keys_kernel(int N, const T* __restrict__ depths, K* __restrict__ keys,
+                                  int32_t* __restrict__ ids) {
+  const int i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= N) return;
+  keys[i] = depth_bits(depths[i]);
+  ids[i] = i;
 }
 
-// One thread per Gaussian writes its intersections' keys, row-major over its tile rectangle
-// (the CPU's entry order).
+// Intersection counts in depth order (for the scan that places each Gaussian's emitted entries).
+__global__ void counts_in_order_kernel(int N, const int32_t* __restrict__ order,
+                                       const int32_t* __restrict__ entry_offsets,
+                                       int32_t* __restrict__ counts) {
+  const int j = blockIdx.x * blockDim.x + threadIdx.x;
+  if (j >= N) return;
+  const int g = order[j];
+  counts[j] = entry_offsets[g + 1] - entry_offsets[g];
+}
+
+// Thread j emits the intersections of the j-th Gaussian in depth order: its tile ids (row-major
+// over its tile rectangle) at emit_offsets[j].
 template <typename T>
-__global__ void emit_keys_kernel(int N, const T* __restrict__ means2d,
-                                 const int32_t* __restrict__ radii, const T* __restrict__ depths,
-                                 const uint32_t* __restrict__ rank,
-                                 const int32_t* __restrict__ entry_offsets, int tiles_x,
-                                 int tiles_y, uint64_t* __restrict__ keys,
-                                 int32_t* __restrict__ vals) {
-  const int g = blockIdx.x * blockDim.x + threadIdx.x;
-  if (g >= N) return;
-  int32_t e = entry_offsets[g];
-  if (entry_offsets[g + 1] == e) return;
+__global__ void emit_keys_kernel(int N, const int32_t* __restrict__ order, const int32_t* __restrict__ emit_offsets,
+                                 const T* __restrict__ means2d, const int32_t* __restrict__ radii, int tiles_x,
+                                 int tiles_y, uint32_t* __restrict__ keys, int32_t* __restrict__ vals) {
+  const int j = blockIdx.x * blockDim.x + threadIdx.x;
+  if (j >= N) return;
+  const int g = order[j];
+  if (radii[g] <= 0) return;
   int x0, y0, x1, y1;
-  tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1,
-            y1);
-  const uint64_t dk = depth_key(depths, rank, g);
+  if (tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1, y1) == 0) return;
+  int32_t e = emit_offsets[j];
   for (int ty = y0; ty < y1; ++ty)
     for (int tx = x0; tx < x1; ++tx) {
-      keys[e] = (uint64_t(ty * tiles_x + tx) << 32) | dk;
+      keys[e] = static_cast<uint32_t>(ty * tiles_x + tx);
       vals[e] = g;
       ++e;
     }
 }
 
 // tile_offsets[t] = first sorted position of tile t (M for empty trailing tiles).
-__global__ void tile_offsets_kernel(int64_t M, int num_tiles, const uint64_t* __restrict__ keys,
+__global__ void tile_offsets_kernel(int64_t M, int num_tiles, const uint32_t* __restrict__ keys,
                                     int32_t* __restrict__ tile_offsets) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= M) return;
-  const int t = static_cast<int>(keys[i] >> 32);
-  const int prev = i == 0 ? -1 : static_cast<int>(keys[i - 1] >> 32);
+  const int t = static_cast<int>(keys[i]);
+  const int prev = i == 0 ? -1 : static_cast<int>(keys[i - 1]);
   for (int k = prev + 1; k <= t; ++k) tile_offsets[k] = static_cast<int32_t>(i);
   if (i == M - 1)
     for (int k = t + 1; k <= num_tiles; ++k) tile_offsets[k] = static_cast<int32_t>(M);
@@ -79,33 +94,18 @@ template <typename T>
 __global__ void entry_slots_kernel(int64_t M, const T* __restrict__ means2d,
                                    const int32_t* __restrict__ radii,
                                    const int32_t* __restrict__ entry_offsets,
-                                   const uint64_t* __restrict__ keys,
+                                   const uint32_t* __restrict__ keys,
                                    const int32_t* __restrict__ gauss_ids, int tiles_x,
                                    int tiles_y, int32_t* __restrict__ entry_slots) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= M) return;
   const int g = gauss_ids[i];
-  const int t = static_cast<int>(keys[i] >> 32);
+  const int t = static_cast<int>(keys[i]);
   int x0, y0, x1, y1;
   tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1,
             y1);
   const int tx = t % tiles_x, ty = t / tiles_x;
   entry_slots[entry_offsets[g] + (ty - y0) * (x1 - x0) + (tx - x0)] = static_cast<int32_t>(i);
-}
-
-// float64 depth ranks: stable sort of (bits(depth), index) over all Gaussians.
-__global__ void depth_bits_kernel(int N, const double* __restrict__ depths,
-                                  uint64_t* __restrict__ bits, uint32_t* __restrict__ ids) {
-  const int i = blockIdx.x * blockDim.x + threadIdx.x;
-  if (i >= N) return;
-  bits[i] = static_cast<uint64_t>(__double_as_longlong(depths[i]));
-  ids[i] = static_cast<uint32_t>(i);
-}
-__global__ void scatter_rank_kernel(int N, const uint32_t* __restrict__ sorted_ids,
-                                    uint32_t* __restrict__ rank) {
-  const int i = blockIdx.x * blockDim.x + threadIdx.x;
-  if (i >= N) return;
-  rank[sorted_ids[i]] = static_cast<uint32_t>(i);
 }
 
 int bits_for(int64_t n) {  // number of bits to represent values in [0, n]
@@ -151,46 +151,39 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths,
         cudaMemsetAsync(tile_offsets, 0, sizeof(int32_t) * (num_tiles + 1), stream));
     return;
   }
-  // float64: depth ranks first.
-  DeviceBuffer rank_buf(std::is_same<T, double>::value ? sizeof(uint32_t) * N : 0);
-  if constexpr (std::is_same<T, double>::value) {
-    DeviceBuffer bits(sizeof(uint64_t) * 2 * N), ids(sizeof(uint32_t) * 2 * N);
-    uint64_t* b = bits.as<uint64_t>();
-    uint32_t* id = ids.as<uint32_t>();
-    depth_bits_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, depths, b, id);
-    GSW_KERNEL_CHECK();
-    const int sel = radix_sort_pairs(b, b + N, id, id + N, N, 0, 64, stream);
-    scatter_rank_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(
-        N, sel ? id + N : id, rank_buf.as<uint32_t>());
-    GSW_KERNEL_CHECK();
-  }
-  DeviceBuffer keys(sizeof(uint64_t) * 2 * M), vals_alt(sizeof(int32_t) * M);
-  uint64_t* k0 = keys.as<uint64_t>();
-  uint64_t* k1 = k0 + M;
-  int32_t* v1 = vals_alt.as<int32_t>();
-  // Keys are written to k0 and values to v1 (the alternate value buffer), so that the common
-  // case of an even number of sort passes ends in gauss_ids without a copy.
-  emit_keys_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(
-      N, means2d, radii, depths, rank_buf.as<uint32_t>(), entry_offsets, tiles_x, tiles_y, k0,
-      v1);
+  // 1. Depth order of the Gaussians (stable: equal depths keep the index order).
+  using DepthKey = typename std::conditional<std::is_same<T, double>::value, uint64_t, uint32_t>::type;
+  DeviceBuffer dkeys(sizeof(DepthKey) * 2 * N), ids(sizeof(int32_t) * 2 * N);
+  DepthKey* dk = dkeys.as<DepthKey>();
+  int32_t* id = ids.as<int32_t>();
+  depth_keys_kernel<T, DepthKey><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, depths, dk, id);
   GSW_KERNEL_CHECK();
-  const int end_bit = 32 + bits_for(num_tiles - 1);
-  cub::DoubleBuffer<uint64_t> kb(k0, k1);
-  cub::DoubleBuffer<int32_t> vb(v1, gauss_ids);
-  size_t temp_bytes = 0;
-  GSW_CUDA_CHECK(
-      cub::DeviceRadixSort::SortPairs(nullptr, temp_bytes, kb, vb, static_cast<int>(M), 0, end_bit, stream));
+  const int sel = radix_sort_pairs(dk, dk + N, id, id + N, N, 0, int(8 * sizeof(DepthKey)), stream);
+  const int32_t* order = sel ? id + N : id;
+  // 2. Where each Gaussian's entries go in depth order: exclusive scan of its counts.
+  DeviceBuffer counts_buf(sizeof(int32_t) * 2 * N);
+  int32_t* counts = counts_buf.as<int32_t>();
+  int32_t* emit_offsets = counts + N;
+  counts_in_order_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, entry_offsets, counts);
+  GSW_KERNEL_CHECK();
+  size_t scan_bytes = 0;
+  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, scan_bytes, counts, emit_offsets, N, stream));
   {
-    DeviceBuffer temp(temp_bytes);
-    GSW_CUDA_CHECK(cub::DeviceRadixSort::SortPairs(temp.as<void>(), temp_bytes, kb, vb,
-                                                   static_cast<int>(M), 0, end_bit, stream));
+    DeviceBuffer temp(scan_bytes);
+    GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, counts, emit_offsets, N, stream));
   }
-  if (vb.Current() != gauss_ids)
-    GSW_CUDA_CHECK(cudaMemcpyAsync(gauss_ids, vb.Current(), sizeof(int32_t) * M,
-                                   cudaMemcpyDeviceToDevice, stream));
-  const uint64_t* sorted_keys = kb.Current();
-  tile_offsets_kernel<<<blocks_for(M, kThreads), kThreads, 0, stream>>>(M, num_tiles,
-                                                                         sorted_keys, tile_offsets);
+  // 3. (tile, Gaussian) pairs in depth order, then a stable sort by tile.
+  DeviceBuffer keys(sizeof(uint32_t) * 2 * M), vals_alt(sizeof(int32_t) * M);
+  uint32_t* k0 = keys.as<uint32_t>();
+  int32_t* v1 = vals_alt.as<int32_t>();
+  emit_keys_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, emit_offsets, means2d, radii,
+                                                                         tiles_x, tiles_y, k0, gauss_ids);
+  GSW_KERNEL_CHECK();
+  const int tile_sel = radix_sort_pairs(k0, k0 + M, gauss_ids, v1, M, 0, std::max(1, bits_for(num_tiles - 1)), stream);
+  if (tile_sel)
+    GSW_CUDA_CHECK(cudaMemcpyAsync(gauss_ids, v1, sizeof(int32_t) * M, cudaMemcpyDeviceToDevice, stream));
+  const uint32_t* sorted_keys = tile_sel ? k0 + M : k0;
+  tile_offsets_kernel<<<blocks_for(M, kThreads), kThreads, 0, stream>>>(M, num_tiles, sorted_keys, tile_offsets);
   GSW_KERNEL_CHECK();
   entry_slots_kernel<T><<<blocks_for(M, kThreads), kThreads, 0, stream>>>(
       M, means2d, radii, entry_offsets, sorted_keys, gauss_ids, tiles_x, tiles_y, entry_slots);

@@ -11,12 +11,6 @@ namespace {
 
 constexpr int kThreads = 256;
 
-template <typename T, int DEG>
-__global__ void __launch_bounds__(kThreads) project_forward_kernel(const ProjectParams<T> p) {
-  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i < p.N) project_gaussian(p, i, DEG);
-}
-
 // 128-bit moves of per-Gaussian coefficient arrays (float32 only).
 template <typename T>
 struct VecIO {
@@ -57,6 +51,28 @@ __device__ __forceinline__ void store_coeffs(T* dst, const T* src, bool vec) {
   }
 #pragma unroll
   for (int k = 0; k < n; ++k) dst[k] = src[k];
+}
+
+template <typename T, int DEG>
+__global__ void __launch_bounds__(kThreads) project_forward_kernel(const ProjectParams<T> p) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= p.N) return;
+  const int n = sh_values(p);
+  const T* sh_i = p.sh + int64_t(n) * i;
+  if (!p.nonfinite) {
+    project_gaussian(p, i, DEG, sh_i);
+    return;
+  }
+  // Validation: flag, never synchronise (the binning reads the flags back). The active
+  // coefficients pass through registers once, for the colour and for the check.
+  constexpr int KA = DEG >= 0 ? 3 * (DEG + 1) * (DEG + 1) : 3;
+  const bool vec = VecIO<T>::kOk && n % 4 == 0 && reinterpret_cast<uintptr_t>(p.sh) % 16 == 0;
+  T shl[KA];
+  load_coeffs<T, KA>(sh_i, shl, vec);
+  project_gaussian(p, i, DEG, shl);
+  const bool sh_ok = all_finite(shl, KA) && all_finite(sh_i + KA, n - KA);
+  const int32_t bad = nonfinite_geometry(p, i) | (sh_ok ? 0 : kNonFiniteSh);
+  if (bad) atomicOr(p.nonfinite, bad);
 }
 
 template <typename T, int DEG>

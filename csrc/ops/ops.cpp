@@ -4,11 +4,14 @@
 
 #include <cmath>
 #include <string>
+#include <tuple>
+#include <utility>
 
-#include "core/params.h"
+#include "core/project.h"
 #include "cpu/backend_cpu.h"
 #ifdef GSW_WITH_CUDA
 #include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
 #include "cuda/backend_cuda.h"
 #endif
@@ -157,11 +160,12 @@ ProjectParams<T> project_params(const GaussianArgs& g, const CameraArgs& c, int 
 py::tuple project_forward(const Tensor& means, const Tensor& quats, const Tensor& log_scales,
                           const Tensor& opacity_logits, const Tensor& sh, int sh_degree,
                           const Tensor& viewmat, double fx, double fy, double cx, double cy,
-                          int width, int height) {
+                          int width, int height, const c10::optional<Tensor>& nonfinite) {
   const GaussianArgs g{means, quats, log_scales, opacity_logits, sh, sh_degree};
   const CameraArgs c{viewmat, fx, fy, cx, cy, width, height};
   const int K = check_gaussians(g);
   check_camera(c);
+  if (nonfinite) check_int_tensor(*nonfinite, "nonfinite", means, 1);
   const int64_t N = means.size(0);
   auto opts = means.options();
   Tensor radii = torch::empty({N}, opts.dtype(torch::kInt32));
@@ -176,6 +180,7 @@ py::tuple project_forward(const Tensor& means, const Tensor& quats, const Tensor
     p.depths = depths.data_ptr<scalar_t>();
     p.colors = colors.data_ptr<scalar_t>();
     p.opacities = opacities.data_ptr<scalar_t>();
+    if (nonfinite) p.nonfinite = nonfinite->data_ptr<int32_t>();
     if (means.is_cuda()) {
 #ifdef GSW_WITH_CUDA
       const c10::cuda::CUDAGuard guard(means.device());
@@ -251,6 +256,7 @@ py::tuple project_backward(const Tensor& means, const Tensor& quats, const Tenso
 struct Bins {
   int tiles_x = 0, tiles_y = 0;
   Tensor tile_offsets, gauss_ids, entry_offsets, entry_slots;
+  int32_t nonfinite = 0;  // host copy of the projection's nonfinite flags (0 when not given)
 
   TileBins view() const {
     TileBins b;
@@ -265,13 +271,35 @@ struct Bins {
   }
 };
 
+// Host values of the intersection count (the last inclusive prefix sum `cum[N - 1]`) and of the
+// optional nonfinite flags. This is the binning's one host synchronisation (the outputs' sizes
+// depend on M); the flags travel with it, so validation adds no synchronisation of its own.
+std::pair<int64_t, int32_t> read_count_and_flags(const Tensor& cum, const c10::optional<Tensor>& nonfinite) {
+  const int64_t N = cum.size(0);
+  if (N == 0) return {0, 0};
+  if (!cum.is_cuda()) return {cum[N - 1].item<int64_t>(), nonfinite ? nonfinite->item<int32_t>() : 0};
+#ifdef GSW_WITH_CUDA
+  auto pinned = [](c10::ScalarType t) {
+    return torch::empty({1}, torch::TensorOptions().dtype(t).pinned_memory(true));
+  };
+  Tensor m = pinned(torch::kInt64), f = pinned(torch::kInt32);
+  m.copy_(cum.slice(0, N - 1, N), /*non_blocking=*/true);
+  if (nonfinite) f.copy_(*nonfinite, /*non_blocking=*/true);
+  c10::cuda::getCurrentCUDAStream(cum.get_device()).synchronize();
+  return {m.data_ptr<int64_t>()[0], nonfinite ? f.data_ptr<int32_t>()[0] : 0};
+#else
+  no_cuda();
+#endif
+}
+
 Bins bin_gaussians(const Tensor& means2d, const Tensor& radii, const Tensor& depths, int width,
-                   int height) {
+                   int height, const c10::optional<Tensor>& nonfinite) {
   check_float(means2d, "means2d");
   const int64_t N = means2d.size(0);
   check_tensor(means2d, "means2d", means2d, {N, 2});
   check_int_tensor(radii, "radii", means2d, N);
   check_tensor(depths, "depths", means2d, {N});
+  if (nonfinite) check_int_tensor(*nonfinite, "nonfinite", means2d, 1);
   GSW_CHECK_ARG(width > 0 && height > 0, "width/height", "must be positive");
   Bins b;
   b.tiles_x = tiles_along(width);
@@ -295,7 +323,8 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& radii, const Tensor& dep
   });
   // entry_offsets = exclusive prefix sum (int64 to detect overflow of the int32 index space).
   Tensor cum = torch::cumsum(touched, 0, torch::kInt64);
-  const int64_t M = N > 0 ? cum[N - 1].item<int64_t>() : 0;
+  int64_t M;
+  std::tie(M, b.nonfinite) = read_count_and_flags(cum, nonfinite);
   TORCH_CHECK(M < (int64_t(1) << 31), "gsw: too many tile intersections (", M,
               ") for int32 indices; render at a lower resolution or with fewer Gaussians");
   b.entry_offsets = torch::zeros({N + 1}, iopts);
@@ -493,13 +522,17 @@ void register_ops(py::module_& m) {
       .def_readonly("gauss_ids", &Bins::gauss_ids, "[M] int32, per tile front to back")
       .def_readonly("entry_offsets", &Bins::entry_offsets, "[N + 1] int32")
       .def_readonly("entry_slots", &Bins::entry_slots, "[M] int32")
+      .def_readonly("nonfinite", &Bins::nonfinite,
+                    "bitmask of the inputs found non-finite by the projection (bit k: NONFINITE_FIELDS[k]); "
+                    "0 when the projection ran without a nonfinite flag")
       .def_property_readonly("num_intersections", [](const Bins& b) { return b.gauss_ids.numel(); });
 
   m.def("project_forward", &project_forward, py::arg("means"), py::arg("quats"),
         py::arg("log_scales"), py::arg("opacity_logits"), py::arg("sh"), py::arg("sh_degree"),
         py::arg("viewmat"), py::arg("fx"), py::arg("fy"), py::arg("cx"), py::arg("cy"),
-        py::arg("width"), py::arg("height"),
-        "Project Gaussians: -> (radii, means2d, conics, depths, colors, opacities)");
+        py::arg("width"), py::arg("height"), py::arg("nonfinite") = py::none(),
+        "Project Gaussians: -> (radii, means2d, conics, depths, colors, opacities). `nonfinite` (optional "
+        "zeroed int32 [1]) receives the OR of the NONFINITE_FIELDS bits of inputs holding NaN/Inf");
   m.def("project_backward", &project_backward, py::arg("means"), py::arg("quats"),
         py::arg("log_scales"), py::arg("opacity_logits"), py::arg("sh"), py::arg("sh_degree"),
         py::arg("viewmat"), py::arg("fx"), py::arg("fy"), py::arg("cx"), py::arg("cy"),
@@ -508,7 +541,12 @@ void register_ops(py::module_& m) {
         py::arg("v_depths"), py::arg("v_colors"), py::arg("v_opacities"),
         "VJP of project_forward: -> (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh)");
   m.def("bin_gaussians", &bin_gaussians, py::arg("means2d"), py::arg("radii"), py::arg("depths"),
-        py::arg("width"), py::arg("height"), "Sort projected Gaussians into 16x16 tiles");
+        py::arg("width"), py::arg("height"), py::arg("nonfinite") = py::none(),
+        "Sort projected Gaussians into 16x16 tiles; the projection's `nonfinite` flags are read back with the "
+        "intersection count (TileBins.nonfinite)");
+  py::tuple fields(kNumNonFiniteFields);
+  for (int k = 0; k < kNumNonFiniteFields; ++k) fields[k] = kNonFiniteFields[k];
+  m.attr("NONFINITE_FIELDS") = fields;
   m.def("rasterize_forward", &rasterize_forward, py::arg("means2d"), py::arg("conics"),
         py::arg("colors"), py::arg("opacities"), py::arg("depths"), py::arg("background"),
         py::arg("bins"), py::arg("width"), py::arg("height"),

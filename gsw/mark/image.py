@@ -73,6 +73,18 @@ def _check_image(image: Tensor) -> Tensor:
     return image.float()
 
 
+def _quantise_8bit(images: Tensor) -> Tensor:
+    """What a saved 8-bit image holds: each value becomes exactly the float32 nearest to ``k / 255``.
+
+    The codes go through a table made on the CPU: a GPU division by 255 multiplies by a rounded reciprocal
+    and can land one ulp off ``k / 255`` (then reading the saved file back, or quantising again, would
+    not reproduce the result bit for bit).
+    """
+    codes = (images.float() * 255.0).round().clamp_(0, 255).long()
+    table = (torch.arange(256, dtype=torch.float32) / 255.0).to(images.device)
+    return table[codes]
+
+
 def embed_image(image: Tensor, message: MessageLike = None, *, num_bits: int = 32,
                 config: ImageEmbedConfig | None = None, decoder: torch.nn.Module | None = None,
                 progress: bool = True) -> ImageEmbedResult:
@@ -148,7 +160,7 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
             y = watermark_images(dec, x, bits.to(device).expand(len(chunk), -1), psnr=cfg.psnr, steps=cfg.steps,
                                  attack_every=cfg.attack_every, lr=cfg.lr, seed=cfg.seed + n,
                                  amp=device.type == "cuda", callback=step)
-            y = (y * 255.0).round() / 255.0  # what a saved 8-bit image holds
+            y = _quantise_8bit(y)
             seconds = (time.perf_counter() - t0) / len(chunk)
             with torch.no_grad():
                 read = (dec(ll_subband(y)) > 0).float().cpu()

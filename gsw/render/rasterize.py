@@ -41,10 +41,10 @@ def _camera_args(camera: Camera) -> dict[str, Any]:
 
 class _Project(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, log_scales, opacity_logits, sh, sh_degree, cam):  # type: ignore[override]
+    def forward(ctx, means, quats, log_scales, opacity_logits, sh, sh_degree, cam, nonfinite):  # type: ignore[override]
         ins = [t.contiguous() for t in (means, quats, log_scales, opacity_logits, sh)]
         radii, means2d, conics, depths, colors, opacities = _C.project_forward(
-            *ins, sh_degree=sh_degree, **cam)
+            *ins, sh_degree=sh_degree, **cam, nonfinite=nonfinite)
         ctx.sh_degree, ctx.cam = sh_degree, cam
         ctx.save_for_backward(*ins, radii, conics, colors, opacities)
         ctx.mark_non_differentiable(radii)
@@ -60,7 +60,7 @@ class _Project(torch.autograd.Function):
             v_means2d=v_means2d.contiguous(), v_conics=v_conics.contiguous(),
             v_depths=v_depths.contiguous(), v_colors=v_colors.contiguous(),
             v_opacities=v_opacities.contiguous())
-        return (*grads, None, None)
+        return (*grads, None, None, None)
 
 
 class _Blend(torch.autograd.Function):
@@ -106,7 +106,11 @@ class Projection:
         depths: [N] view-space z.
         colors: [N, 3] view-dependent RGB.
         opacities: [N] activated opacity.
-        radii: [N] int32 screen radius in pixels; 0 means culled.
+        radii: [N] int32 screen radius in pixels; 0 means culled. INRIA's 3-sigma radius, or less for
+            faint splats: as far as their alpha can reach ALPHA_MIN (about sqrt(2 ln(255 opacity))
+            sigmas, plus one pixel); 0 for opacities below ALPHA_MIN. The image does not change.
+        nonfinite: optional [1] int32 device flags the projection set for inputs holding NaN/Inf
+            (bit k: ``_C.NONFINITE_FIELDS[k]``); :func:`bin_gaussians` reads them back.
     """
 
     means2d: Tensor
@@ -115,6 +119,7 @@ class Projection:
     colors: Tensor
     opacities: Tensor
     radii: Tensor
+    nonfinite: Tensor | None = None
 
     @property
     def visible(self) -> Tensor:
@@ -123,7 +128,7 @@ class Projection:
 
 
 def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
-            camera: Camera, sh_degree: int) -> Projection:
+            camera: Camera, sh_degree: int, *, check_finite: bool = False) -> Projection:
     """Projects Gaussians into a camera (differentiable).
 
     Args:
@@ -134,19 +139,37 @@ def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Te
         sh: [N, K, 3] SH coefficients, or [N, 3] RGB colours when `sh_degree == -1`.
         camera: the camera.
         sh_degree: active SH degree in 0..3 (uses the first (d+1)^2 coefficients), or -1.
+        check_finite: let the projection kernel flag inputs holding NaN/Inf in
+            `Projection.nonfinite` (on the device, without synchronising).
 
     Returns:
         The :class:`Projection`.
     """
+    flags = torch.zeros(1, dtype=torch.int32, device=means.device) if check_finite else None
     out = _Project.apply(means, quats, log_scales, opacity_logits, sh, int(sh_degree),
-                         _camera_args(camera))
-    return Projection(*out)
+                         _camera_args(camera), flags)
+    return Projection(*out, nonfinite=flags)
 
 
 def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
-    """Sorts projected Gaussians into 16x16 tiles, front to back (not differentiable)."""
+    """Sorts projected Gaussians into 16x16 tiles, front to back (not differentiable).
+
+    The returned bins' `nonfinite` holds the host copy of `proj.nonfinite` (0 without flags), read
+    with the intersection count in the binning's one host synchronisation.
+    """
     return _C.bin_gaussians(proj.means2d.detach().contiguous(), proj.radii,
-                            proj.depths.detach().contiguous(), int(width), int(height))
+                            proj.depths.detach().contiguous(), int(width), int(height),
+                            nonfinite=proj.nonfinite)
+
+
+def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, flags: int) -> None:
+    """Raises the ValueError for the projection's nonfinite `flags` (bit k: NONFINITE_FIELDS[k])."""
+    names = [name for k, name in enumerate(_C.NONFINITE_FIELDS) if flags >> k & 1]
+    if colors is not None and "sh" in names:  # the "sh" input was the colour override
+        names[names.index("sh")] = "colors (the colour override)"
+        raise ValueError("non-finite inputs: " + ", ".join(names) + " contain NaN/Inf")
+    gaussians.check_finite()  # names the fields and counts the rows (a host check, on this error path only)
+    raise ValueError("non-finite Gaussian parameters: " + ", ".join(names))
 
 
 def blend(proj: Projection, bins: TileBins, width: int, height: int,
@@ -236,8 +259,10 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
         background: [3] RGB composited behind the splats (default black).
         colors: optional [N, 3] per-Gaussian RGB that replaces the SH colour (a "colour
             override"; differentiable).
-        validate: raise a ValueError naming the field if any parameter is NaN/Inf (one pass
-            over the parameters; on CUDA it synchronises, so hot loops may turn it off).
+        validate: raise a ValueError naming the field if any parameter (or the colour override)
+            is NaN/Inf. The projection kernel flags such values on the device and the flags are read
+            back in the binning's host synchronisation, which the render needs anyway: validation
+            adds no synchronisation, on the CPU and on CUDA alike.
 
     Returns:
         A :class:`RenderOutput` with image [3, H, W], alpha, depth and per-Gaussian data.
@@ -250,8 +275,6 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
         >>> rasterize(g, cam).image.shape
         torch.Size([3, 48, 64])
     """
-    if validate:
-        gaussians.check_finite()
     if colors is not None:
         n = gaussians.means.shape[0]
         if colors.shape != (n, 3):
@@ -260,8 +283,10 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
     else:
         sh, degree = gaussians.sh, _resolve_sh_degree(gaussians, sh_degree)
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales,
-                   gaussians.opacity_logits, sh, camera, degree)
+                   gaussians.opacity_logits, sh, camera, degree, check_finite=validate)
     bins = bin_gaussians(proj, camera.width, camera.height)
+    if bins.nonfinite:
+        _raise_nonfinite(gaussians, colors, bins.nonfinite)
     image, alpha, depth, final_T, n_contrib = blend(
         proj, bins, camera.width, camera.height, _background(background, gaussians.means))
     return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, bins)
@@ -356,15 +381,15 @@ def rasterization(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     else:
         sh, degree = colors, int(sh_degree)
     log_scales = torch.log(scales)
-    # The blending stage takes activated opacities directly; the projection's logit input is
-    # a placeholder whose output is replaced below.
-    dummy_logits = torch.zeros_like(opacities)
+    # The blending stage takes the activated opacities directly (the projection's opacity output is
+    # replaced below); their logits only size the opacity-aware footprints.
+    logits = torch.logit(opacities.detach())
     imgs, alphas, depth_maps, radii, m2d, depths = [], [], [], [], [], []
     for c in range(viewmats.shape[0]):
         K = Ks[c]
         cam = Camera(viewmat=viewmats[c], fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]),
                      cy=float(K[1, 2]), width=int(width), height=int(height))
-        proj = project(means, quats, log_scales, dummy_logits, sh, cam, degree)
+        proj = project(means, quats, log_scales, logits, sh, cam, degree)
         proj.opacities = opacities
         bins = bin_gaussians(proj, width, height)
         bg = _background(None if backgrounds is None else backgrounds[c], means)

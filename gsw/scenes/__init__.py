@@ -9,10 +9,11 @@ from gsw.scenes.synthetic import (
     default_scene,
     frustum_scene,
     frustum_sigma_px,
+    heavy_scene,
     random_gaussians,
 )
 
 __all__ = [
     "DEFAULT_SCENE_CENTER", "SyntheticScene", "default_cameras", "default_scene", "frustum_scene",
-    "frustum_sigma_px", "random_gaussians",
+    "frustum_sigma_px", "heavy_scene", "random_gaussians",
 ]

@@ -23,7 +23,7 @@ from gsw.camera import Camera, orbit_cameras
 from gsw.gaussians import Gaussians, rgb_to_sh_dc, sh_degree_to_num_coeffs
 
 __all__ = [
-    "SyntheticScene", "random_gaussians", "frustum_scene", "frustum_sigma_px", "default_scene",
+    "SyntheticScene", "random_gaussians", "frustum_scene", "frustum_sigma_px", "heavy_scene", "default_scene",
     "default_cameras", "DEFAULT_SCENE_CENTER",
 ]
 
@@ -186,6 +186,63 @@ def frustum_scene(
     quats = _normal(gen, (n, 4))
     opacity_logits = _normal(gen, (n,))
     sh = _sh_from_rgb(gen, _uniform(gen, (n, 3)), sh_degree, sh_rest_std)
+    return _make(
+        dict(means=means, log_scales=log_scales, quats=quats, opacity_logits=opacity_logits, sh=sh), dtype, device
+    )
+
+
+def heavy_scene(
+    n: int,
+    camera: Camera,
+    *,
+    sh_degree: int = 3,
+    seed: int = 0,
+    depth_range: tuple[float, float] = (2.0, 12.0),
+    log_scale_mean: float = -4.6,
+    log_scale_std: float = 0.5,
+    sh_rest_std: float = 0.1,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> Gaussians:
+    """A heavier benchmark scene than :func:`frustum_scene`: larger Gaussians, wide opacity spread.
+
+    Means have a uniform pixel position and a depth ``z`` uniform in ``depth_range``; each Gaussian is
+    isotropic with world scale ``exp(N(log_scale_mean, log_scale_std)) * 0.5 * z`` (so its projected size
+    does not depend on its depth); opacity logits are ``N(0, 2)``; the DC SH coefficients are uniform in
+    ``[-1, 1]`` and ``f_rest ~ N(0, sh_rest_std)``. The benchmarks use it with a 60 degree horizontal field of
+    view (``Camera.from_fov(math.radians(60), W, H)``).
+
+    Args:
+        n: number of Gaussians.
+        camera: the camera whose frustum is filled.
+        sh_degree: SH degree in ``0..3``.
+        seed: RNG seed.
+        depth_range: ``(near, far)`` camera-space depths, ``0 < near < far``.
+        log_scale_mean: mean of the log scale factor.
+        log_scale_std: standard deviation of the log scale factor.
+        sh_rest_std: standard deviation of the ``f_rest`` coefficients.
+        dtype: output dtype.
+        device: output device.
+
+    Returns:
+        ``n`` Gaussians in world coordinates.
+    """
+    near, far = depth_range
+    if not 0 < near < far:
+        raise ValueError(f"depth_range must satisfy 0 < near < far, got {depth_range}")
+    gen = _generator(seed)
+    z = _uniform(gen, (n,), near, far)
+    u = _uniform(gen, (n,), 0.0, camera.width)
+    v = _uniform(gen, (n,), 0.0, camera.height)
+    cam_points = torch.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], dim=1)
+    c2w = camera.c2w.detach().to(device="cpu", dtype=_F64)
+    means = cam_points @ c2w[:3, :3].T + c2w[:3, 3]
+    log_scales = (log_scale_mean + _normal(gen, (n,), log_scale_std) + torch.log(0.5 * z))[:, None].expand(n, 3)
+    quats = _normal(gen, (n, 4))
+    opacity_logits = _normal(gen, (n,), 2.0)
+    k = sh_degree_to_num_coeffs(sh_degree)
+    sh = _normal(gen, (n, k, 3), sh_rest_std)
+    sh[:, 0] = _uniform(gen, (n, 3), -1.0, 1.0)
     return _make(
         dict(means=means, log_scales=log_scales, quats=quats, opacity_logits=opacity_logits, sh=sh), dtype, device
     )

@@ -205,7 +205,7 @@ def _ewa_cov2d(cov: torch.Tensor, pcx: torch.Tensor, pcy: torch.Tensor, iz: torc
 
 @torch.no_grad()
 def _footprint(a_d: torch.Tensor, c_d: torch.Tensor, det: torch.Tensor, ok: torch.Tensor,
-               means2d: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               means2d: torch.Tensor, width: int, height: int, opacity_logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``footprint_radius`` and the tile rectangle (discrete, not differentiated).
 
     Args:
@@ -216,6 +216,7 @@ def _footprint(a_d: torch.Tensor, c_d: torch.Tensor, det: torch.Tensor, ok: torc
         means2d: [N, 2] projected centres (zero where not ``ok``).
         width: image width in pixels.
         height: image height in pixels.
+        opacity_logits: [N] opacity logits (the radius is opacity-aware).
 
     Returns:
         (radius [N] int32, tile_rects [N, 4] int32, ok [N]): ``ok`` also requires a non-empty rectangle;
@@ -224,8 +225,14 @@ def _footprint(a_d: torch.Tensor, c_d: torch.Tensor, det: torch.Tensor, ok: torc
     mid = _c(0.5, a_d) * (a_d + c_d)
     disc = mid * mid - det
     floor_ = _c(K.EIGEN_FLOOR, a_d)
-    l1 = mid + torch.sqrt(torch.where(disc > floor_, disc, floor_))
-    radius = torch.ceil(_c(K.RADIUS_SIGMAS, a_d) * torch.sqrt(l1))
+    sigma = torch.sqrt(mid + torch.sqrt(torch.where(disc > floor_, disc, floor_)))
+    # Opacity-aware (footprint_radius): min(ceil(3 sigma), ceil(e sigma) + 1), e the extent in sigmas
+    # where alpha can reach ALPHA_MIN; 0 where it never can.
+    zero, one = _c(0.0, a_d), _c(1.0, a_d)
+    skip = torch.log(_c(K.ALPHA_MIN, a_d) / torch.sigmoid(opacity_logits.to(a_d))) - _c(K.SKIP_LOG_MARGIN, a_d)
+    extent = torch.sqrt(torch.where(skip < 0, _c(-2.0, a_d) * skip, zero))
+    radius = torch.minimum(torch.ceil(_c(K.RADIUS_SIGMAS, a_d) * sigma), torch.ceil(extent * sigma) + one)
+    radius = torch.where(extent > 0, radius, zero)
     radius = torch.where(ok, radius, torch.zeros_like(radius)).to(torch.int32)
     rects = reference_tile_rects(means2d, radius, width, height)
     n_tiles = (rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])
@@ -325,7 +332,8 @@ def reference_project(
     inv = one / torch.where(ok, det, one)
     conic = torch.stack([c_d * inv, -cov_b * inv, a_d * inv], dim=-1)
     means2d_det = torch.stack([torch.where(ok, m2x, zero), torch.where(ok, m2y, zero)], -1).detach()
-    radius, rects, ok = _footprint(a_d.detach(), c_d.detach(), det.detach(), ok, means2d_det, width, height)
+    radius, rects, ok = _footprint(a_d.detach(), c_d.detach(), det.detach(), ok, means2d_det, width, height,
+                                   opacity_logits.detach())
 
     colors = _colors(means, sh, sh_degree, R, t)
     opac = torch.sigmoid(opacity_logits)
