@@ -55,14 +55,14 @@ def photo_files(data: Path, holdout: bool) -> list[tuple[str, str]]:
     return out
 
 
-def fixture_orbit(n: int, size: int, *, up=(0.0, 0.0, 1.0), radius_scale: float = 1.0, elevation: float = 20.0,
-                  offset: float = 0.0):
+def fixture_orbit(data: Path, n: int, size: int, *, up=(0.0, 0.0, 1.0), radius_scale: float = 1.0,
+                  elevation: float = 20.0, offset: float = 0.0):
     """The PLY fixture and ``n`` orbit cameras around its content (its centre is the median of the means;
     radius 900 world units frames the ~400-unit object)."""
     from gsw.camera import orbit_cameras
     from gsw.io.ply import load_ply
 
-    g = load_ply(DATA / "ply" / "sh3_fixture" / "point_cloud.ply")
+    g = load_ply(data / "ply" / "sh3_fixture" / "point_cloud.ply")
     center = g.means.median(0).values.double().tolist()
     cams = orbit_cameras(center, 900.0 * radius_scale, n, width=size, height=size, up=up,
                          elevation_deg=elevation, azimuth_offset_deg=offset)
@@ -76,7 +76,7 @@ def render_all(g, cams, background) -> list[torch.Tensor]:
         return [rasterize(g, c, background=background).image.clamp(0, 1) for c in cams]
 
 
-def calibration_renders() -> Iterator[tuple[str, str, torch.Tensor]]:
+def calibration_renders(data: Path) -> Iterator[tuple[str, str, torch.Tensor]]:
     """(name, "render", image) of the unmarked calibration renders: 8 orbit views (elevation 30 deg) of the
     built-in scene (seed 0) and 8 of the PLY fixture (up +z, elevation 20 deg), at each of
     :data:`RENDER_SIZES`."""
@@ -87,7 +87,7 @@ def calibration_renders() -> Iterator[tuple[str, str, torch.Tensor]]:
         cams = default_cameras(8, size, size)
         for i, img in enumerate(render_all(scene.gaussians, cams, scene.background)):
             yield f"render/default_seed0/view{i}_{size}", "render", img
-        g, cams = fixture_orbit(8, size)
+        g, cams = fixture_orbit(data, 8, size)
         for i, img in enumerate(render_all(g, cams, (0.0, 0.0, 0.0))):
             yield f"render/sh3_fixture/view{i}_{size}", "render", img
 
@@ -125,7 +125,7 @@ def load_items(data: Path) -> list[tuple[str, str, torch.Tensor]]:
 
     items = [(name, kind, (read_image(data / name)[:3] * 255).round().to(torch.uint8))
              for name, kind in photo_files(data, holdout=False)]
-    return items + list(calibration_renders())
+    return items + list(calibration_renders(data))
 
 
 def main() -> None:
@@ -135,10 +135,12 @@ def main() -> None:
     ap.add_argument("--output", type=Path, default=None, help="folder of the JSON files (default: beside the weights)")
     ap.add_argument("--cache", type=Path, default=ROOT / "build" / "null_calibration")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--from-cache", action="store_true",
+                    help="refit from the decoded bits in --cache without loading the images")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    items = load_items(args.data)
+    items = [] if args.from_cache else load_items(args.data)
     print(f"{len(items)} calibration images loaded in {time.perf_counter() - t0:.1f} s", flush=True)
     key_src = json.dumps([(n, k, list(im.shape)) for n, k, im in items]).encode()
     for k in args.bits:
@@ -146,6 +148,12 @@ def main() -> None:
         wfile = weights_path(k)
         sha = sha256_file(wfile)
         cache = args.cache / f"k{k}_{sha[:12]}_{hashlib.sha256(key_src).hexdigest()[:12]}.json"
+        if args.from_cache:
+            found = sorted(args.cache.glob(f"k{k}_{sha[:12]}_*.json"))
+            if len(found) != 1:
+                raise SystemExit(f"--from-cache: expected one cache file k{k}_{sha[:12]}_*.json in {args.cache}, "
+                                 f"found {len(found)}")
+            cache = found[0]
         decoder = load_decoder(k)
         if cache.is_file():
             records = json.loads(cache.read_text())
@@ -160,6 +168,8 @@ def main() -> None:
                      "bsds500/{train,val}: calibration only; renders: built-in scene seed 0 (8 orbit views, "
                      "elevation 30) + ply/sh3_fixture (8 orbit views, up +z, elevation 20)",
         }
+        for r in records:  # bsds500 trained the decoder and centred its whitening: a stratum of its own
+            r["kind"] = "bsds" if r["name"].startswith("bsds500/") else r["kind"]
         model = fit_null_model(records, k, decoder=decoder, decoder_sha256=sha, provenance=provenance)
         out = null_path(k, args.output)
         model.save(out)

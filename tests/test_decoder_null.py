@@ -9,15 +9,20 @@ import numpy as np
 import pytest
 import torch
 
-from gsw.decoder.null import (NullModel, NullModelError, decoder_fingerprint, fit_null_model, is_holdout,
-                              load_null_model, null_path)
+from gsw.decoder.null import (NullModel, NullModelError, Stratum, decoder_fingerprint, fit_null_model,
+                              is_holdout, load_null_model, null_path)
 from gsw.decoder.zoo import AVAILABLE_BITS, WEIGHTS_DIR, WatermarkDecoder, load_decoder
 from gsw.stats import binomial_p_value, poisson_binomial_sf
 
 
-def _model(p1, se=0.0, k=None):
-    k = len(p1) if k is None else k
-    return NullModel(k, np.asarray(p1, float), np.eye(k) * se**2, np.eye(k))
+def _stratum(p1, se=0.0, corr=None, direction="down"):
+    k = len(p1)
+    return Stratum(f"test/{direction}", direction, 100, 100, np.asarray(p1, float), np.full(k, se),
+                   np.eye(k) if corr is None else corr)
+
+
+def _model(p1, se=0.0, corr=None):
+    return NullModel(len(p1), [_stratum(p1, se, corr)])
 
 
 def test_fair_model_gives_binomial_p_values():
@@ -60,7 +65,7 @@ def test_fitted_model_controls_false_positives_for_the_worst_message():
     calib = (rng.uniform(size=(300, k)) < true_p1).astype(int)
     records = [{"name": f"img{i}", "kind": "photo", "factor": 1.0, "bits": b.tolist()} for i, b in enumerate(calib)]
     null = fit_null_model(records, k, draws=500)
-    assert null.calibration["images"] == 300 and null.calibration["kinds"]["photo"]["images"] == 300
+    assert null.calibration["images"] == 300 and null.calibration["strata"]["photo/down"]["images"] == 300
     worst = (true_p1 > 0.5).astype(int)
     test = (rng.uniform(size=(50000, k)) < true_p1).astype(int)
     new_rate = float((null.p_values(test, worst) <= level).mean())
@@ -74,18 +79,22 @@ def test_json_round_trip_and_errors(tmp_path):
     null.calibration = {"images": 3}
     path = null.save(tmp_path / "null.json")
     back = NullModel.load(path)
-    assert back.num_bits == 8 and np.allclose(back.p1, null.p1) and np.allclose(back.p1_cov, null.p1_cov)
+    assert back.num_bits == 8 and len(back.strata) == 1
+    assert np.allclose(back.strata[0].p1, null.strata[0].p1, atol=1e-5) and np.allclose(back.strata[0].p1_se, 0.01)
     assert back.calibration == {"images": 3}
     m = np.array([1, 0, 1, 1, 0, 0, 1, 0])
-    assert np.allclose(back.tail_table(m), null.tail_table(m))
+    assert np.allclose(back.tail_table(m), null.tail_table(m), rtol=1e-3)
     d = json.loads(path.read_text())
-    del d["p1"]
+    del d["strata"][0]["p1"]
     (tmp_path / "bad.json").write_text(json.dumps(d))
     with pytest.raises(NullModelError, match="missing field 'p1'"):
         NullModel.load(tmp_path / "bad.json")
     d = null.to_dict()
-    d["p1"] = [0.5] * 7
-    with pytest.raises(NullModelError, match="'p1'"):
+    d["strata"][0]["p1"] = [0.5] * 7
+    with pytest.raises(NullModelError, match="stratum 'test/down' field 'p1'"):
+        NullModel.from_dict(d)
+    d["format"] = "something else"
+    with pytest.raises(NullModelError, match="not a gsw null model"):
         NullModel.from_dict(d)
     with pytest.raises(NullModelError, match="not found"):
         NullModel.load(tmp_path / "missing.json")
@@ -106,7 +115,7 @@ def test_decoder_check():
     a, b = WatermarkDecoder(8, num_blocks=1, channels=4), WatermarkDecoder(8, num_blocks=1, channels=4)
     records = [{"name": "x", "kind": "photo", "factor": 1.0, "bits": [0, 1] * 4},
                {"name": "y", "kind": "photo", "factor": 1.0, "bits": [1, 1] * 4}]
-    null = fit_null_model(records, 8, decoder=a)
+    null = fit_null_model(records, 8, decoder=a, min_images=1)
     assert null.decoder_fingerprint == decoder_fingerprint(a)
     null.check_decoder(a)
     with pytest.raises(NullModelError, match="not for this decoder"):
@@ -136,3 +145,56 @@ def test_holdout_split_is_fixed_and_about_half():
     held = [is_holdout(n) for n in names]
     assert held == [is_holdout(n) for n in names]
     assert 0.4 < np.mean(held) < 0.6
+
+
+def test_null_model_imports_without_the_compiled_extension():
+    import subprocess
+    import sys
+
+    code = ("import importlib.abc, sys\n"
+            "class _Block(importlib.abc.MetaPathFinder):\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'gsw._C':\n"
+            "            raise ImportError('blocked')\n"
+            "sys.meta_path.insert(0, _Block())\n"
+            "import gsw.decoder.null\nassert 'gsw._C' not in sys.modules\nprint('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_positive_bit_correlation_widens_the_tail_and_negative_does_not_narrow_it():
+    k = 32
+    p1 = np.full(k, 0.5)
+    m = np.ones(k, dtype=int)
+    pos = np.full((k, k), 0.1)
+    np.fill_diagonal(pos, 1.0)
+    neg = np.full((k, k), -0.02)
+    np.fill_diagonal(neg, 1.0)
+    plain, wide, narrow = _model(p1), _model(p1, corr=pos), _model(p1, corr=neg)
+    assert wide.tail_table(m)[29] > 100 * plain.tail_table(m)[29]
+    assert np.allclose(narrow.tail_table(m), plain.tail_table(m))
+    # the same correlations with a message that flips half the bits: the matches decorrelate
+    flipped = np.array([1, 0] * (k // 2))
+    assert wide.tail_table(flipped)[29] < wide.tail_table(m)[29]
+
+
+def test_strata_envelope_covers_each_kind_and_reading_direction():
+    """Two kinds of content with opposite biases: the model must hold for the worst message of each."""
+    rng = np.random.default_rng(2)
+    k, level = 32, 1e-2
+    kinds = {"a": rng.uniform(0.3, 0.7, k), "b": rng.uniform(0.3, 0.7, k)}
+    records = [{"name": f"{kd}{i}", "kind": kd, "factor": 1.0, "bits": (rng.uniform(size=k) < p).astype(int).tolist()}
+               for kd, p in kinds.items() for i in range(300)]
+    records += [{"name": "c0", "kind": "c", "factor": 1.0, "bits": [0] * k}]  # too few images: left out
+    null = fit_null_model(records, k, draws=300)
+    assert sorted(s.name for s in null.strata) == ["a/down", "b/down"]
+    assert null.calibration["left_out_readings"] == {"c/down": 1}
+    for p in kinds.values():
+        worst = (p > 0.5).astype(int)
+        test = (rng.uniform(size=(20000, k)) < p).astype(int)
+        assert float((null.p_values(test, worst) <= level).mean()) <= level
+    up = NullModel(k, [_stratum(np.full(k, 0.5)), _stratum(np.full(k, 0.8), direction="up")])
+    bits = np.ones((2, k), dtype=int)
+    bits[:, :4] = 0
+    p_down, p_up = up.p_values(bits, np.ones(k), factors=[1.0, 2.0])
+    assert p_down == pytest.approx(binomial_p_value(28, k)) and p_up > 100 * p_down

@@ -167,7 +167,7 @@ def assess(images: Tensor | Sequence[Tensor], message: Tensor | Sequence[int] | 
         bits = r.bits.numpy().astype(np.int8)
         if bits.shape[-1] != num_bits:
             raise ValueError(f"the decoder returned {bits.shape[-1]} bits, num_bits={num_bits}")
-        ps = model.p_values(bits, m)
+        ps = model.p_values(bits, m, np.asarray(r.factors))
         best = int(np.argmin(ps))  # first (factor 1 / the embedding size) among ties
         matches = int((bits[best] == m).sum())
         per_image.append(ImageEvidence(matches / num_bits, matches, r.factors[best], tuple(r.sizes[best]),

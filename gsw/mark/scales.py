@@ -68,6 +68,12 @@ class Reading:
         """[S, k] decoded bits in {0, 1} (float)."""
         return (self.logits > 0).float()
 
+    @property
+    def confidence(self) -> Tensor:
+        """[S] mean |logit| of each reading: a message-free sign of the scale a watermark was embedded at
+        (it peaks there on marked images), for reading bits without a claimed message."""
+        return self.logits.abs().mean(-1)
+
 
 def _check_size(size: object, name: str) -> tuple[int, int]:
     if (not isinstance(size, (tuple, list)) or len(size) != 2
