@@ -11,12 +11,15 @@ split only (the HOLD-OUT split, :func:`gsw.decoder.null.is_holdout`, is left for
 
 Every image is read as the detector reads it (:func:`gsw.mark.scales.read_plan`): photos at factor 1
 and at one more factor of their search plan (chosen by a hash of the name, so every factor is covered),
-renders at every factor of their plan.  All readings of one image count as one calibration image for the
+renders at every factor of their plan.  Strata (:func:`gsw.decoder.null.fit_null_model`): content kind
+(``photo`` = sun80 + urban100, ``manga``, ``bsds`` -- the decoder's own training and whitening photos,
+kept apart because the decoder is centred on them -- and ``render``) x reading direction (``down``:
+factor <= 1, ``up``: enlarged).  All readings of one image count as one calibration image for the
 estimate's uncertainty.  Deterministic: same data + same code -> same JSON (decoded bits are cached in
-``--cache``, keyed by the decoder's sha256 and the reading list).
+``--cache``, keyed by the decoder's sha256 and the reading list; ``--from-cache`` refits from them).
 
-    PYTHONPATH=. python benchmarks/calibrate_null.py                 # all three bit lengths
-    PYTHONPATH=. python benchmarks/calibrate_null.py --bits 32 --cache build/null_calibration
+    PYTHONPATH=. python benchmarks/calibrate_null.py --data ../shared/data       # all three bit lengths
+    PYTHONPATH=. python benchmarks/calibrate_null.py --bits 32 --from-cache      # refit only
 """
 
 from __future__ import annotations

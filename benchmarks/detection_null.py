@@ -182,28 +182,42 @@ def singles(bits: list[np.ndarray], msgs: np.ndarray, tables: np.ndarray, k: int
             "new_search": rates(np.stack([new_p(mt, tables) for mt in mts]))}
 
 
-def bias_test(bits: np.ndarray, null) -> dict:
+def bias_test(bits: np.ndarray, stratum) -> dict:
     """Per-bit P(1) of held-out images (one reading each) vs a fair decoder's sampling noise
-    (``max_dev_p_value``) and vs the calibrated rates (simulated: n draws of Bernoulli(p1) per bit, plus
-    the rates' own estimation error)."""
+    (``max_dev_p_value``: P(max_i |P(1)_i - 1/2| >= observed) for n images of k fair independent bits) and
+    vs the calibration stratum of the same kind (simulated: n draws of Bernoulli(rate) per bit, the rates
+    drawn from the stratum's estimate and its standard error)."""
     n, k = bits.shape
     p1 = bits.mean(0)
     dev = float(np.abs(p1 - 0.5).max())
     gen = np.random.default_rng(3)
-    obs = float(np.abs(p1 - null.p1).max())
-    rate = np.clip(null.p1 + gen.standard_normal((4000, k)) * np.sqrt(np.diag(null.p1_cov)), 0, 1)
-    sim = np.abs(gen.binomial(n, rate) / n - null.p1).max(1)
+    obs = float(np.abs(p1 - stratum.p1).max())
+    rate = np.clip(stratum.p1 + gen.standard_normal((4000, k)) * stratum.p1_se, 0, 1)
+    sim = np.abs(gen.binomial(n, rate) / n - stratum.p1).max(1)
     return {"images": n, "max_abs_dev_from_half": dev, "fair_decoder_p_value": max_dev_p_value(dev, n, k),
-            "max_abs_dev_from_calibrated": obs, "calibrated_p_value": float((sim >= obs - 1e-12).mean()),
-            "worst_bit": int(np.abs(p1 - 0.5).argmax()), "p1": np.round(p1, 3).tolist()}
+            "worst_bit": int(np.abs(p1 - 0.5).argmax()), "stratum": stratum.name,
+            "max_abs_dev_from_stratum": obs, "stratum_p_value": float((sim >= obs - 1e-12).mean()),
+            "p1": np.round(p1, 3).tolist()}
 
 
-def aligned_messages(null, count: int, gen: np.random.Generator) -> np.ndarray:
-    """The message that agrees with every bias of the null model, with 0-3 random bits flipped."""
-    base = (null.p1 > 0.5).astype(np.int8)
+def aligned_messages(p1: np.ndarray, count: int, gen: np.random.Generator) -> np.ndarray:
+    """The message that agrees with every bias ``p1`` (a calibration stratum's), and copies with 1-3
+    random bits flipped."""
+    base = (p1 > 0.5).astype(np.int8)
     out = np.repeat(base[None], count, axis=0)
     for row in out[1:]:
         row[gen.choice(len(base), gen.integers(1, 4), replace=False)] ^= 1
+    return out
+
+
+def aligned_singles(bits: list[np.ndarray], kinds: list[str], null, gen, k: int) -> dict:
+    """False positives of messages aligned with the biases of each held-out kind's calibration stratum."""
+    out = {}
+    for kind in sorted(set(kinds)):
+        stratum = next(s for s in null.strata if s.name == f"{kind}/down")
+        msgs = aligned_messages(stratum.p1, 100, gen)
+        tables = np.stack([null.tail_table(m) for m in msgs])
+        out[kind] = singles([b for b, kd in zip(bits, kinds) if kd == kind], msgs, tables, k)
     return out
 
 
@@ -239,14 +253,16 @@ def power(decoder, null, cache: Path) -> dict:
     out = {}
     for s in POWER_SCALES:
         imgs = render_all(g, [c.scaled(s) for c in cams], bg)
-        search = readings_bits(imgs, decoder)
+        rs = read_images(imgs, decoder)
+        search = [r.bits.numpy().astype(np.int8) for r in rs]
         known = readings_bits(imgs, decoder, embed_size=(256, 256))
         mt_s = np.stack([match_counts(b, m[None]) for b in search])[..., 0]  # [V, S]
         mt_k = np.stack([match_counts(b, m[None]) for b in known])[..., 0]  # [V, 1]
         p_old = old_p(mt_s[:, 0], 32)
         p_known = new_p(mt_k[..., None], table)[:, 0]
         p_search = new_p(mt_s[..., None], table)[:, 0]
-        conf = [read_images([im], decoder)[0].confidence.argmax().item() for im in imgs[:4]]
+        conf = [int(r.confidence.argmax()) for r in rs]
+        best = [int(np.argmax(mt)) for mt in mt_s]
         sets = [[(i + j) % 24 for j in range(10)] for i in range(24)]  # 24 sets of 10 held-out views
         det = lambda p: float(np.mean(np.asarray(p) <= 1e-6))  # noqa: E731
         out[f"{s:g}x"] = {
@@ -259,7 +275,8 @@ def power(decoder, null, cache: Path) -> dict:
                            "new_search": det([hommel_combined_p_value(p_search[st]) for st in sets])},
             "median_p": {"old": float(np.median(p_old)), "new_known_size": float(np.median(p_known)),
                          "new_search": float(np.median(p_search))},
-            "most_confident_factor_first4": [SEARCH_FACTORS[i] for i in conf],
+            "factor_most_matches": {f"{rs[0].factors[i]:.3g}": best.count(i) for i in sorted(set(best))},
+            "most_confident_is_most_matches": float(np.mean([c == b for c, b in zip(conf, best)])),
         }
         print(f"power {s}x: {out[f'{s:g}x']['single']} sets {out[f'{s:g}x']['sets_of_10']}", flush=True)
     return out
@@ -295,18 +312,19 @@ def main() -> None:
         decoder, null = load_decoder(k), load_null_model(k)
         msgs = gen.integers(0, 2, (args.messages, k)).astype(np.int8)
         tables = np.stack([null.tail_table(m) for m in msgs])
-        aligned = aligned_messages(null, 100, gen)
-        atables = np.stack([null.tail_table(m) for m in aligned])
         pb = readings_bits([im for _, _, im in photos], decoder)
-        r = {"photos": singles(pb, msgs, tables, k), "photos_aligned_messages": singles(pb, aligned, atables, k),
-             "bias_photos": bias_test(np.stack([b[0] for b in pb]), null)}
-        for kind in ("photo", "manga"):
-            sel = [b[:1] for b, (_, kd, _) in zip(pb, photos) if kd == kind]
-            r[f"bias_{kind}"] = {kk: v for kk, v in bias_test(np.concatenate(sel), null).items() if kk != "p1"}
+        kinds = [kd for _, kd, _ in photos]
+        r = {"photos": singles(pb, msgs, tables, k),
+             "photos_aligned_messages": aligned_singles(pb, kinds, null, gen, k)}
+        for kind in sorted(set(kinds)):
+            stratum = next(s for s in null.strata if s.name == f"{kind}/down")
+            r[f"bias_{kind}"] = bias_test(np.stack([b[0] for b, kd in zip(pb, kinds) if kd == kind]), stratum)
         if k == 32:
             rb = readings_bits(holdout_renders(args.data), decoder)
             r["renders"] = singles(rb, msgs, tables, k)
-            r["renders_aligned_messages"] = singles(rb, aligned, atables, k)
+            r["renders_aligned_messages"] = aligned_singles(rb, ["render"] * len(rb), null, gen, k)["render"]
+            r["bias_render"] = bias_test(np.stack([b[0] for b in rb]),
+                                         next(s for s in null.strata if s.name == "render/down"))
             rsets = [np.stack(readings_bits(fr, decoder, embed_size=(256, 256)))
                      for fr in render_sets(args.data, args.render_sets, 40)]
             psets = [np.stack(readings_bits(fr, decoder)) for fr in photo_sets(photos, args.photo_sets, 40)]
