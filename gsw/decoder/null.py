@@ -47,6 +47,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -279,8 +280,10 @@ class NullModel:
     def save(self, path: str | Path) -> Path:
         """Writes the model as JSON (atomically). Returns the path."""
         path = Path(path)
+        text = json.dumps(self.to_dict(), indent=1)
+        text = re.sub(r"\[\s*([-+0-9.eE,\s]+?)\s*\]", lambda mt: "[" + re.sub(r"\s+", "", mt.group(1)) + "]", text)
         with atomic_write(path, "w") as f:
-            f.write(json.dumps(self.to_dict(), indent=1) + "\n")
+            f.write(text + "\n")
         return path
 
     @classmethod
