@@ -1,0 +1,176 @@
+"""Calibrated evidence that images carry a message: :func:`assess`.
+
+For each image: read it at its scales (:func:`gsw.mark.scales.read_images`), the p-value of each reading
+under the decoder's null model (:meth:`gsw.decoder.null.NullModel.p_values`: Poisson-binomial with the
+measured per-bit rates, an upper confidence bound for their estimation error, never below the fair coin),
+the reading with the smallest p-value, multiplied by the number of readings (Bonferroni over the scale
+search; 1 reading and no factor when the embedding size is known).  Over images: Simes' combination with
+Hommel's correction (:func:`gsw.stats.hommel_combined_p_value`), valid for any dependence between the
+images, e.g. near-duplicate frames of one scene.
+
+Example:
+    >>> import torch
+    >>> ev = assess([torch.rand(3, 128, 128)], torch.randint(0, 2, (32,)), num_bits=32)  # doctest: +SKIP
+    >>> ev.detected(), ev.images[0].factor  # doctest: +SKIP
+    (False, 1.0)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from gsw.decoder.null import NullModel, NullModelError, decoder_fingerprint, load_null_model
+from gsw.mark.scales import SEARCH_FACTORS, read_images
+from gsw.stats import DETECTION_FPR, bonferroni_p_value, hommel_combined_p_value
+
+__all__ = ["Evidence", "ImageEvidence", "assess", "message_bits", "resolve_null_model"]
+
+
+@dataclass
+class ImageEvidence:
+    """One image's evidence.
+
+    Attributes:
+        bit_accuracy: fraction of the message's bits read at the chosen scale.
+        matches: number of matching bits there.
+        factor: resize factor of the chosen reading (1.0: the image as given).
+        read_size: (height, width) the image was read at.
+        readings: number of readings tried (the Bonferroni factor in ``p_value``).
+        p_value: the image's p-value, the scale search included.
+    """
+
+    bit_accuracy: float
+    matches: int
+    factor: float
+    read_size: tuple[int, int]
+    readings: int
+    p_value: float
+
+
+@dataclass
+class Evidence:
+    """Result of :func:`assess`.
+
+    Attributes:
+        images: per image, in input order.
+        p_value: one p-value for all images together (valid for correlated frames).
+        num_bits: message length.
+        null_model: "calibrated" (the decoder's null model) or "fair" (fair coin: a custom decoder without
+            a null model).
+    """
+
+    images: list[ImageEvidence]
+    p_value: float
+    num_bits: int
+    null_model: str
+
+    @property
+    def p_values(self) -> list[float]:
+        """Per-image p-values."""
+        return [e.p_value for e in self.images]
+
+    @property
+    def bit_accuracy(self) -> list[float]:
+        """Per-image bit accuracy at the chosen scale."""
+        return [e.bit_accuracy for e in self.images]
+
+    @property
+    def matches(self) -> list[int]:
+        """Per-image matching bits at the chosen scale."""
+        return [e.matches for e in self.images]
+
+    def detected(self, fpr: float = DETECTION_FPR) -> bool:
+        """Whether the combined p-value is at or below ``fpr``."""
+        return self.p_value <= fpr
+
+
+def message_bits(message: Tensor | Sequence[int] | np.ndarray, num_bits: int) -> np.ndarray:
+    """The claimed message as [k] int8 bits; a clear error for a wrong length or non-bit values."""
+    m = message.detach().cpu().numpy() if isinstance(message, Tensor) else np.asarray(message)
+    if m.ndim != 1 or m.shape[0] != num_bits:
+        raise ValueError(f"message has shape {list(m.shape)}; expected [{num_bits}] bits (num_bits={num_bits})")
+    if not np.all((m == 0) | (m == 1)):
+        raise ValueError("message must hold bits (0 or 1)")
+    return m.astype(np.int8)
+
+
+def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel | None,
+                       shipped_decoder: bool) -> tuple[NullModel, str]:
+    """The null model to use with ``decoder`` and its label.
+
+    An explicit ``null`` must belong to ``decoder`` (:meth:`NullModel.check_decoder`, else
+    :class:`NullModelError`). Without one: the shipped decoder gets its shipped null model (sha256
+    checked against the weights manifest); a custom decoder gets the shipped model only if its weights
+    are the shipped ones, otherwise the fair coin."""
+    if null is not None:
+        if null.num_bits != num_bits:
+            raise NullModelError(f"null model of {null.num_bits} bits given for num_bits={num_bits}")
+        null.check_decoder(decoder)
+        return null, "calibrated"
+    try:
+        shipped = load_null_model(num_bits)
+    except NullModelError:
+        if shipped_decoder:
+            raise
+        return NullModel.fair(num_bits), "fair"
+    if shipped_decoder or shipped.decoder_fingerprint == decoder_fingerprint(decoder):
+        if shipped_decoder:
+            shipped.check_decoder(decoder)
+        return shipped, "calibrated"
+    return NullModel.fair(num_bits), "fair"
+
+
+@torch.no_grad()
+def assess(images: Tensor | Sequence[Tensor], message: Tensor | Sequence[int] | np.ndarray, *, num_bits: int,
+           decoder: torch.nn.Module | None = None, null: NullModel | None = None,
+           embed_size: tuple[int, int] | None = None, factors: Sequence[float] = SEARCH_FACTORS,
+           batch_size: int = 16) -> Evidence:
+    """Tests images for a message with p-values that hold for biased decoders, any number of correlated
+    frames and an unknown display scale.
+
+    Args:
+        images: [3, H, W] RGB images in [0, 1] (a list, sizes may differ, or a [B, 3, H, W] batch).
+        message: [k] claimed message bits.
+        num_bits: k.
+        decoder: default: the shipped ``num_bits`` decoder.
+        null: the decoder's null model (default: :func:`resolve_null_model`).
+        embed_size: ``(height, width)`` of the embedding renders, when known: every image is read at
+            that size only (no search, no multiple-testing factor).
+        factors: scale-search factors (:data:`gsw.mark.scales.SEARCH_FACTORS`).
+        batch_size: images of one shape decoded together.
+
+    Returns:
+        :class:`Evidence`.
+
+    Raises:
+        ValueError: wrong message length / values, bad images.
+        gsw.decoder.null.NullModelError: a null model of another decoder or bit length.
+    """
+    m = message_bits(message, num_bits)
+    shipped = decoder is None
+    if shipped:
+        from gsw.decoder.zoo import load_decoder
+
+        decoder = load_decoder(num_bits)
+    out_bits = getattr(decoder, "num_bits", num_bits)
+    if out_bits != num_bits:
+        raise ValueError(f"the decoder reads {out_bits} bits, num_bits={num_bits}")
+    model, label = resolve_null_model(num_bits, decoder, null, shipped)
+    readings = read_images(images, decoder, embed_size=embed_size, factors=factors, batch_size=batch_size)
+    per_image = []
+    for r in readings:
+        bits = r.bits.numpy().astype(np.int8)
+        if bits.shape[-1] != num_bits:
+            raise ValueError(f"the decoder returned {bits.shape[-1]} bits, num_bits={num_bits}")
+        ps = model.p_values(bits, m, np.asarray(r.factors))
+        best = int(np.argmin(ps))  # first (factor 1 / the embedding size) among ties
+        matches = int((bits[best] == m).sum())
+        per_image.append(ImageEvidence(matches / num_bits, matches, r.factors[best], tuple(r.sizes[best]),
+                                       len(ps), float(bonferroni_p_value(ps))))
+    combined = float(hommel_combined_p_value([e.p_value for e in per_image]))
+    return Evidence(per_image, combined, num_bits, label)

@@ -1,0 +1,104 @@
+"""gsw.mark.scales and gsw.mark.evidence: reading at the embedding scale, the scale search, assess()."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gsw.decoder.null import NullModel, NullModelError
+from gsw.mark.evidence import assess
+from gsw.mark.scales import MAX_READ_SIDE, MIN_READ_SIDE, SEARCH_FACTORS, read_images, read_plan
+from gsw.stats import binomial_p_value
+
+
+class ScaleToy(torch.nn.Module):
+    """A decoder that reads ``message`` only from images of height ``target`` and its complement from any
+    other height (a watermark that only the right scale reveals)."""
+
+    def __init__(self, message: torch.Tensor, target: int) -> None:
+        super().__init__()
+        self.num_bits = message.numel()
+        self.register_buffer("message", message.float())
+        self.target = target
+        self.seen: list[tuple[int, ...]] = []
+
+    def decode_image(self, images: torch.Tensor) -> torch.Tensor:
+        self.seen.append(tuple(images.shape))
+        code = self.message if images.shape[-2] == self.target else 1 - self.message
+        return (2 * code - 1).expand(images.shape[0], -1)
+
+    def parameters(self, recurse: bool = True):  # read_images asks for the device
+        yield self.message
+
+
+MSG = torch.tensor([1, 0, 0, 1] * 8)
+
+
+def test_read_plan_limits_and_embed_size():
+    assert [f for f, _ in read_plan(100, 100)] == [1.0, 2 / 3, 2.0]  # 1/2 and 1/3 fall below MIN_READ_SIDE
+    big = read_plan(900, 600)
+    assert all(max(s) <= MAX_READ_SIDE and min(s) >= MIN_READ_SIDE for _, s in big) and 2.0 not in [f for f, _ in big]
+    assert read_plan(20, 20) == [(1.0, (20, 20))]  # the first factor is always read
+    assert read_plan(512, 512, embed_size=(256, 256)) == [(0.5, (256, 256))]
+    (f, size), = read_plan(300, 600, embed_size=(256, 256))  # other aspect ratio: same pixel count
+    assert size == (181, 362) and f == pytest.approx(256 / (300 * 600) ** 0.5)
+    with pytest.raises(ValueError, match="height, width"):
+        read_plan(10, 10, embed_size=(0, 5))
+
+
+def test_read_images_batches_same_sizes():
+    dec = ScaleToy(MSG, 128)
+    imgs = [torch.rand(3, 256, 256) for _ in range(3)] + [torch.rand(3, 128, 192)]
+    readings = read_images(imgs, dec)
+    assert [len(r.factors) for r in readings] == [5, 5, 5, 4]
+    assert len(dec.seen) == 9 and dec.seen[0][0] == 3  # one decode per reading of each shape group
+    assert readings[0].sizes[2] == (128, 128) and torch.equal(readings[0].bits[2], MSG.float())
+    with pytest.raises(ValueError, match="image 1"):
+        read_images([torch.rand(3, 8, 8), torch.rand(8, 8)], dec)
+
+
+def test_scale_search_picks_the_embedding_scale_and_pays_for_the_search():
+    dec, null = ScaleToy(MSG, 128), NullModel.fair(32)
+    img = torch.rand(3, 256, 256)  # a render at 2x the embedding resolution
+    ev = assess([img], MSG, num_bits=32, decoder=dec, null=null)
+    (e,) = ev.images
+    assert e.factor == 0.5 and e.read_size == (128, 128) and e.matches == 32 and e.readings == len(SEARCH_FACTORS)
+    assert e.p_value == pytest.approx(len(SEARCH_FACTORS) * 2.0**-32)
+    known = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(128, 128))
+    assert known.images[0].readings == 1 and known.p_value == pytest.approx(2.0**-32)
+    wrong = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(256, 256))
+    assert wrong.images[0].matches == 0 and wrong.p_value == 1.0 and not wrong.detected()
+
+
+def test_identical_frames_are_not_counted_as_independent_evidence():
+    dec, null = ScaleToy(MSG, 64), NullModel.fair(32)
+    msg = MSG.clone()
+    msg[:3] = 1 - msg[:3]  # 29 of 32 bits at the right scale
+    frames = [torch.full((3, 64, 64), 0.5)] * 10
+    ev = assess(frames, msg, num_bits=32, decoder=dec, null=null, embed_size=(64, 64))
+    harmonic = sum(1 / i for i in range(1, 11))
+    assert ev.matches == [29] * 10
+    assert ev.p_value == pytest.approx(harmonic * binomial_p_value(29, 32))
+    assert not ev.detected(1e-6)
+
+
+def test_assess_errors():
+    dec = ScaleToy(MSG, 64)
+    with pytest.raises(ValueError, match=r"expected \[32\] bits"):
+        assess([torch.rand(3, 64, 64)], MSG[:31], num_bits=32, decoder=dec, null=NullModel.fair(32))
+    with pytest.raises(ValueError, match="0 or 1"):
+        assess([torch.rand(3, 64, 64)], MSG * 2, num_bits=32, decoder=dec, null=NullModel.fair(32))
+    with pytest.raises(NullModelError, match="48 bits given for num_bits=32"):
+        assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec, null=NullModel.fair(48))
+    other = NullModel.fair(32)
+    other.decoder_fingerprint = "0" * 64
+    with pytest.raises(NullModelError, match="not for this decoder"):
+        assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec, null=other)
+    ev = assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec)  # custom decoder, no null model
+    assert ev.null_model == "fair"
+
+
+def test_shipped_decoder_on_noise_is_not_detected():
+    ev = assess([torch.rand(3, 96, 96), torch.rand(3, 96, 96)], np.ones(32, dtype=int), num_bits=32)
+    assert ev.null_model == "calibrated" and len(ev.images) == 2 and not ev.detected()

@@ -1,0 +1,103 @@
+"""gsw.stats: Poisson-binomial tails, combinations valid under dependence, binomial intervals."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from gsw.stats import (beta_quantile, binomial_p_value, bonferroni_p_value, clopper_pearson,
+                       fisher_combined_p_value, hommel_combined_p_value, poisson_binomial_pmf,
+                       poisson_binomial_sf, regularized_beta)
+
+
+def _enumerated_tail(q: np.ndarray, x: int) -> float:
+    total = 0.0
+    for outcome in itertools.product((0, 1), repeat=len(q)):
+        if sum(outcome) >= x:
+            total += math.prod(qi if o else 1 - qi for qi, o in zip(q, outcome))
+    return total
+
+
+def test_poisson_binomial_matches_enumeration():
+    rng = np.random.default_rng(0)
+    for k in (1, 3, 7):
+        q = rng.uniform(0.02, 0.98, k)
+        for x in range(-1, k + 2):
+            assert float(poisson_binomial_sf(q, x)) == pytest.approx(_enumerated_tail(q, x), rel=1e-12, abs=1e-300)
+    pmf = poisson_binomial_pmf(rng.uniform(0, 1, (5, 9)))
+    assert pmf.shape == (5, 10) and np.allclose(pmf.sum(-1), 1.0)
+
+
+def test_poisson_binomial_equals_binomial_at_one_half():
+    for k in (32, 48, 64):
+        tails = poisson_binomial_sf(np.full(k, 0.5), np.arange(k + 1))
+        exact = np.array([binomial_p_value(x, k) for x in range(k + 1)])
+        assert np.allclose(tails, exact, rtol=1e-12, atol=0)
+    # the far tail keeps its relative accuracy (2^-64 = 5.4e-20, no 1 - cdf cancellation)
+    assert float(poisson_binomial_sf(np.full(64, 0.5), 64)) == pytest.approx(2.0**-64, rel=1e-12)
+    assert float(poisson_binomial_sf(np.full(64, 0.5), 60)) == pytest.approx(binomial_p_value(60, 64), rel=1e-12)
+
+
+def test_poisson_binomial_broadcasting_and_errors():
+    q = np.array([[0.5] * 4, [0.9] * 4])
+    out = poisson_binomial_sf(q, np.array([[4], [0]]))
+    assert out.shape == (2, 2)
+    assert out[0, 0] == pytest.approx(1 / 16) and out[1, 1] == 1.0
+    with pytest.raises(ValueError, match="in \\[0, 1\\]"):
+        poisson_binomial_sf([0.5, 1.5], 1)
+    with pytest.raises(ValueError, match="integers"):
+        poisson_binomial_sf([0.5, 0.5], 1.5)
+
+
+def _rate(p: np.ndarray, level: float) -> float:
+    return float((p <= level).mean())
+
+
+def test_hommel_valid_for_identical_and_independent_frames():
+    rng = np.random.default_rng(1)
+    sets, n, level = 40000, 10, 1e-2
+    identical = np.repeat(rng.uniform(size=(sets, 1)), n, axis=1)  # perfectly correlated frames
+    independent = rng.uniform(size=(sets, n))
+    se = math.sqrt(level * (1 - level) / sets)
+    assert _rate(hommel_combined_p_value(identical), level) <= level + 3 * se
+    assert _rate(hommel_combined_p_value(independent), level) <= level + 3 * se
+    # Fisher treats the n copies as independent evidence: far above the nominal rate
+    fisher = np.array([fisher_combined_p_value(row) for row in identical[:4000]])
+    assert _rate(fisher, level) > 5 * level
+
+
+def test_hommel_values():
+    harmonic = sum(1 / i for i in range(1, 11))
+    assert float(hommel_combined_p_value([1e-3] * 10)) == pytest.approx(harmonic * 1e-3)
+    assert float(hommel_combined_p_value([1e-4] + [1.0] * 9)) == pytest.approx(10 * harmonic * 1e-4)
+    assert float(hommel_combined_p_value([0.3])) == pytest.approx(0.3)
+    assert hommel_combined_p_value(np.full((3, 4), 0.9), axis=1).shape == (3,)
+    with pytest.raises(ValueError, match="no p-values"):
+        hommel_combined_p_value([])
+    with pytest.raises(ValueError, match="in \\[0, 1\\]"):
+        hommel_combined_p_value([0.1, 2.0])
+
+
+def test_bonferroni():
+    assert float(bonferroni_p_value([0.01, 0.5, 0.2])) == pytest.approx(0.03)
+    assert float(bonferroni_p_value([0.6, 0.9])) == 1.0
+    assert bonferroni_p_value(np.full((2, 5), 0.01), axis=0).shape == (5,)
+
+
+def test_beta_and_clopper_pearson():
+    # P(Bin(n, p) >= j) = I_p(j, n - j + 1)
+    n, p = 20, 0.3
+    for j in (1, 5, 12):
+        exact = sum(math.comb(n, i) * p**i * (1 - p) ** (n - i) for i in range(j, n + 1))
+        assert regularized_beta(j, n - j + 1, p) == pytest.approx(exact, rel=1e-10)
+    assert beta_quantile(0.5, 2.0, 2.0) == pytest.approx(0.5, abs=1e-9)
+    lo, hi = clopper_pearson(0, 10000)
+    assert lo == 0.0 and hi == pytest.approx(1 - 0.025 ** (1 / 10000), rel=1e-8)
+    lo, hi = clopper_pearson(5, 100)
+    assert regularized_beta(5, 96, lo) == pytest.approx(0.025, abs=1e-9)  # P(X >= 5 | lo) = 2.5 %
+    assert 1 - regularized_beta(6, 95, hi) == pytest.approx(0.025, abs=1e-9)  # P(X <= 5 | hi) = 2.5 %
+    with pytest.raises(ValueError, match="successes"):
+        clopper_pearson(3, 2)
