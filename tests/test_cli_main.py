@@ -31,7 +31,7 @@ def test_expected_errors_are_one_line_naming_the_file(tmp_path, capsys) -> None:
     (tmp_path / "model.ply").write_bytes(b"")
     assert main(["embed", str(tmp_path / "model.ply"), "--cameras", str(bad), "--output", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("gsw embed: error: ") and f"{bad}: invalid JSON" in err and err.count("\n") == 1
+    assert err.startswith("gsw embed: error: ") and str(bad) in err and "JSON" in err and err.count("\n") == 1
     assert not (tmp_path / "o").exists()
 
 

@@ -111,8 +111,10 @@ def test_verify_model_uses_the_stored_bits_background_and_resolution(marked, tmp
     out, _, _ = marked
     model = load_inria_model(out)
     message = message_from_key(KEY, 48)
-    white = verify((model.gaussians, model.cameras), message, background=(1.0, 1.0, 1.0))
-    black = verify((model.gaussians, model.cameras), message, background=(0.0, 0.0, 0.0))
+    white = verify((model.gaussians, model.cameras), message, background=(1.0, 1.0, 1.0),
+                   embed_size=(model.cameras[0].height, model.cameras[0].width))
+    black = verify((model.gaussians, model.cameras), message, background=(0.0, 0.0, 0.0),
+                   embed_size=(model.cameras[0].height, model.cameras[0].width))
     assert white.p_values != black.p_values  # the background changes what the decoder reads
     report = _verify_json(["--model", str(out), "--key", KEY])  # no --bits, no --white
     assert (report["num_bits"], report["background"]) == (48, [1.0, 1.0, 1.0])

@@ -174,7 +174,7 @@ def test_rgb_sh_dc_conversion_pair():
 
 def test_quaternion_matrix_round_trip():
     from gsw.gaussians import quat_to_rotmat, rotmat_to_quat
-    from gsw.render._reference import _quat_to_rotmat
+    from gsw.render._reference.project import _quat_to_rotmat
 
     q = torch.nn.functional.normalize(torch.randn(2000, 4, dtype=torch.float64), dim=1)
     half_turns = torch.tensor([[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 0.6, 0.8, 0], [1, 0, 0, 0.0]],

@@ -98,13 +98,13 @@ def _check_views(gaussians: Gaussians, cameras: list[Camera] | None, n: int, siz
 
 def run_export(args: argparse.Namespace) -> int:
     """Converts ``args.model`` into ``args.output``; returns the exit status."""
-    from gsw.cli.main import _check_output  # noqa: PLC0415
+    from gsw.cli.common import check_output  # noqa: PLC0415
     from gsw.io.convert import check_conversion  # noqa: PLC0415
     from gsw.io.formats import load_model, save_model  # noqa: PLC0415
 
     model, output = Path(args.model), Path(args.output)
     fmt = _output_format(output, args.format)
-    _check_output(output, [model], args.force)
+    check_output(output, [model], args.force)
     gaussians, cameras, info = _load(model)
     output.resolve().parent.mkdir(parents=True, exist_ok=True)
     save_model(gaussians, output, fmt)

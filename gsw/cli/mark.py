@@ -278,9 +278,13 @@ def cmd_verify(args: argparse.Namespace) -> int:
     if args.model:
         source, names = _model_views(args.model, info, device)
     else:
-        source, names = [img.to(device) for img in read_images(args.images)], list(args.images)
+        from gsw.io.video import load_named_images_or_video
+
+        named = load_named_images_or_video(args.images)
+        source, names = [img.to(device) for _, img in named], [n for n, _ in named]
     _warn_if_other_decoder(info, num_bits)
-    v = verify(source, message, num_bits=num_bits, background=background)
+    embed_size = None if info is None or info.resolution is None else (info.resolution[1], info.resolution[0])
+    v = verify(source, message, num_bits=num_bits, background=background, embed_size=embed_size)
     detected = v.detected(args.fpr)
     if args.json:
         print_json(dict(detected=detected, p_value=v.p_value, fpr=args.fpr, num_bits=num_bits,

@@ -118,7 +118,7 @@ def check_conversion(original: Gaussians, converted: Gaussians, cameras: Sequenc
     Returns:
         The :class:`ConversionCheck`.
     """
-    from gsw.mark.embed import verify  # noqa: PLC0415 - rendering and decoders load on demand
+    from gsw.mark.detect import verify  # noqa: PLC0415 - rendering and decoders load on demand
 
     before = verify((original, list(cameras)), message, num_bits=num_bits, background=background, decoder=decoder)
     after = verify((converted, list(cameras)), message, num_bits=num_bits, background=background, decoder=decoder)

@@ -17,7 +17,7 @@ from gsw.camera import Camera
 from gsw.gaussians import Gaussians
 from gsw.mark.message import MessageLike, as_message, message_to_hex
 from gsw.render.rasterize import rasterize
-from gsw.stats import DETECTION_FPR, binomial_p_value, fisher_combined_p_value
+from gsw.stats import DETECTION_FPR
 
 __all__ = ["Extraction", "ImageLike", "Verdict", "extract", "load_decoder_for", "message_num_bits", "verify"]
 
@@ -129,9 +129,9 @@ class Verdict:
     Attributes:
         bit_accuracy: per image, fraction of matching bits.
         matches: per image, number of matching bits.
-        p_values: per image, P(an unmarked image matches at least as many bits) (binomial, p=1/2).
-        p_value: combined over images (Fisher's method; assumes independent views, so it is
-            optimistic for near-duplicate views).
+        p_values: per image, P(an unmarked image matches at least as many bits) under the decoder's
+            calibrated null model (:mod:`gsw.decoder.null`), the scale search counted in.
+        p_value: combined over images, valid for correlated frames (:func:`gsw.mark.evidence.assess`).
     """
 
     bit_accuracy: list[float]
@@ -147,7 +147,8 @@ class Verdict:
 @torch.no_grad()
 def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: MessageLike, *,
            num_bits: int | None = None, decoder: torch.nn.Module | None = None,
-           background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Verdict:
+           background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+           embed_size: tuple[int, int] | None = None) -> Verdict:
     """Tests images (or renders of a model) for a given message.
 
     Args:
@@ -157,6 +158,8 @@ def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: Mess
             required for keys).
         decoder: a custom decoder.
         background: render background for a model source.
+        embed_size: ``(height, width)`` of the embedding renders when known (read at that size only);
+            otherwise a documented set of scales is searched, counted in the p-value.
 
     Returns:
         A :class:`Verdict`.
@@ -169,7 +172,8 @@ def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: Mess
         images = [rasterize(g, cam, background=background).image for cam in cams]
     else:
         images = source
-    ext = extract(images, num_bits=num_bits, decoder=decoder)
-    matches = [int(v) for v in (ext.bits == bits.to(ext.bits)).sum(dim=1).tolist()]
-    p_values = [binomial_p_value(m, num_bits) for m in matches]
-    return Verdict([m / num_bits for m in matches], matches, p_values, fisher_combined_p_value(p_values))
+    from gsw.mark.evidence import assess
+
+    ev = assess([img[0] for img in _as_images(images)], bits, num_bits=num_bits, decoder=decoder,
+                embed_size=embed_size)
+    return Verdict(ev.bit_accuracy, ev.matches, ev.p_values, ev.p_value)

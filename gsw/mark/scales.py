@@ -134,6 +134,15 @@ def _as_image_list(images: Tensor | Sequence[Tensor]) -> list[Tensor]:
 
 
 @torch.no_grad()
+def _decode(decoder: torch.nn.Module, images: torch.Tensor) -> torch.Tensor:
+    """Logits [B, k] of images [B, 3, H, W]: ``decode_image`` when the decoder has it, else decoder(LL2)."""
+    if hasattr(decoder, "decode_image"):
+        return decoder.decode_image(images)
+    from gsw.decoder.dwt import ll_subband
+
+    return decoder(ll_subband(images))
+
+
 def read_images(images: Tensor | Sequence[Tensor], decoder: torch.nn.Module, *,
                 embed_size: tuple[int, int] | None = None, factors: Sequence[float] = SEARCH_FACTORS,
                 batch_size: int = 16) -> list[Reading]:
@@ -143,7 +152,7 @@ def read_images(images: Tensor | Sequence[Tensor], decoder: torch.nn.Module, *,
         images: [3, H, W] RGB images in [0, 1] (a list, sizes may differ, or a [B, 3, H, W] batch);
             uint8 images are divided by 255.
         decoder: a module with ``decode_image(images [B,3,H,W]) -> logits [B,k]``
-            (:class:`gsw.decoder.zoo.WatermarkDecoder`).
+            (:class:`gsw.decoder.zoo.WatermarkDecoder`), or a custom one mapping the LL2 subband to logits.
         embed_size: ``(height, width)`` of the embedding renders, if known (one reading per image).
         factors: search factors when ``embed_size`` is None.
         batch_size: at most this many images of one shape are decoded together.
@@ -154,7 +163,8 @@ def read_images(images: Tensor | Sequence[Tensor], decoder: torch.nn.Module, *,
     imgs = _as_image_list(images)
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    device = next(decoder.parameters()).device
+    param = next(decoder.parameters(), None)
+    device = imgs[0].device if param is None else param.device
     plans = [read_plan(int(im.shape[1]), int(im.shape[2]), embed_size=embed_size, factors=factors)
              for im in imgs]
     logits: list[list[Tensor | None]] = [[None] * len(p) for p in plans]
@@ -165,7 +175,7 @@ def read_images(images: Tensor | Sequence[Tensor], decoder: torch.nn.Module, *,
         # images of one shape share their plan; one resize + decode per reading for the whole group
         for s, (_, size) in enumerate(plans[group[0]]):
             y = resize_image(x, *size) if size != (h, w) else x
-            out = decoder.decode_image(y).float().cpu()
+            out = _decode(decoder, y).float().cpu()
             for j, i in enumerate(group):
                 logits[i][s] = out[j]
     return [Reading([f for f, _ in p], [s for _, s in p], torch.stack(lg))  # type: ignore[arg-type]
