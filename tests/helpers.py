@@ -34,3 +34,14 @@ def random_model(n: int, degree: int = 3, seed: int = 0) -> Gaussians:
         opacity_logits=torch.randn(n, generator=g) * 2,
         sh=torch.rand(n, (degree + 1) ** 2, 3, generator=g) * 2 - 1,
     )
+
+
+#: Python source that makes ``import gsw._C`` fail (prepend to ``python -c`` code run in a subprocess).
+BLOCK_EXTENSION = """
+import importlib.abc, sys
+class _Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "gsw._C":
+            raise ImportError("blocked for the test")
+sys.meta_path.insert(0, _Block())
+"""

@@ -4,6 +4,8 @@ import subprocess
 import sys
 
 import pytest
+
+from helpers import BLOCK_EXTENSION
 import torch
 
 from gsw.decoder.pretrain.pipeline import PretrainOptions, make_val_fn
@@ -11,14 +13,6 @@ from gsw.decoder.pretrain.config import MultiConfig
 from gsw.decoder.pretrain.encoders import make_encoder
 from gsw.decoder.hidden import HiddenDecoder
 
-_BLOCK_EXTENSION = """
-import importlib.abc, sys
-class _Block(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if name == "gsw._C":
-            raise ImportError("blocked for the test")
-sys.meta_path.insert(0, _Block())
-"""
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -33,7 +27,7 @@ def one_thread():
 def test_pretraining_and_its_cli_import_without_the_extension():
     mods = ["gsw.decoder.pretrain." + m for m in ("config", "data", "encoders", "loop", "multi", "whiten",
                                                   "evaluation", "runs", "pipeline", "export", "report")]
-    code = _BLOCK_EXTENSION + "".join(f"import {m}\n" for m in mods + ["gsw.cli.decoder"])
+    code = BLOCK_EXTENSION + "".join(f"import {m}\n" for m in mods + ["gsw.cli.decoder"])
     code += ("import argparse\nfrom gsw.cli.decoder import register\np = argparse.ArgumentParser()\n"
              "register(p.add_subparsers())\np.parse_args(['decoder', 'export', '--help'])\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)

@@ -7,27 +7,21 @@ import sys
 
 import pytest
 
-_BLOCK_EXTENSION = """
-import importlib.abc, sys
-class _Block(importlib.abc.MetaPathFinder):
-    def find_spec(self, name, path=None, target=None):
-        if name == "gsw._C":
-            raise ImportError("blocked for the test")
-sys.meta_path.insert(0, _Block())
-"""
+from helpers import BLOCK_EXTENSION
+
 
 
 @pytest.mark.parametrize("module", ["gsw.decoder", "gsw.attacks", "gsw.attacks.layers", "gsw.metrics",
                                     "gsw.metrics.lpips", "gsw.stats"])
 def test_torch_only_subpackages_import_without_the_extension(module: str) -> None:
-    code = _BLOCK_EXTENSION + f"import {module}\nassert 'gsw._C' not in sys.modules\nprint('ok')"
+    code = BLOCK_EXTENSION + f"import {module}\nassert 'gsw._C' not in sys.modules\nprint('ok')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
 
 
 def test_rendering_without_the_extension_names_the_problem() -> None:
-    code = _BLOCK_EXTENSION + "import gsw\ngsw.rasterize"
+    code = BLOCK_EXTENSION + "import gsw\ngsw.rasterize"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode != 0
     assert "compiled rasterizer extension (gsw._C) could not be loaded" in out.stderr
