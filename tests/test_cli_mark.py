@@ -51,7 +51,8 @@ def marked(model_dir, tmp_path_factory) -> tuple[Path, dict, dict]:
     before = _digest(model_dir)
     out = tmp_path_factory.mktemp("marked") / "m"
     rc, text = _run(["embed", str(model_dir), "--output", str(out), "--key", KEY, "--bits", "48", "--white",
-                     "--epochs", "1", "--lpips", "none", "--device", "cpu", "--no-progress", "--json"])
+                     "--epochs", "1", "--lpips", "none", "--device", "cpu", "--no-progress", "--json",
+                     "--fpr", "1"])  # one epoch is not detectable at 1e-6: test_cli_embed_check.py tests that
     assert rc == 0
     return out, json.loads(text), before
 

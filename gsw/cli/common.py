@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
+import os
 import sys
-import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
@@ -148,38 +147,145 @@ def reading(path: str | Path) -> Iterator[None]:
         raise ValueError(f"{path}: not UTF-8 text ({err})") from None
 
 
+def input_paths(args: argparse.Namespace, *names: str) -> list[Path]:
+    """The paths of the options ``names`` that were given (e.g. ``"input", "cameras", "images", "registry"``): the
+    inputs that :func:`check_output` protects. Names the command does not have are skipped."""
+    return [Path(v) for v in (getattr(args, n, None) for n in names) if v is not None and not isinstance(v, bool)]
+
+
 def check_output(output: Path, inputs: Sequence[Path], force: bool) -> None:
-    """Refuses an output (file or folder) that is, holds or lies inside an input, or exists without ``force``."""
+    """Refuses an output (file or folder) that is, holds or lies inside an input (``force`` or not), or exists
+    without ``force``."""
     out = output.resolve()
     for src in inputs:
-        src = src.resolve()
+        src = Path(src).resolve()
         if out == src or out in src.parents or src in out.parents:
-            raise ValueError(f"output {output} overlaps the input {src}; inputs are never overwritten")
-    if out.exists() and not force:
+            raise ValueError(f"output {output} overlaps the input {src}; inputs are never overwritten, "
+                             "--force or not")
+    if (out.exists() or output.is_symlink()) and not force:
         raise ValueError(f"output {output} exists; pass --force to replace it")
 
 
 @contextmanager
 def output_folder(output: Path, inputs: Sequence[Path], force: bool) -> Iterator[Path]:
-    """Checks an output folder and yields a fresh temporary sibling to write into; on success the temporary
-    folder replaces ``output`` (an old output is removed only then), on failure it is removed."""
+    """Checks an output folder (:func:`check_output`) and yields a new temporary sibling to write into.
+
+    On success the temporary folder becomes ``output`` (:func:`gsw._atomic.atomic_output`): an output that appeared
+    meanwhile is refused without ``force`` (exclusive creation), an old one is replaced only then; on a failure or
+    SIGINT / SIGTERM the temporary folder is removed.
+    """
+    from gsw._atomic import atomic_output
+
     check_output(output, inputs, force)
-    out = output.resolve()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
+    with atomic_output(output, folder=True, replace=force) as tmp:
         yield tmp
-        if output.exists():
-            old = output.with_name(f".{output.name}.old")
-            shutil.rmtree(old, ignore_errors=True)
-            output.rename(old)
-            tmp.rename(output)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(output)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+
+
+@contextmanager
+def output_file(output: Path, inputs: Sequence[Path], force: bool) -> Iterator[Path]:
+    """:func:`output_folder` for one file: yields a temporary path beside ``output`` for the block to write."""
+    from gsw._atomic import atomic_output
+
+    check_output(output, inputs, force)
+    with atomic_output(output, folder=False, replace=force) as tmp:
+        yield tmp
+
+
+def claim_output_folder(output: Path, inputs: Sequence[Path], force: bool) -> Path:
+    """Creates a new output folder at once (for long jobs that write checkpoints into it as they go).
+
+    The folder is created exclusively (a concurrent run gets :class:`FileExistsError`); with ``force`` an old
+    output is first moved aside under a temporary name and removed. Files written into it should be atomic
+    (:func:`gsw._atomic.atomic_write`); on a failure the partial folder is kept (its checkpoints are results).
+    """
+    from gsw._atomic import remove_path, sweep_stale, temp_path
+
+    check_output(output, inputs, force)
+    parent = output.resolve().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    sweep_stale(parent)
+    if force and (output.exists() or output.is_symlink()):
+        aside = temp_path(output)  # a gsw temporary name: swept by a later run if this one dies here
+        os.rename(output, aside)
+        remove_path(aside)
+    try:
+        os.mkdir(output, 0o777)
+    except FileExistsError:
+        raise FileExistsError(f"output {output} appeared after this run started (another run?); pass --force "
+                              "to replace it") from None
+    return output
+
+
+def not_detectable_warning(command: str, fpr: float, what: Sequence[str], hint: str) -> None:
+    """The one wording of "the output does not carry a detectable mark" (stderr; the command then exits 1)."""
+    print(f"gsw {command}: warning: not detectable at p <= {fpr:g}: {', '.join(what)} ({hint})", file=sys.stderr)
+
+
+def add_resize_images_option(parser: argparse.ArgumentParser) -> None:
+    """``--resize-images``: the opt-in for INRIA ``--images`` folders of full-size photos."""
+    parser.add_argument("--resize-images", action="store_true",
+                        help="resample --images whose size is a uniform multiple of their camera's in cameras.json "
+                             "(INRIA stores its training resolution there; full-size photos differ)")
+
+
+def resized_notice(command: str, names: Sequence[str]) -> None:
+    """Tells on stderr which ``--images`` were resampled to their camera's size (``--resize-images``)."""
+    if names:
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        print(f"gsw {command}: notice: --resize-images resampled {len(names)} image(s) to their camera's size in "
+              f"cameras.json: {shown}", file=sys.stderr)
+
+
+def split_views(num_views: int, every: int) -> tuple[list[int], list[int], bool]:
+    """The views to embed with and the views to verify the output on.
+
+    Every ``every``-th view is held out of the embedding when there are at least ``every`` views (``every >= 2``);
+    otherwise the output is verified on the embedding views themselves.
+
+    Returns:
+        ``(embedding indices, verification indices, whether the verification views are held out)``.
+    """
+    if every >= 2 and num_views >= every:
+        from gsw.data.loaders import holdout_indices
+
+        train, test = holdout_indices(num_views, every)
+        return train, test, True
+    every_view = list(range(num_views))
+    return every_view, every_view, False
+
+
+def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence[int], held_out: bool,
+                         message: Tensor, *, num_bits: int, background: Sequence[float], fpr: float,
+                         device: Any) -> dict[str, Any]:
+    """Reads a written INRIA model folder back and tests it for ``message`` on the views ``checked`` (the
+    calibrated :func:`gsw.mark.detect.verify`, at the common size of ``cameras`` when they share one).
+
+    Args:
+        folder: the written model folder.
+        cameras: all its cameras (the embedding resolution is their common size).
+        checked: indices of the verification views; ``held_out`` tells whether the embedding skipped them.
+        message: [k] the embedded bits.
+        num_bits: k.
+        background: RGB render background of the embedding.
+        fpr: false-positive rate of the decision.
+        device: where to render.
+
+    Returns:
+        JSON-able ``views, held_out, where`` (a phrase), ``bit_accuracy`` (mean), ``p_value``, ``fpr``, ``detected``.
+    """
+    from gsw.data import load_inria_model
+    from gsw.mark.detect import verify
+
+    model = load_inria_model(folder)
+    sizes = {(c.height, c.width) for c in cameras}
+    r, g, b = (float(v) for v in background)
+    v = verify((model.gaussians.to(device), [cameras[i] for i in checked]), message, num_bits=num_bits,
+               background=(r, g, b), embed_size=next(iter(sizes)) if len(sizes) == 1 else None)
+    where = (f"{len(checked)} held-out view(s) (cameras not used for embedding)" if held_out else
+             f"the {len(checked)} embedding view(s) (fewer than --holdout-every cameras: none held out)")
+    return dict(views=[cameras[i].name or f"view {i}" for i in checked], held_out=held_out, where=where,
+                bit_accuracy=sum(v.bit_accuracy) / len(checked), p_value=v.p_value, fpr=fpr,
+                detected=v.detected(fpr))
 
 
 def read_images(paths: Sequence[str | Path]) -> list[Tensor]:

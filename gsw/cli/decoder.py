@@ -216,6 +216,7 @@ def _log(msg: str) -> None:
 
 def _export_targets(args: argparse.Namespace) -> tuple[Path, Path | None]:
     """The weights folder and the previous report (None: none), after the --force checks."""
+    from gsw.cli.common import check_output, input_paths  # noqa: PLC0415
     from gsw.decoder.zoo import MANIFEST, WEIGHTS_DIR, weights_path  # noqa: PLC0415
 
     if args.shipped == (args.run is not None):
@@ -228,6 +229,9 @@ def _export_targets(args: argparse.Namespace) -> tuple[Path, Path | None]:
     stem = Path(args.report)
     targets = [weights_path(k, wdir) for k in args.bits] + [wdir / MANIFEST]
     targets += [stem.parent / (stem.name + ext) for ext in (".json", ".md")]
+    inputs = input_paths(args, "data", "run", "recheck_run") + [Path(r) for r in args.ft_runs or []]
+    for target in targets:  # the report and weights never overwrite a training run or the photos
+        check_output(target, inputs, force=True)
     existing = [str(t) for t in targets if t.exists()]
     if existing and not args.force:
         raise ValueError(f"{', '.join(existing)} exist (pass --force to replace them; the shipped weights are "

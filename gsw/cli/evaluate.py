@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from gsw.cli.common import (AVAILABLE_BITS, add_background_options, add_device_option, add_message_options,
-                            background_of, message_from_args, positive_int, print_json, reading)
+                            background_of, check_output, input_paths, message_from_args, output_file, positive_int,
+                            print_json, reading)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,7 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
     add_background_options(ev, "default: the model's watermark.json, else black")
     add_device_option(ev)
-    ev.add_argument("--output", help="also write the markdown report to this file")
+    ev.add_argument("--output", help="also write the markdown report to this new file (never an input)")
+    ev.add_argument("--force", action="store_true", help="replace an existing --output file")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_eval)
     _add_eval_grid_parser(subparsers)
@@ -28,11 +31,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """Invisibility + robustness report of a watermarked INRIA folder against its original."""
+    from gsw._atomic import atomic_write
     from gsw.cli.metadata import at_resolution, read_watermark_json
     from gsw.data import load_inria_model
     from gsw.device import resolve_device
     from gsw.eval.report import evaluate_watermark
 
+    if args.output:  # fail before the long evaluation; written through output_file below
+        check_output(Path(args.output), input_paths(args, "watermarked", "original"), args.force)
     info = read_watermark_json(args.watermarked)
     message, num_bits = message_from_args(args, required=True, stored_bits=None if info is None else info.num_bits)
     background = background_of(args, None if info is None else info.background)
@@ -48,10 +54,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
                                 lpips_net=None if args.lpips == "none" else args.lpips)
     text = report.to_markdown()
     if args.output:
-        from gsw._atomic import atomic_write
-
-        with atomic_write(args.output, "w") as f:
-            f.write(text)
+        with output_file(Path(args.output), input_paths(args, "watermarked", "original"), args.force) as tmp:
+            with atomic_write(tmp, "w") as f:
+                f.write(text)
     if args.json:
         print_json(report.to_dict())
     else:

@@ -98,7 +98,7 @@ def _check_views(gaussians: Gaussians, cameras: list[Camera] | None, n: int, siz
 
 def run_export(args: argparse.Namespace) -> int:
     """Converts ``args.model`` into ``args.output``; returns the exit status."""
-    from gsw.cli.common import check_output  # noqa: PLC0415
+    from gsw.cli.common import check_output, output_file  # noqa: PLC0415
     from gsw.io.convert import check_conversion  # noqa: PLC0415
     from gsw.io.formats import load_model, save_model  # noqa: PLC0415
 
@@ -106,8 +106,8 @@ def run_export(args: argparse.Namespace) -> int:
     fmt = _output_format(output, args.format)
     check_output(output, [model], args.force)
     gaussians, cameras, info = _load(model)
-    output.resolve().parent.mkdir(parents=True, exist_ok=True)
-    save_model(gaussians, output, fmt)
+    with output_file(output, [model], args.force) as tmp:
+        save_model(gaussians, tmp, fmt)
     result: dict[str, Any] = {"input": str(model), "output": str(output), "format": fmt,
                               "gaussians": len(gaussians), "bytes": output.stat().st_size}
     message, bits, source = (None, None, "") if args.no_check else _message(args, info)

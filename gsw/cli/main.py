@@ -48,6 +48,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         text = " ".join(str(err).split()) or type(err).__name__
         print(f"gsw {args.command}: error: {text}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: temporaries are already removed (gsw._atomic)
+        if args.debug:
+            raise
+        print(f"gsw {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -8,8 +8,9 @@ import sys
 from pathlib import Path
 
 from gsw.cli.common import (DEFAULT_BITS, add_background_options, add_bits_option, add_device_option,
-                            add_message_options, background_of, check_output, message_from_args, output_folder,
-                            positive_int, print_json, read_images, reading)
+                            add_message_options, add_resize_images_option, background_of, input_paths,
+                            message_from_args, not_detectable_warning, output_file, output_folder, positive_int,
+                            print_json, read_images, reading)
 from gsw.stats import DETECTION_FPR
 
 
@@ -40,6 +41,7 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
     emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
     emb.add_argument("--images", help="folder of the training images (optional, for FGD)")
+    add_resize_images_option(emb)
     emb.add_argument("--output", required=True, help="new model folder (never the input)")
     emb.add_argument("--force", action="store_true", help="replace an existing output folder")
     add_message_options(emb, claim=False)
@@ -54,6 +56,11 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
                      help="weight of the message loss (default: LossWeights.message)")
     add_background_options(emb, "default: black")
     emb.add_argument("--seed", type=int, default=0)
+    emb.add_argument("--holdout-every", type=int, default=8, metavar="N",
+                     help="embed without every N-th camera and verify the output on those (with fewer than N "
+                          "cameras, or 0: verify on the embedding cameras; default %(default)s)")
+    emb.add_argument("--fpr", type=float, default=DETECTION_FPR,
+                     help="false-positive rate of the output check (exit 1 if not detected; default %(default)g)")
     add_device_option(emb)
     emb.add_argument("--no-progress", action="store_true")
     emb.add_argument("--json", action="store_true")
@@ -100,8 +107,9 @@ def embed_config(args: argparse.Namespace):
 
 
 def _load_model(args: argparse.Namespace):
-    """(gaussians, cameras, images or None, input paths) from an INRIA folder or PLY + cameras."""
+    """(gaussians, cameras, images or None) from an INRIA folder or PLY + cameras."""
     from gsw.camera import load_inria_cameras
+    from gsw.cli.common import resized_notice
     from gsw.io import load_gaussians
 
     src = Path(args.input)
@@ -109,17 +117,21 @@ def _load_model(args: argparse.Namespace):
         from gsw.data import load_inria_model
 
         with reading(src):
-            model = load_inria_model(src, images_dir=args.images, background=background_of(args))
-        return model.gaussians, model.cameras, model.images, [src]
+            model = load_inria_model(src, images_dir=args.images, background=background_of(args),
+                                     resize_images=args.resize_images)
+        resized_notice("embed", model.resized)
+        return model.gaussians, model.cameras, model.images
     if not args.cameras:
         raise ValueError(f"{src} is a file: pass --cameras cameras.json (or give an INRIA model folder)")
     with reading(args.cameras):
         cameras = load_inria_cameras(args.cameras)
-    return load_gaussians(src), cameras, None, [src, Path(args.cameras)]
+    return load_gaussians(src), cameras, None
 
 
 def cmd_embed(args: argparse.Namespace) -> int:
-    """Watermarks a model; writes a new INRIA model folder (with ``watermark.json``) atomically."""
+    """Watermarks a model; writes a new INRIA model folder (with ``watermark.json``) atomically, then verifies it
+    (:func:`~gsw.cli.common.verify_written_model`); exit status 1 if the mark is not detected at ``--fpr``."""
+    from gsw.cli.common import split_views, verify_written_model
     from gsw.cli.metadata import watermark_record, write_watermark_json
     from gsw.data import save_inria_model
     from gsw.decoder.zoo import load_decoder
@@ -130,11 +142,12 @@ def cmd_embed(args: argparse.Namespace) -> int:
     message, num_bits = message_from_args(args, required=False)
     config = embed_config(args)
     device = resolve_device(args.device)
-    g, cams, images, inputs = _load_model(args)
+    g, cams, images = _load_model(args)
     output = Path(args.output)
-    with output_folder(output, inputs, args.force) as tmp:
-        res = embed(g.to(device), cams, message=message, num_bits=num_bits,
-                    images=None if images is None else list(images.to(device)), config=config,
+    used, checked, held_out = split_views(len(cams), args.holdout_every)
+    with output_folder(output, input_paths(args, "input", "cameras", "images", "registry"), args.force) as tmp:
+        res = embed(g.to(device), [cams[i] for i in used], message=message, num_bits=num_bits,
+                    images=None if images is None else list(images[used].to(device)), config=config,
                     progress=not args.no_progress)
         save_inria_model(tmp, res.gaussians, cams, iteration=0)
         stats = dict(gaussians_in=len(g), gaussians_out=len(res.gaussians),
@@ -145,25 +158,33 @@ def cmd_embed(args: argparse.Namespace) -> int:
         record = watermark_record(num_bits=num_bits, background=config.background, cameras=cams,
                                   decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats)
         write_watermark_json(tmp, record)
+    check = verify_written_model(output, cams, checked, held_out, res.message, num_bits=num_bits,
+                                 background=config.background, fpr=args.fpr, device=device)
     if args.json:
-        print_json(dict(message=res.message_hex, bits=res.message.int().tolist(), output=str(output), **record))
+        print_json(dict(message=res.message_hex, bits=res.message.int().tolist(), output=str(output),
+                        verification=check, **record))
     else:
         print(f"embedded {res.message_hex} into {output}: {len(res.gaussians):,} Gaussians, "
               f"mean bit accuracy {100 * stats['mean_bit_accuracy']:.2f} %, mean PSNR {stats['mean_psnr']:.2f} dB "
               "(keep the message: the model folder does not store it)")
+        print(f"verified {output} on {check['where']}: bit accuracy {100 * check['bit_accuracy']:.2f} %, "
+              f"p = {check['p_value']:.2e} ({'' if check['detected'] else 'NOT '}detected at p <= {args.fpr:g})")
+    if not check["detected"]:
+        not_detectable_warning("embed", args.fpr, [f"{output} (p = {check['p_value']:.2e} on {check['where']})"],
+                               "raise --epochs or --message-weight")
+        return 1
     return 0
 
 
 # ------------------------------------------------------------------------------------------------ embed-image
 
 
-def _image_targets(sources: list[Path], output: Path, force: bool) -> list[Path]:
+def _image_targets(sources: list[Path], output: Path) -> list[Path]:
     """Output file per input: ``output`` itself (one input, a .png) or ``output/<stem>.png``."""
     if len(sources) == 1:
         if output.suffix.lower() != ".png":
             raise ValueError(f"output {output} must be a .png (a lossy format would weaken the watermark before "
                              "it ships)")
-        check_output(output, sources, force)
         return [output]
     stems = [s.stem for s in sources]
     if len(set(stems)) != len(stems):
@@ -184,7 +205,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
 
     sources, output = [Path(p) for p in args.images], Path(args.output)
     message, num_bits = message_from_args(args, required=False)
-    targets = _image_targets(sources, output, args.force)
+    targets = _image_targets(sources, output)
     images = read_images(sources)
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
 
@@ -192,15 +213,10 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
         return embed_images(images, message, num_bits=num_bits, config=cfg, batch_size=args.batch,
                             progress=not args.no_progress)
 
-    if len(sources) == 1:
+    with (output_file if len(sources) == 1 else output_folder)(output, sources, args.force) as tmp:
         results = run()
-        output.parent.mkdir(parents=True, exist_ok=True)
-        write_image(output, results[0].image)
-    else:
-        with output_folder(output, sources, args.force) as tmp:
-            results = run()
-            for target, res in zip(targets, results):
-                write_image(tmp / target.name, res.image)
+        for target, res in zip(targets, results):
+            write_image(tmp if len(sources) == 1 else tmp / target.name, res.image)
     for target, res in zip(targets, results):
         if not torch.equal(read_image(target), res.image.cpu()):
             raise RuntimeError(f"{target} does not hold the image that was verified")
@@ -214,8 +230,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
                   f"{100 * r['bit_accuracy']:.2f} % of the bits (p = {r['p_value']:.2e}) in {r['seconds']:.1f} s")
     weak = [r["image"] for r in rows if r["p_value"] > DETECTION_FPR]
     if weak:
-        print(f"gsw embed-image: warning: not detectable at p <= {DETECTION_FPR:g}: {', '.join(weak)} "
-              "(raise --steps or lower --psnr)", file=sys.stderr)
+        not_detectable_warning("embed-image", DETECTION_FPR, weak, "raise --steps or lower --psnr")
         return 1
     return 0
 

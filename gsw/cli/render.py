@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gsw.cli.common import add_background_options, background_of, positive_int, print_json, reading
+from gsw.cli.common import (add_background_options, background_of, input_paths, output_folder, positive_int,
+                            print_json, reading)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -18,8 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     render.add_argument("--width", type=positive_int, default=512)
     render.add_argument("--height", type=positive_int, default=512)
     add_background_options(render, "default: black")
-    render.add_argument("--output", required=True, help="output folder")
-    render.add_argument("--force", action="store_true", help="allow writing next to the model")
+    render.add_argument("--output", required=True, help="new output folder (never holding the model or cameras)")
+    render.add_argument("--force", action="store_true", help="replace an existing output folder")
     render.set_defaults(func=cmd_render)
 
     info = subparsers.add_parser("info", help="print build information")
@@ -35,10 +36,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from gsw.io import load_gaussians
     from gsw.render.rasterize import rasterize
 
-    model = Path(args.model)
-    out_dir = Path(args.output)
-    if out_dir.resolve() == model.resolve().parent and not args.force:
-        raise ValueError("refusing to write renders into the model's own folder; pass --force")
+    model, out_dir = Path(args.model), Path(args.output)
     g = load_gaussians(model)
     if args.cameras:
         with reading(args.cameras):
@@ -47,13 +45,12 @@ def cmd_render(args: argparse.Namespace) -> int:
         center = g.means.median(dim=0).values
         radius = args.radius or float(3.0 * (g.means - center).norm(dim=1).median())
         cams = orbit_cameras(center.tolist(), radius, args.orbit, width=args.width, height=args.height)
-    out_dir.mkdir(parents=True, exist_ok=True)
     bg = background_of(args)
-    with torch.no_grad():
+    with output_folder(out_dir, input_paths(args, "model", "cameras"), args.force) as tmp, torch.no_grad():
         for i, cam in enumerate(cams):
             out = rasterize(g, cam, background=bg)
             name = cam.name or f"view_{i:03d}"
-            write_image(out_dir / f"{Path(name).stem}.png", out.image)
+            write_image(tmp / f"{Path(name).stem}.png", out.image)
     print(f"rendered {len(cams)} views of {len(g):,} Gaussians to {out_dir}/")
     return 0
 

@@ -6,7 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from gsw.cli.common import add_background_options, add_device_option, background_of
+from gsw.cli.common import (add_background_options, add_device_option, add_resize_images_option, background_of,
+                            check_output, claim_output_folder, input_paths, resized_notice)
 
 __all__ = ["add_train_parser", "register", "run_train", "config_from_args"]
 
@@ -27,7 +28,9 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                     "'default' for the built-in procedural scene, or an INRIA model folder with --images. The "
                     "output folder is an INRIA model folder.")
     p.add_argument("data", help="dataset path, or 'default' for the built-in scene")
-    p.add_argument("-o", "--output", required=True, help="output model folder")
+    p.add_argument("-o", "--output", required=True,
+                   help="new output model folder (created at once; checkpoints are written into it as they come)")
+    p.add_argument("--force", action="store_true", help="replace an existing output folder (never an input)")
     p.add_argument("--iterations", type=int, default=30_000,
                    help="iterations (the densification/opacity-reset/SH schedule is compressed proportionally "
                         "unless --no-scale-schedule; default 30000 = INRIA)")
@@ -44,6 +47,7 @@ def add_train_parser(subparsers: argparse._SubParsersAction) -> argparse.Argumen
                    help="hold out every N-th view as test when the dataset has no test split (0: none)")
     p.add_argument("--no-eval", action="store_true", help="skip the test-view evaluation")
     p.add_argument("--images", default=None, help="image folder for an INRIA model folder used as DATA")
+    add_resize_images_option(p)
     p.add_argument("--save-iterations", type=int, nargs="*", default=[], help="extra checkpoint iterations")
     p.add_argument("--seed", type=int, default=0)
     add_device_option(p)
@@ -102,6 +106,8 @@ def run_train(args: argparse.Namespace) -> int:
 
     background = background_of(args)
     cfg = config_from_args(args)
+    inputs = input_paths(args, "images") + [Path(p) for p in (args.data, args.init) if Path(p).exists()]
+    check_output(Path(args.output), inputs, args.force)  # fail before loading; claimed below
     if args.data == "default":
         full = _default_scene_views(args.scene_size, background)
         if args.holdout_every >= 2:
@@ -111,7 +117,7 @@ def run_train(args: argparse.Namespace) -> int:
             train_set, test_set = full, None
     else:
         kw = dict(downscale=args.downscale, background=background, holdout_every=args.holdout_every,
-                  images_dir=args.images)
+                  images_dir=args.images, resize_images=args.resize_images)
         fmt = detect_format(args.data)
         data_path = Path(args.data)
         has_test_file = fmt == "nerf_synthetic" and (
@@ -119,6 +125,7 @@ def run_train(args: argparse.Namespace) -> int:
         split_views = args.holdout_every >= 2 or has_test_file
         train_set = load_dataset(args.data, "train" if split_views or fmt == "nerf_synthetic" else "all", **kw)
         test_set = load_dataset(args.data, "test", **kw) if split_views and not args.no_eval else None
+        resized_notice("train", train_set.meta.get("resized", []))
     if args.no_eval:
         test_set = None
     init = args.init
@@ -126,7 +133,8 @@ def run_train(args: argparse.Namespace) -> int:
         from gsw.io import load_gaussians  # noqa: PLC0415
 
         init = load_gaussians(init)
-    result = train(train_set, config=cfg, init=init, output_dir=args.output, progress=not args.no_progress,
+    output = claim_output_folder(Path(args.output), inputs, args.force)
+    result = train(train_set, config=cfg, init=init, output_dir=output, progress=not args.no_progress,
                    test_set=test_set, source=str(args.data))
     summary = {"output": str(args.output), "device": str(result.device), "iterations": result.iterations,
                "num_gaussians": result.gaussians.num_gaussians, "train_time_s": round(result.train_time_s, 2)}

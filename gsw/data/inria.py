@@ -25,13 +25,15 @@ __all__ = ["InriaModel", "load_inria_model", "save_inria_model"]
 
 
 class InriaModel(NamedTuple):
-    """What :func:`load_inria_model` returns (unpacks as ``gaussians, cameras, images``)."""
+    """What :func:`load_inria_model` returns; ``resized`` names the source images resampled to their camera's
+    size (``resize_images=True``)."""
 
     gaussians: Gaussians
     cameras: list[Camera]
     images: Tensor | None
     iteration: int
     folder: Path
+    resized: tuple[str, ...] = ()
 
 
 def save_inria_model(folder: str | os.PathLike, gaussians: Gaussians, cameras: Sequence[Camera],
@@ -89,12 +91,13 @@ def load_inria_model(folder: str | os.PathLike, *, iteration: int | None = None,
         cameras = load_inria_cameras(folder / "cameras.json")
     except CameraFileError as exc:
         raise DatasetError(str(exc)) from None
-    images = None
+    images, resized = None, ()
     if images_dir is not None:
-        images = _load_named_images(Path(images_dir), cameras, downscale, _background(background), resize_images)
+        images, resized = _load_named_images(Path(images_dir), cameras, downscale, _background(background),
+                                             resize_images)
     if downscale != 1.0:
         cameras = [c.scaled(1.0 / downscale) for c in cameras]
-    return InriaModel(gaussians, cameras, images, iteration, folder)
+    return InriaModel(gaussians, cameras, images, iteration, folder, resized)
 
 
 def _inria_ply(folder: Path, iteration: int | None) -> tuple[Path, int]:
@@ -117,15 +120,16 @@ def _inria_ply(folder: Path, iteration: int | None) -> tuple[Path, int]:
 
 
 def _load_named_images(images_dir: Path, cameras: Sequence[Camera], downscale: float, bg: Tensor,
-                       resize_images: bool) -> Tensor:
-    """``[V, 3, H, W]`` source images matched to ``cameras`` (their ``cameras.json`` size) by name."""
+                       resize_images: bool) -> tuple[Tensor, tuple[str, ...]]:
+    """``[V, 3, H, W]`` source images matched to ``cameras`` (their ``cameras.json`` size) by name, and the names
+    of those resampled from another size."""
     if not images_dir.is_dir():
         raise DatasetError(f"images folder not found: {images_dir}")
     unnamed = [k for k, cam in enumerate(cameras) if not cam.name]
     if unnamed:
         raise DatasetError(f"cameras {unnamed[:10]} have no img_name; cannot match them to image files")
     paths = _find_images(images_dir, [cam.name for cam in cameras], f"images for cameras.json in {images_dir}")
-    out = []
+    out, resized = [], []
     for k, (cam, path) in enumerate(zip(cameras, paths)):
         ctx = f"camera {k} ({cam.name!r})"
         img = _read_view(path, ctx)
@@ -136,9 +140,11 @@ def _load_named_images(images_dir: Path, cameras: Sequence[Camera], downscale: f
             if not resize_images or abs(fx - fy) > 0.02 * max(fx, fy):
                 raise DatasetError(
                     f"{path}: image is {w}x{h} but {ctx} in cameras.json is {cam.width}x{cam.height}"
-                    + ("" if resize_images else "; pass resize_images=True to resample images whose size is a "
-                       "uniform multiple of their camera's (INRIA stores its training resolution)"))
+                    + ("" if resize_images else "; pass resize_images=True (gsw commands: --resize-images) to "
+                       "resample images whose size is a uniform multiple of their camera's (INRIA stores its "
+                       "training resolution)"))
+            resized.append(path.name)
         target = cam.scaled(1.0 / downscale) if downscale != 1.0 else cam
         _check_usable(target.width, target.height, f"{path}")
         out.append(resize_image(rgb, target.height, target.width))
-    return torch.stack(out).contiguous()
+    return torch.stack(out).contiguous(), tuple(resized)

@@ -293,13 +293,14 @@ def detect_format(path: str | os.PathLike) -> str:
 
 def load_dataset(path: str | os.PathLike, split: str = "train", *, downscale: float = 1,
                  background: Background = (1.0, 1.0, 1.0), holdout_every: int = 8, undistort: bool = True,
-                 images_dir: str | os.PathLike | None = None) -> Dataset:
+                 images_dir: str | os.PathLike | None = None, resize_images: bool = False) -> Dataset:
     """Load any supported dataset, detecting the format (see :func:`detect_format`).
 
     ``split`` is ``"train"`` / ``"test"`` / ``"val"`` (NeRF rules, see :func:`load_nerf_synthetic`); for
     instant-ngp and INRIA folders without a split, ``train``/``test`` hold out every ``holdout_every``-th view
     (``"all"`` keeps every view). An INRIA folder needs ``images_dir``; its Gaussians become the point cloud
-    (``points``/``point_colors``).
+    (``points``/``point_colors``); ``resize_images`` is its opt-in for photos at another size than
+    ``cameras.json`` (:func:`load_inria_model`; ``meta["resized"]`` names them).
     """
     fmt = detect_format(path)
     from gsw.data.formats import EXTRA_FORMATS, load_extra_dataset  # noqa: PLC0415 - COLMAP, LLFF, nerfstudio
@@ -316,7 +317,8 @@ def load_dataset(path: str | os.PathLike, split: str = "train", *, downscale: fl
                                 background=background, undistort=undistort, holdout_every=holdout_every)
     if images_dir is None:
         raise DatasetError(f"{path} is an INRIA model folder; pass images_dir to use it as a dataset")
-    model = load_inria_model(path, images_dir=images_dir, downscale=downscale, background=background)
+    model = load_inria_model(path, images_dir=images_dir, downscale=downscale, background=background,
+                             resize_images=resize_images)
     idx = list(range(len(model.cameras)))
     if split != "all":
         train_idx, test_idx = holdout_indices(len(idx), holdout_every)
@@ -327,7 +329,7 @@ def load_dataset(path: str | os.PathLike, split: str = "train", *, downscale: fl
                    names=[model.cameras[i].name for i in idx], background=_background(background), format="inria",
                    points=g.means.detach().float(),
                    point_colors=sh_dc_to_rgb(g.sh[:, 0].detach().float()).clamp(0, 1),
-                   meta={"iteration": model.iteration})
+                   meta={"iteration": model.iteration, "resized": list(model.resized)})
 
 
 # ------------------------------------------------------------------------------------------- geometry
