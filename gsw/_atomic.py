@@ -286,6 +286,10 @@ def atomic_output(target: str | os.PathLike, *, folder: bool, replace: bool) -> 
             raise FileExistsError(f"output {target} appeared while this run was writing it (another run?); it was "
                                   "not replaced and this run's result was discarded (pass --force to replace)"
                                   ) from None
+    except OSError as err:  # name the output, not its temporary (a full disk, a read-only folder)
+        if err.errno is None or (err.filename is not None and str(tmp) not in str(err.filename)):
+            raise
+        raise type(err)(err.errno, f"cannot write {target}: {err.strerror} (nothing was written)") from err
     finally:
         remove_path(tmp)
         _unregister(tmp)
@@ -321,6 +325,10 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb", *, replace: bool = T
             f.flush()
             os.fsync(f.fileno())
         commit(tmp, path, replace=replace)
+    except OSError as err:
+        if err.errno is not None and err.filename is None:  # e.g. ENOSPC from write/fsync: name the file
+            err.filename = str(path)
+        raise
     finally:
         remove_path(tmp)
         _unregister(tmp)

@@ -117,6 +117,8 @@ def test_verify_model_uses_the_stored_bits_background_and_resolution(marked, tmp
     black = verify((model.gaussians, model.cameras), message, background=(0.0, 0.0, 0.0),
                    embed_size=(model.cameras[0].height, model.cameras[0].width))
     assert white.p_values != black.p_values  # the background changes what the decoder reads
+    check = marked[1]["verification"]  # embed's own check: the same calibrated test (4 views: none held out)
+    assert check["held_out"] is False and check["p_value"] == pytest.approx(white.p_value)
     report = _verify_json(["--model", str(out), "--key", KEY])  # no --bits, no --white
     assert (report["num_bits"], report["background"]) == (48, [1.0, 1.0, 1.0])
     assert [v["p_value"] for v in report["views"]] == pytest.approx(white.p_values)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from gsw.cli.common import (DEFAULT_BITS, add_background_options, add_bits_option, add_device_option,
-                            add_message_options, add_resize_images_option, background_of, input_paths,
+                            add_message_options, add_resize_images_option, background_of, check_output, input_paths,
                             message_from_args, not_detectable_warning, output_file, output_folder, positive_int,
                             print_json, read_images, reading)
 from gsw.stats import DETECTION_FPR
@@ -142,10 +142,11 @@ def cmd_embed(args: argparse.Namespace) -> int:
     message, num_bits = message_from_args(args, required=False)
     config = embed_config(args)
     device = resolve_device(args.device)
+    output, inputs = Path(args.output), input_paths(args, "input", "cameras", "images", "registry")
+    check_output(output, inputs, args.force)  # before loading; output_folder checks again and commits exclusively
     g, cams, images = _load_model(args)
-    output = Path(args.output)
     used, checked, held_out = split_views(len(cams), args.holdout_every)
-    with output_folder(output, input_paths(args, "input", "cameras", "images", "registry"), args.force) as tmp:
+    with output_folder(output, inputs, args.force) as tmp:
         res = embed(g.to(device), [cams[i] for i in used], message=message, num_bits=num_bits,
                     images=None if images is None else list(images[used].to(device)), config=config,
                     progress=not args.no_progress)
