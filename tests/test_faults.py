@@ -171,3 +171,21 @@ def test_read_only_output_folder(inputs, tmp_path, monkeypatch, capsys) -> None:
         assert "Traceback" not in err and list(parent.iterdir()) == []
     finally:
         parent.chmod(0o755)
+
+
+def test_force_leaves_no_backup_and_outputs_get_normal_permissions(inputs, tmp_path) -> None:
+    old_umask = os.umask(0o022)
+    try:
+        spz, renders = tmp_path / "a.spz", tmp_path / "renders"
+        export = ["export", str(inputs / "model.ply"), "--output", str(spz), "--no-check"]
+        assert main(export) == 0 and main([*export, "--force"]) == 0  # a file over a file
+        assert main(_render_argv(inputs, renders, "--orbit", "2")) == 0
+        assert main(_render_argv(inputs, renders, "--orbit", "3", "--force")) == 0  # a folder over a folder
+        assert len(list(renders.iterdir())) == 3  # the new output only, nothing of the old one
+        assert main(_render_argv(inputs, spz, "--orbit", "1", "--force")) == 0  # a folder over a file
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.spz", "in", "renders"]  # no .NAME.old, no .tmp
+        for folder in (spz, renders):
+            assert folder.stat().st_mode & 0o777 == 0o755  # readable by others, as the umask says
+            assert {p.stat().st_mode & 0o777 for p in folder.iterdir()} == {0o644}
+    finally:
+        os.umask(old_umask)
