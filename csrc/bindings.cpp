@@ -7,6 +7,13 @@
 #ifndef GSW_COMPILER
 #define GSW_COMPILER "unknown"
 #endif
+#ifndef GSW_TORCH_VERSION
+#define GSW_TORCH_VERSION "unknown"
+#endif
+
+// The torch version this module is compiled against, behind a marker that gsw/_ext.py finds in the
+// file's bytes when the module cannot be loaded (a torch ABI mismatch fails before any code runs).
+static const char kBuiltWithTorch[] = "gsw-built-with-torch=" GSW_TORCH_VERSION;
 
 namespace py = pybind11;
 
@@ -35,6 +42,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
 
   py::dict b;
   b["compiler"] = GSW_COMPILER;
+  b["built_with_torch"] = kBuiltWithTorch + sizeof("gsw-built-with-torch=") - 1;
 #ifdef _OPENMP
   b["openmp"] = true;
 #else

@@ -66,7 +66,8 @@ def build_info() -> dict[str, object]:
     Returns:
         A dict with `version`, `compiler`, `openmp` (bool), `threads` (torch intra-op threads
         used by the CPU kernels), `cuda` (bool: CUDA backend compiled), `cuda_archs`,
-        `cuda_available` (a CUDA device is usable now) and `torch` (version).
+        `cuda_available` (a CUDA device is usable now), `built_with_torch` (the torch version the
+        extension was compiled against) and `torch` (the running torch's version).
     """
     import torch
 
