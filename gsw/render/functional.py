@@ -41,7 +41,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from gsw.render.rasterize import Projection, bin_gaussians, blend, project
+from gsw.render.rasterize import Projection, blend, project
 
 __all__ = ["rasterization"]
 
@@ -291,7 +291,7 @@ def rasterization(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         planes, alpha, depth = [], None, None
         for col, bg in zip(chunks, bgs):
             proj = Projection(m2d_blend[ci], views.conics[ci], views.depths[ci], col[ci], opac[ci], views.radii[ci])
-            image, a, z, _, _ = blend(proj, bin_gaussians(proj, width, height), width, height, bg[ci].to(means.dtype))
+            image, a, z, _, _ = blend(proj, width, height, bg[ci].to(means.dtype))
             planes.append(image)
             alpha, depth = (a, z) if alpha is None else (alpha, depth)
         out = torch.cat(planes)[:d]
