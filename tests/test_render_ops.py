@@ -40,10 +40,16 @@ def test_ops_pass_opcheck() -> None:
     splats = [t.detach().clone().requires_grad_() for t in (m2d, conics, colors, opac, depths)]
     rargs = (*splats, torch.ones(3, requires_grad=True), radii, cam.width, cam.height, flags)
     torch.library.opcheck(_ops.rasterize, rargs, test_utils=OPCHECKS)
-    image, alpha, depth, final_T, n_contrib = _ops.rasterize(*rargs)
-    torch.library.opcheck(_ops.rasterize_backward, (*[t.detach() for t in rargs[:6]], radii, cam.width, cam.height,
-                                                    final_T, n_contrib, torch.rand_like(image), None,
+    image, alpha, depth, final_T, n_contrib, *bin_tensors = _ops.rasterize(*rargs)
+    torch.library.opcheck(_ops.rasterize_backward, (*[t.detach() for t in rargs[:6]], cam.width, cam.height,
+                                                    final_T, n_contrib, *bin_tensors, torch.rand_like(image), None,
                                                     torch.rand_like(depth)), test_utils=OPCHECKS)
+    # the restored bins are the binning's
+    fresh = _ops.bins(m2d, radii, depths, cam.width, cam.height)
+    restored = _ops.restore_bins(m2d, cam.width, cam.height, *bin_tensors)
+    for name in _ops.BIN_FIELDS:
+        assert torch.equal(getattr(restored, name), getattr(fresh, name)), name
+    assert restored.num_intersections == fresh.num_intersections > 0
     n = g.means.shape[0]
     vs = [torch.rand(n, 2), torch.rand(n, 3), torch.rand(n), torch.rand(n, 3), torch.rand(n)]
     torch.library.opcheck(_ops.project_backward, (*[_detach(t) for t in pargs[:13]], radii, conics.detach(),
@@ -56,19 +62,23 @@ def test_ops_pass_opcheck() -> None:
 
 def test_fake_tensors_give_the_output_shapes() -> None:
     from torch._subclasses.fake_tensor import FakeTensorMode
+    from torch.fx.experimental.symbolic_shapes import ShapeEnv
 
     g, cam = _scene(n=7)
     real = [_detach(t) for t in _project_args(g, cam)]
-    with FakeTensorMode() as mode:
+    with FakeTensorMode(shape_env=ShapeEnv()) as mode:
         pargs = [mode.from_tensor(t) if isinstance(t, torch.Tensor) else t for t in real]
         radii, m2d, conics, depths, colors, opac, flags = _ops.project(*pargs)
-        image, alpha, depth, final_T, n_contrib = _ops.rasterize(m2d, conics, colors, opac, depths,
-                                                                 torch.ones(3), radii, cam.width, cam.height, flags)
+        image, alpha, depth, final_T, n_contrib, tile_offsets, gauss_ids, entry_offsets, entry_slots = (
+            _ops.rasterize(m2d, conics, colors, opac, depths, torch.ones(3), radii, cam.width, cam.height, flags))
     assert [tuple(t.shape) for t in (radii, m2d, conics, depths, colors, opac, flags)] == [
         (7,), (7, 2), (7, 3), (7,), (7, 3), (7,), (1,)]
     assert radii.dtype == torch.int32 and n_contrib.dtype == torch.int32
     assert [tuple(t.shape) for t in (image, alpha, depth, final_T)] == [(3, 20, 24), (1, 20, 24), (1, 20, 24),
                                                                          (20, 24)]
+    assert tuple(tile_offsets.shape) == (2 * 2 + 1,) and tuple(entry_offsets.shape) == (8,)
+    # the number of tile intersections is an unbacked dynamic size, shared by gauss_ids and entry_slots
+    assert isinstance(gauss_ids.shape[0], torch.SymInt) and gauss_ids.shape == entry_slots.shape
 
 
 def test_torch_compile_fullgraph_render_and_loss_matches_eager() -> None:

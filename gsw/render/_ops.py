@@ -7,10 +7,10 @@ any device the extension was built for.
 Ops:
 
 * ``gsw::project`` -> (radii, means2d, conics, depths, colors, opacities, nonfinite); ``gsw::project_backward``.
-* ``gsw::rasterize`` -> (image, alpha, depth, final_T, n_contrib): tile binning and blending in one op. The
-  number of tile intersections is data-dependent, so the bins never leave the op: its outputs have static
-  shapes. ``gsw::rasterize_backward`` bins again (the binning is deterministic: the same bins) instead of keeping
-  the forward's bins alive.
+* ``gsw::rasterize`` -> (image, alpha, depth, final_T, n_contrib, tile_offsets, gauss_ids, entry_offsets,
+  entry_slots): tile binning and blending in one op. The bins are outputs too, for the backward op and for
+  :func:`restore_bins`; the number of tile intersections (the length of ``gauss_ids`` / ``entry_slots``) is
+  data-dependent: the fake implementation gives it as an unbacked dynamic size. ``gsw::rasterize_backward``.
 * ``gsw::contribution`` -> (values, hits, max_weight): binning and the contribution kernel (no gradient).
 
 A projection run with ``check_finite`` flags NaN/Inf inputs in its ``nonfinite`` output; ``gsw::rasterize`` reads
@@ -26,7 +26,7 @@ from torch import Tensor
 
 from gsw._ext import _C
 
-__all__ = ["NonFiniteInputError", "bins", "contribution", "project", "rasterize"]
+__all__ = ["NonFiniteInputError", "bins", "contribution", "project", "rasterize", "restore_bins"]
 
 
 class NonFiniteInputError(ValueError):
@@ -124,32 +124,58 @@ def _raise_if_flagged(b: Any) -> None:
         raise NonFiniteInputError(b.nonfinite)
 
 
+BIN_FIELDS = ("tile_offsets", "gauss_ids", "entry_offsets", "entry_slots")
+
+
+def restore_bins(means2d: Tensor, width: int, height: int, tile_offsets: Tensor, gauss_ids: Tensor,
+                 entry_offsets: Tensor, entry_slots: Tensor) -> Any:
+    """A ``_C.TileBins`` holding the given bin tensors (outputs of ``gsw::rasterize``), without binning again.
+
+    The binding has no constructor from tensors: an empty binning for the image size is made (no intersections,
+    no host synchronisation) and its tensors are pointed at the given ones (``Tensor.set_`` on the tensors the
+    binding exposes, which share their implementation with the C++ struct).
+    """
+    b = _C.bin_gaussians(means2d.new_zeros((0, 2)), torch.zeros(0, dtype=torch.int32, device=means2d.device),
+                         means2d.new_zeros((0,)), int(width), int(height))
+    for name, t in zip(BIN_FIELDS, (tile_offsets, gauss_ids, entry_offsets, entry_slots)):
+        getattr(b, name).set_(t.contiguous())
+    return b
+
+
 @torch.library.custom_op("gsw::rasterize", mutates_args=())
 def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor, background: Tensor,
               radii: Tensor, width: int, height: int, nonfinite: Tensor | None
-              ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+              ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Binning + front-to-back blending: (image [3,H,W], alpha [1,H,W], depth [1,H,W], final_T [H,W],
-    n_contrib [H,W] int32). Raises :class:`NonFiniteInputError` when ``nonfinite`` (the projection's flags) is set."""
+    n_contrib [H,W] int32, then the bins: tile_offsets [tiles+1], gauss_ids [M], entry_offsets [N+1],
+    entry_slots [M], all int32, M the data-dependent number of tile intersections). Raises
+    :class:`NonFiniteInputError` when ``nonfinite`` (the projection's flags) is set."""
     b = bins(means2d, radii, depths, width, height, nonfinite)
     _raise_if_flagged(b)
-    return tuple(_C.rasterize_forward(_c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths),
-                                      _c(background), bins=b, width=width, height=height))
+    out = _C.rasterize_forward(_c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths), _c(background),
+                               bins=b, width=width, height=height)
+    return (*out, *(getattr(b, name) for name in BIN_FIELDS))
 
 
 @rasterize.register_fake
 def _(means2d, conics, colors, opacities, depths, background, radii, width, height, nonfinite):
     new = means2d.new_empty
+    m = torch.library.get_ctx().new_dynamic_size()
+    tiles = -(-width // _C.constants["TILE_SIZE"]) * -(-height // _C.constants["TILE_SIZE"])
+    i32 = {"dtype": torch.int32}
     return (new((3, height, width)), new((1, height, width)), new((1, height, width)), new((height, width)),
-            new((height, width), dtype=torch.int32))
+            new((height, width), **i32), new((tiles + 1,), **i32), new((m,), **i32),
+            new((means2d.shape[0] + 1,), **i32), new((m,), **i32))
 
 
 @torch.library.custom_op("gsw::rasterize_backward", mutates_args=())
 def rasterize_backward(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
-                       background: Tensor, radii: Tensor, width: int, height: int, final_T: Tensor,
-                       n_contrib: Tensor, v_image: Tensor, v_alpha: Tensor | None, v_depth: Tensor | None
+                       background: Tensor, width: int, height: int, final_T: Tensor, n_contrib: Tensor,
+                       tile_offsets: Tensor, gauss_ids: Tensor, entry_offsets: Tensor, entry_slots: Tensor,
+                       v_image: Tensor, v_alpha: Tensor | None, v_depth: Tensor | None
                        ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """VJP of ``gsw::rasterize`` (bins again): (v_means2d, v_conics, v_colors, v_opacities, v_depths)."""
-    b = bins(means2d, radii, depths, width, height)
+    """VJP of ``gsw::rasterize`` on its bins: (v_means2d, v_conics, v_colors, v_opacities, v_depths)."""
+    b = restore_bins(means2d, width, height, tile_offsets, gauss_ids, entry_offsets, entry_slots)
     return tuple(_C.rasterize_backward(
         _c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths), _c(background), bins=b, width=width,
         height=height, final_T=_c(final_T), n_contrib=_c(n_contrib), v_image=_c(v_image),
@@ -164,22 +190,21 @@ def _(means2d, conics, colors, opacities, depths, *args):
 
 def _rasterize_setup(ctx, inputs, output) -> None:
     means2d, conics, colors, opacities, depths, background, radii, width, height, _ = inputs
-    _, _, _, final_T, n_contrib = output
     ctx.size = (width, height)
-    ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, radii, final_T, n_contrib)
-    ctx.mark_non_differentiable(final_T, n_contrib)
+    ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, *output[3:])
+    ctx.mark_non_differentiable(*output[3:])
     # Unused outputs (usually alpha and depth) get no zero-filled [1, H, W] cotangents: the kernels treat a
     # missing v_alpha / v_depth as zero.
     ctx.set_materialize_grads(False)
 
 
-def _rasterize_backward(ctx, v_image, v_alpha, v_depth, _v_t, _v_n):
-    means2d, conics, colors, opacities, depths, background, radii, final_T, n_contrib = ctx.saved_tensors
+def _rasterize_backward(ctx, v_image, v_alpha, v_depth, *_v_rest):
+    means2d, conics, colors, opacities, depths, background, final_T, *saved = ctx.saved_tensors
     width, height = ctx.size
     if v_image is None:
         v_image = means2d.new_zeros((3, height, width))
-    grads = rasterize_backward(means2d, conics, colors, opacities, depths, background, radii, width, height,
-                               final_T, n_contrib, v_image, v_alpha, v_depth)
+    grads = rasterize_backward(means2d, conics, colors, opacities, depths, background, width, height, final_T,
+                               *saved, v_image, v_alpha, v_depth)
     v_background = None
     if ctx.needs_input_grad[5]:
         v_background = (v_image * final_T.unsqueeze(0)).sum(dim=(1, 2))

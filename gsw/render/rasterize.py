@@ -137,6 +137,11 @@ def blend(proj: Projection, width: int, height: int,
     Raises:
         gsw.render._ops.NonFiniteInputError: (a ValueError) the projection flagged NaN/Inf inputs.
     """
+    return _blend(proj, width, height, background)[:5]
+
+
+def _blend(proj: Projection, width: int, height: int, background: Tensor) -> tuple[Tensor, ...]:
+    """:func:`blend`'s outputs followed by the bin tensors (see :func:`gsw.render._ops.rasterize`)."""
     return _ops.rasterize(proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths, background,
                           proj.radii, int(width), int(height), proj.nonfinite)
 
@@ -155,6 +160,8 @@ class RenderOutput:
             gradient).
         width: image width.
         height: image height.
+        bin_tensors: the blending op's bins (tile_offsets, gauss_ids, entry_offsets, entry_slots), see
+            :attr:`bins`.
     """
 
     image: Tensor
@@ -165,11 +172,12 @@ class RenderOutput:
     projection: Projection
     width: int
     height: int
+    bin_tensors: tuple[Tensor, ...]
 
     @cached_property
     def bins(self) -> TileBins:
-        """The render's tile binning (binned again on first access: the blending op keeps its bins inside)."""
-        return bin_gaussians(self.projection, self.width, self.height)
+        """The render's tile binning (a ``TileBins`` over :attr:`bin_tensors`; `nonfinite` is 0)."""
+        return _ops.restore_bins(self.projection.means2d, self.width, self.height, *self.bin_tensors)
 
     @property
     def radii(self) -> Tensor:
@@ -250,10 +258,11 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
                    gaussians.opacity_logits, sh, camera, degree, check_finite=validate)
     bg = _background(background, gaussians.means)
     try:
-        image, alpha, depth, final_T, n_contrib = blend(proj, camera.width, camera.height, bg)
+        image, alpha, depth, final_T, n_contrib, *bin_tensors = _blend(proj, camera.width, camera.height, bg)
     except _ops.NonFiniteInputError as exc:
         _raise_nonfinite(gaussians, colors, exc.flags)
-    return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, int(camera.width), int(camera.height))
+    return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, int(camera.width), int(camera.height),
+                        tuple(bin_tensors))
 
 
 @dataclass
