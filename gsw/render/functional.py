@@ -220,6 +220,28 @@ def _screen_means(views: _Views, packed: bool) -> tuple[Tensor, Tensor]:
     return full, m_packed
 
 
+def _blend_views(views: _Views, means2d: Tensor, opac: Tensor, chunks: list[Tensor], bgs: list[Tensor], d: int,
+                 render_mode: str, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """Blends every camera: colour chunks [C, N, 3] on backgrounds [C, 3], then the depth channel of
+    ``render_mode``. Returns (render_colors [C, H, W, D'], render_alphas [C, H, W, 1])."""
+    images, alphas = [], []
+    for ci in range(views.radii.shape[0]):
+        planes, alpha, depth = [], None, None
+        for col, bg in zip(chunks, bgs):
+            proj = Projection(means2d[ci], views.conics[ci], views.depths[ci], col[ci], opac[ci], views.radii[ci])
+            image, a, z, _, _ = blend(proj, width, height, bg[ci].to(means2d.dtype))
+            planes.append(image)
+            alpha, depth = (a, z) if alpha is None else (alpha, depth)
+        out = torch.cat(planes)[:d]
+        if render_mode in ("D", "RGB+D"):
+            out = torch.cat([out, depth])
+        elif render_mode in ("ED", "RGB+ED"):
+            out = torch.cat([out, depth / alpha.clamp(min=1e-10)])
+        images.append(out.permute(1, 2, 0))
+        alphas.append(alpha.permute(1, 2, 0))
+    return torch.stack(images), torch.stack(alphas)
+
+
 def rasterization(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
                   viewmats: Tensor, Ks: Tensor, width: int, height: int, near_plane: float = 0.01,
                   far_plane: float = 1e10, radius_clip: float = 0.0, eps2d: float = 0.3,
@@ -286,20 +308,5 @@ def rasterization(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
         chunks, bgs = [views.colors], [backgrounds if backgrounds is not None else means.new_zeros(c, 3)]
     else:
         chunks, bgs = _color_chunks(colors.to(means.dtype), backgrounds, c, n)
-    images, alphas = [], []
-    for ci in range(c):
-        planes, alpha, depth = [], None, None
-        for col, bg in zip(chunks, bgs):
-            proj = Projection(m2d_blend[ci], views.conics[ci], views.depths[ci], col[ci], opac[ci], views.radii[ci])
-            image, a, z, _, _ = blend(proj, width, height, bg[ci].to(means.dtype))
-            planes.append(image)
-            alpha, depth = (a, z) if alpha is None else (alpha, depth)
-        out = torch.cat(planes)[:d]
-        if render_mode in ("D", "RGB+D"):
-            out = torch.cat([out, depth])
-        elif render_mode in ("ED", "RGB+ED"):
-            out = torch.cat([out, depth / alpha.clamp(min=1e-10)])
-        images.append(out.permute(1, 2, 0))
-        alphas.append(alpha.permute(1, 2, 0))
-    meta = _meta(views, m2d_meta, opac, packed, width, height, tile_size)
-    return torch.stack(images), torch.stack(alphas), meta
+    images, alphas = _blend_views(views, m2d_blend, opac, chunks, bgs, d, render_mode, width, height)
+    return images, alphas, _meta(views, m2d_meta, opac, packed, width, height, tile_size)
