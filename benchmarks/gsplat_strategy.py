@@ -67,6 +67,7 @@ def _gsplat_params(g: Gaussians, extent: float, iterations: int) -> tuple[dict, 
 def run_gsplat(train_set, test_set, g0: Gaussians, extent: float, args: argparse.Namespace) -> dict[str, Any]:
     """The simple_trainer-style loop with DefaultStrategy on gsw.rasterization (see the module docstring)."""
     from gsplat.strategy import DefaultStrategy  # noqa: PLC0415
+    from gsplat.strategy.ops import reset_opa  # noqa: PLC0415
 
     params, optimizers, sched = _gsplat_params(g0, extent, args.iterations)
     strategy = DefaultStrategy(refine_start_iter=100, refine_stop_iter=args.iterations // 2, refine_every=20,
@@ -100,6 +101,11 @@ def run_gsplat(train_set, test_set, g0: Gaussians, extent: float, args: argparse
             opt.zero_grad(set_to_none=True)
         sched.step()
         strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
+        if args.opacity_resets and step < args.iterations // 2 and (step + 1 == 100 or (step + 1) % 1000 == 0):
+            # gsw's resets (iterations 100 and 1000, 1-based) with gsplat's own reset_opa and DefaultStrategy's
+            # value; DefaultStrategy 1.5.3 never resets by itself (`step % self.reset_every == 0 & step > 0`
+            # chains to `... and 0 > 0`).
+            reset_opa(params=params, optimizers=optimizers, state=state, value=strategy.prune_opa * 2.0)
         if step % 100 == 0 or step == args.iterations - 1:
             history.append({"step": step, "loss": float(loss.detach()), "num_gaussians": len(params["means"]),
                             "time_s": time.perf_counter() - t0})
@@ -153,6 +159,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--which", choices=("both", "gsplat", "gsw"), default="both")
     ap.add_argument("--tag", default="gsplat_strategy")
+    ap.add_argument("--no-opacity-resets", dest="opacity_resets", action="store_false",
+                    help="run DefaultStrategy as shipped (its opacity reset never fires); recorded as gsplat_as_shipped")
     args = ap.parse_args()
     import gsplat  # noqa: PLC0415  (fail early when it is missing)
 
@@ -172,6 +180,8 @@ def main() -> None:
     for name in (("gsplat", "gsw") if args.which == "both" else (args.which,)):
         result = (run_gsplat(train_set, test_set, g0, extent, args) if name == "gsplat"
                   else run_gsw(train_set, test_set, g0, args))
+        if name == "gsplat" and not args.opacity_resets:
+            name = "gsplat_as_shipped"
         # runs of the other trainer written meanwhile (``--which`` runs in parallel processes) are kept
         old = json.loads(out.read_text()) if out.exists() else {}
         runs = summary["runs"] = {k: v for k, v in old.get("runs", {}).items()
