@@ -30,12 +30,12 @@ __all__ = ["NonFiniteInputError", "bins", "contribution", "project", "rasterize"
 
 
 class NonFiniteInputError(ValueError):
-    """Inputs of a render hold NaN/Inf; ``flags`` has bit k set for ``_C.NONFINITE_FIELDS[k]``."""
+    """Inputs of a render hold NaN/Inf; ``flags`` has bit k set for ``_C.NONFINITE_FIELDS[k]`` (``names``)."""
 
     def __init__(self, flags: int) -> None:
         self.flags = int(flags)
-        names = [name for k, name in enumerate(_C.NONFINITE_FIELDS) if self.flags >> k & 1]
-        super().__init__("non-finite Gaussian parameters: " + ", ".join(names))
+        self.names = [name for k, name in enumerate(_C.NONFINITE_FIELDS) if self.flags >> k & 1]
+        super().__init__("non-finite Gaussian parameters: " + ", ".join(self.names))
 
 
 def bins(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,

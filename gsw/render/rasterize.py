@@ -109,14 +109,14 @@ def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
     return _ops.bins(proj.means2d, proj.radii, proj.depths, width, height, proj.nonfinite)
 
 
-def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, flags: int) -> None:
-    """Raises the ValueError for the projection's nonfinite `flags` (bit k: NONFINITE_FIELDS[k])."""
-    names = [name for k, name in enumerate(_C.NONFINITE_FIELDS) if flags >> k & 1]
+def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, exc: _ops.NonFiniteInputError) -> None:
+    """Raises the ValueError naming the fields (and rows) the projection flagged as holding NaN/Inf."""
+    names = list(exc.names)
     if colors is not None and "sh" in names:  # the "sh" input was the colour override
         names[names.index("sh")] = "colors (the colour override)"
         raise ValueError("non-finite inputs: " + ", ".join(names) + " contain NaN/Inf")
     gaussians.check_finite()  # names the fields and counts the rows (a host check, on this error path only)
-    raise ValueError("non-finite Gaussian parameters: " + ", ".join(names))
+    raise ValueError(str(exc)) from None
 
 
 def blend(proj: Projection, width: int, height: int,
@@ -260,7 +260,7 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
     try:
         image, alpha, depth, final_T, n_contrib, *bin_tensors = _blend(proj, camera.width, camera.height, bg)
     except _ops.NonFiniteInputError as exc:
-        _raise_nonfinite(gaussians, colors, exc.flags)
+        _raise_nonfinite(gaussians, colors, exc)
     return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, int(camera.width), int(camera.height),
                         tuple(bin_tensors))
 
