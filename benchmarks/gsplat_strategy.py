@@ -11,7 +11,9 @@ steps, opacity reset period 1000) and are scored by the same function (``gsw.tra
   5e-2, sh0 2.5e-3, shN 2.5e-3 / 20), loss ``0.8 L1 + 0.2 (1 - SSIM)``, ``gsplat.strategy.DefaultStrategy``
   (``refine_start_iter=100``, ``refine_stop_iter=iterations / 2``, ``refine_every=20``, ``reset_every=1000``,
   everything else gsplat's default) reading ``meta["means2d"].grad`` / ``meta["radii"]`` from
-  ``gsw.rasterization(..., packed=False)``.
+  ``gsw.rasterization(..., packed=False)``. DefaultStrategy 1.5.3's own opacity reset never fires, so the loop
+  calls gsplat's ``reset_opa`` where gsw's trainer resets (iterations 100 and 1000); ``--no-opacity-resets``
+  runs the strategy as shipped (recorded as ``gsplat_as_shipped``).
 * ``gsw``: ``gsw.train.train`` (the INRIA recipe) with the same schedule.
 
 gsplat is only needed for its pure-Python strategy (its CUDA kernels are never called): put an installed or unpacked
