@@ -21,7 +21,8 @@ import torch
 import gsw
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
-from gsw.render.rasterize import contribution, rasterization, rasterize
+from gsw.render.functional import rasterization
+from gsw.render.rasterize import contribution, rasterize
 from gsw.scenes import frustum_scene, heavy_scene, random_gaussians
 
 HAS_CUDA = torch.cuda.is_available() and bool(gsw.build_info()["cuda"])

@@ -1,14 +1,16 @@
-"""Differentiable rasterization: thin torch.autograd wrappers around the C++/CUDA kernels.
+"""Differentiable rasterization: thin wrappers over the kernels' custom ops (:mod:`gsw.render._ops`).
 
-Two autograd stages, as in gsplat:
+Two differentiable stages, as in gsplat:
 
 1. :func:`project` — per-Gaussian EWA projection + SH colour (`means2d`, `conics`, `depths`,
    `colors`, `opacities`, `radii`);
-2. :func:`blend` — tile binning and front-to-back alpha blending into an image.
+2. :func:`blend` — tile binning and front-to-back alpha blending into an image (one op: the
+   data-dependent tile lists stay inside it).
 
 :func:`rasterize` composes them for a :class:`~gsw.gaussians.Gaussians` and a
 :class:`~gsw.camera.Camera`; :func:`contribution` computes per-Gaussian blending weights under
-a weight map; :func:`rasterization` is a gsplat-style functional entry point.
+a weight map; :func:`gsw.render.functional.rasterization` is the gsplat drop-in. Every stage is a
+``torch.library`` custom op, so ``torch.compile(fullgraph=True)`` traces a render and its loss.
 
 Frames: world coordinates for Gaussians; cameras are world-to-camera (OpenCV axes: x right,
 y down, z forward); 2-D means are pixels in the `K p` frame, pixel (i, j) has its centre at
@@ -18,13 +20,14 @@ y down, z forward); 2-D means are pixels in the `K p` frame, pixel (i, j) has it
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from gsw._ext import _C
+from gsw.render import _ops
 
 if TYPE_CHECKING:
     from gsw.camera import Camera
@@ -37,61 +40,6 @@ def _camera_args(camera: Camera) -> dict[str, Any]:
     return dict(viewmat=camera.viewmat, fx=float(camera.fx), fy=float(camera.fy),
                 cx=float(camera.cx), cy=float(camera.cy), width=int(camera.width),
                 height=int(camera.height))
-
-
-class _Project(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, means, quats, log_scales, opacity_logits, sh, sh_degree, cam, nonfinite):  # type: ignore[override]
-        ins = [t.contiguous() for t in (means, quats, log_scales, opacity_logits, sh)]
-        radii, means2d, conics, depths, colors, opacities = _C.project_forward(
-            *ins, sh_degree=sh_degree, **cam, nonfinite=nonfinite)
-        ctx.sh_degree, ctx.cam = sh_degree, cam
-        ctx.save_for_backward(*ins, radii, conics, colors, opacities)
-        ctx.mark_non_differentiable(radii)
-        return means2d, conics, depths, colors, opacities, radii
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, v_means2d, v_conics, v_depths, v_colors, v_opacities, _v_radii):  # type: ignore[override]
-        means, quats, log_scales, opacity_logits, sh, radii, conics, colors, opacities = ctx.saved_tensors
-        grads = _C.project_backward(
-            means, quats, log_scales, opacity_logits, sh, sh_degree=ctx.sh_degree, **ctx.cam,
-            radii=radii, conics=conics, colors=colors, opacities=opacities,
-            v_means2d=v_means2d.contiguous(), v_conics=v_conics.contiguous(),
-            v_depths=v_depths.contiguous(), v_colors=v_colors.contiguous(),
-            v_opacities=v_opacities.contiguous())
-        return (*grads, None, None, None)
-
-
-class _Blend(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, depths, background, bins, width, height):  # type: ignore[override]
-        ins = [t.contiguous() for t in (means2d, conics, colors, opacities, depths, background)]
-        image, alpha, depth, final_T, n_contrib = _C.rasterize_forward(
-            *ins, bins=bins, width=width, height=height)
-        ctx.bins, ctx.width, ctx.height = bins, width, height
-        ctx.save_for_backward(*ins, final_T, n_contrib)
-        ctx.mark_non_differentiable(final_T, n_contrib)
-        # Unused outputs (usually alpha and depth) get no zero-filled [1, H, W] cotangents: the kernels
-        # treat a missing v_alpha / v_depth as zero.
-        ctx.set_materialize_grads(False)
-        return image, alpha, depth, final_T, n_contrib
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, v_image, v_alpha, v_depth, _v_t, _v_n):  # type: ignore[override]
-        means2d, conics, colors, opacities, depths, background, final_T, n_contrib = ctx.saved_tensors
-        if v_image is None:
-            v_image = torch.zeros((3, ctx.height, ctx.width), dtype=means2d.dtype, device=means2d.device)
-        grads = _C.rasterize_backward(
-            means2d, conics, colors, opacities, depths, background, bins=ctx.bins,
-            width=ctx.width, height=ctx.height, final_T=final_T, n_contrib=n_contrib,
-            v_image=v_image.contiguous(), v_alpha=None if v_alpha is None else v_alpha.contiguous(),
-            v_depth=None if v_depth is None else v_depth.contiguous())
-        v_background = None
-        if ctx.needs_input_grad[5]:
-            v_background = (v_image * final_T.unsqueeze(0)).sum(dim=(1, 2))
-        return (*grads, v_background, None, None, None)
 
 
 @dataclass
@@ -110,7 +58,7 @@ class Projection:
             faint splats: as far as their alpha can reach ALPHA_MIN (about sqrt(2 ln(255 opacity))
             sigmas, plus one pixel); 0 for opacities below ALPHA_MIN. The image does not change.
         nonfinite: optional [1] int32 device flags the projection set for inputs holding NaN/Inf
-            (bit k: ``_C.NONFINITE_FIELDS[k]``); :func:`bin_gaussians` reads them back.
+            (bit k: ``_C.NONFINITE_FIELDS[k]``); :func:`blend` and :func:`bin_gaussians` read them back.
     """
 
     means2d: Tensor
@@ -145,10 +93,11 @@ def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Te
     Returns:
         The :class:`Projection`.
     """
-    flags = torch.zeros(1, dtype=torch.int32, device=means.device) if check_finite else None
-    out = _Project.apply(means, quats, log_scales, opacity_logits, sh, int(sh_degree),
-                         _camera_args(camera), flags)
-    return Projection(*out, nonfinite=flags)
+    cam = _camera_args(camera)
+    radii, means2d, conics, depths, colors, opacities, flags = _ops.project(
+        means, quats, log_scales, opacity_logits, sh, int(sh_degree), cam["viewmat"], cam["fx"], cam["fy"],
+        cam["cx"], cam["cy"], cam["width"], cam["height"], bool(check_finite))
+    return Projection(means2d, conics, depths, colors, opacities, radii, nonfinite=flags if check_finite else None)
 
 
 def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
@@ -157,31 +106,44 @@ def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
     The returned bins' `nonfinite` holds the host copy of `proj.nonfinite` (0 without flags), read
     with the intersection count in the binning's one host synchronisation.
     """
-    return _C.bin_gaussians(proj.means2d.detach().contiguous(), proj.radii,
-                            proj.depths.detach().contiguous(), int(width), int(height),
-                            nonfinite=proj.nonfinite)
+    return _ops.bins(proj.means2d, proj.radii, proj.depths, width, height, proj.nonfinite)
 
 
-def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, flags: int) -> None:
-    """Raises the ValueError for the projection's nonfinite `flags` (bit k: NONFINITE_FIELDS[k])."""
-    names = [name for k, name in enumerate(_C.NONFINITE_FIELDS) if flags >> k & 1]
+def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, exc: _ops.NonFiniteInputError) -> None:
+    """Raises the ValueError naming the fields (and rows) the projection flagged as holding NaN/Inf."""
+    names = list(exc.names)
     if colors is not None and "sh" in names:  # the "sh" input was the colour override
         names[names.index("sh")] = "colors (the colour override)"
         raise ValueError("non-finite inputs: " + ", ".join(names) + " contain NaN/Inf")
     gaussians.check_finite()  # names the fields and counts the rows (a host check, on this error path only)
-    raise ValueError("non-finite Gaussian parameters: " + ", ".join(names))
+    raise ValueError(str(exc)) from None
 
 
-def blend(proj: Projection, bins: TileBins, width: int, height: int,
+def blend(proj: Projection, width: int, height: int,
           background: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Alpha-blends projected Gaussians front to back (differentiable).
+    """Bins and alpha-blends projected Gaussians front to back (differentiable).
+
+    Args:
+        proj: the projection; Gaussians with `radii == 0` are left out. `proj.nonfinite` flags (from
+            :func:`project` with `check_finite`) are read back with the binning's host synchronisation.
+        width: image width.
+        height: image height.
+        background: [3] RGB composited behind the splats.
 
     Returns:
         image [3, H, W], alpha [1, H, W], depth [1, H, W] (sum of w_i z_i), final_T [H, W],
         n_contrib [H, W] int32.
+
+    Raises:
+        gsw.render._ops.NonFiniteInputError: (a ValueError) the projection flagged NaN/Inf inputs.
     """
-    return _Blend.apply(proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths,
-                        background, bins, int(width), int(height))
+    return _blend(proj, width, height, background)[:5]
+
+
+def _blend(proj: Projection, width: int, height: int, background: Tensor) -> tuple[Tensor, ...]:
+    """:func:`blend`'s outputs followed by the bin tensors (see :func:`gsw.render._ops.rasterize`)."""
+    return _ops.rasterize(proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths, background,
+                          proj.radii, int(width), int(height), proj.nonfinite)
 
 
 @dataclass
@@ -196,7 +158,10 @@ class RenderOutput:
         n_contrib: [H, W] int32, 1 + index of the last blended splat in the pixel's tile list.
         projection: per-Gaussian screen-space quantities (`means2d` carries the screen-space
             gradient).
-        bins: the tile binning, reusable by :func:`contribution_from_projection`.
+        width: image width.
+        height: image height.
+        bin_tensors: the blending op's bins (tile_offsets, gauss_ids, entry_offsets, entry_slots), see
+            :attr:`bins`.
     """
 
     image: Tensor
@@ -205,7 +170,14 @@ class RenderOutput:
     final_T: Tensor
     n_contrib: Tensor
     projection: Projection
-    bins: TileBins
+    width: int
+    height: int
+    bin_tensors: tuple[Tensor, ...]
+
+    @cached_property
+    def bins(self) -> TileBins:
+        """The render's tile binning (a ``TileBins`` over :attr:`bin_tensors`; `nonfinite` is 0)."""
+        return _ops.restore_bins(self.projection.means2d, self.width, self.height, *self.bin_tensors)
 
     @property
     def radii(self) -> Tensor:
@@ -284,12 +256,13 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, sh_degree: int | None = N
         sh, degree = gaussians.sh, _resolve_sh_degree(gaussians, sh_degree)
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales,
                    gaussians.opacity_logits, sh, camera, degree, check_finite=validate)
-    bins = bin_gaussians(proj, camera.width, camera.height)
-    if bins.nonfinite:
-        _raise_nonfinite(gaussians, colors, bins.nonfinite)
-    image, alpha, depth, final_T, n_contrib = blend(
-        proj, bins, camera.width, camera.height, _background(background, gaussians.means))
-    return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, bins)
+    bg = _background(background, gaussians.means)
+    try:
+        image, alpha, depth, final_T, n_contrib, *bin_tensors = _blend(proj, camera.width, camera.height, bg)
+    except _ops.NonFiniteInputError as exc:
+        _raise_nonfinite(gaussians, colors, exc)
+    return RenderOutput(image, alpha, depth, final_T, n_contrib, proj, int(camera.width), int(camera.height),
+                        tuple(bin_tensors))
 
 
 @dataclass
@@ -310,14 +283,12 @@ class ContributionOutput:
     radii: Tensor
 
 
-def contribution_from_projection(proj: Projection, bins: TileBins, weights: Tensor,
-                                 width: int, height: int) -> ContributionOutput:
-    """Per-Gaussian contribution for an already projected and binned view (no gradient)."""
-    w = weights.detach().to(proj.means2d.dtype).contiguous()
-    values, hits, max_weight = _C.contribution(
-        proj.means2d.detach().contiguous(), proj.conics.detach().contiguous(),
-        proj.opacities.detach().contiguous(), bins=bins, width=int(width), height=int(height),
-        weights=w)
+def contribution_from_projection(proj: Projection, weights: Tensor, width: int, height: int) -> ContributionOutput:
+    """Per-Gaussian contribution (see :func:`contribution`) for an already projected view (no gradient)."""
+    w = weights.detach().to(proj.means2d.dtype)
+    values, hits, max_weight = _ops.contribution(proj.means2d.detach(), proj.conics.detach(),
+                                                 proj.opacities.detach(), proj.depths.detach(), proj.radii, w,
+                                                 int(width), int(height))
     return ContributionOutput(values, hits, max_weight, proj.radii)
 
 
@@ -342,64 +313,4 @@ def contribution(gaussians: Gaussians, camera: Camera, weights: Tensor) -> Contr
     zeros = torch.zeros_like(gaussians.means)
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales,
                    gaussians.opacity_logits, zeros, camera, -1)
-    bins = bin_gaussians(proj, camera.width, camera.height)
-    return contribution_from_projection(proj, bins, weights.to(gaussians.means.device), camera.width,
-                                        camera.height)
-
-
-def rasterization(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                  viewmats: Tensor, Ks: Tensor, width: int, height: int, *,
-                  sh_degree: int | None = None, backgrounds: Tensor | None = None,
-                  ) -> tuple[Tensor, Tensor, dict[str, Any]]:
-    """gsplat-style functional entry point (drop-in for `gsplat.rasterization` basics).
-
-    Args:
-        means: [N, 3] world positions.
-        quats: [N, 4] rotations (w, x, y, z), unnormalised.
-        scales: [N, 3] activated (linear) scales.
-        opacities: [N] activated opacities in [0, 1].
-        colors: [N, K, 3] SH coefficients when `sh_degree` is given, else [N, 3] RGB.
-        viewmats: [C, 4, 4] world-to-camera matrices (OpenCV).
-        Ks: [C, 3, 3] intrinsics.
-        width: image width.
-        height: image height.
-        sh_degree: SH degree, or None for direct colours.
-        backgrounds: optional [C, 3] background colours.
-
-    Returns:
-        (render_colors [C, H, W, 3], render_alphas [C, H, W, 1], meta) where meta holds
-        per-camera `radii` [C, N], `means2d` [C, N, 2], `depths` [C, N] and
-        `render_depths` [C, H, W, 1] (alpha-weighted depth sums).
-    """
-    from gsw.camera import Camera  # local import: camera imports nothing from here
-
-    if viewmats.dim() != 3 or Ks.dim() != 3 or viewmats.shape[0] != Ks.shape[0]:
-        raise ValueError(f"viewmats [C,4,4] and Ks [C,3,3] must agree, got {list(viewmats.shape)} "
-                         f"and {list(Ks.shape)}")
-    if sh_degree is None:
-        sh, degree = colors, -1
-    else:
-        sh, degree = colors, int(sh_degree)
-    log_scales = torch.log(scales)
-    # The blending stage takes the activated opacities directly (the projection's opacity output is
-    # replaced below); their logits only size the opacity-aware footprints.
-    logits = torch.logit(opacities.detach())
-    imgs, alphas, depth_maps, radii, m2d, depths = [], [], [], [], [], []
-    for c in range(viewmats.shape[0]):
-        K = Ks[c]
-        cam = Camera(viewmat=viewmats[c], fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]),
-                     cy=float(K[1, 2]), width=int(width), height=int(height))
-        proj = project(means, quats, log_scales, logits, sh, cam, degree)
-        proj.opacities = opacities
-        bins = bin_gaussians(proj, width, height)
-        bg = _background(None if backgrounds is None else backgrounds[c], means)
-        image, alpha, depth, _, _ = blend(proj, bins, width, height, bg)
-        imgs.append(image.permute(1, 2, 0))
-        alphas.append(alpha.permute(1, 2, 0))
-        depth_maps.append(depth.permute(1, 2, 0))
-        radii.append(proj.radii)
-        m2d.append(proj.means2d)
-        depths.append(proj.depths)
-    meta = dict(radii=torch.stack(radii), means2d=torch.stack(m2d), depths=torch.stack(depths),
-                render_depths=torch.stack(depth_maps), width=width, height=height)
-    return torch.stack(imgs), torch.stack(alphas), meta
+    return contribution_from_projection(proj, weights.to(gaussians.means.device), camera.width, camera.height)
