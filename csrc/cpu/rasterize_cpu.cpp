@@ -89,7 +89,13 @@ template <typename T>
 GSW_CPU_INLINE void gather_splats(const RasterParams<T>& p, const PackedSplat<T>* recs,
                                   const TileView& v, std::vector<PackedSplat<T>>& out) {
   out.resize(v.end - v.start);
+  constexpr int kAhead = 8;  // records are read in random order: prefetch a few ahead
   for (int32_t k = v.start; k < v.end; ++k) {
+    if (k + kAhead < v.end) {
+      const char* next = reinterpret_cast<const char*>(recs + p.bins.gauss_ids[k + kAhead]);
+      __builtin_prefetch(next);
+      __builtin_prefetch(next + sizeof(PackedSplat<T>) - 1);
+    }
     PackedSplat<T>& s = out[k - v.start];
     s = recs[p.bins.gauss_ids[k]];
     if (s.ex >= T(0)) {
@@ -104,11 +110,16 @@ GSW_CPU_INLINE void gather_splats(const RasterParams<T>& p, const PackedSplat<T>
 // Pixels of a row evaluated together: one 8-lane block (an AVX2 float vector); blocks a splat
 // cannot reach, or whose pixels are all finished, are skipped.
 constexpr int kLaneBlock = 8;
-static_assert(TILE_SIZE % kLaneBlock == 0, "tile rows split into whole lane blocks");
+// A block starts at the first lane of a splat's chord, so it may run up to kLaneBlock - 1 lanes
+// past the row (into the next row, or past the tile: tile arrays are padded). Lanes past the
+// chord are masked. Per-splat sums are accumulated per lane q of the block.
+constexpr int kTileAlloc = kTilePixels + kLaneBlock;
+// Margin (pixels) of the row chords against rounding (the chord is otherwise exact, like the box).
+constexpr double kChordMargin = 1e-2;
 
-// Tile-local x range [lo[ly], hi[ly]) of each tile row ly that splat s can reach: the chord of
-// its skip ellipse at the row's pixel-centre height, widened by one pixel on each side, within
-// its box [bx0, bx1). Lanes outside it would compute alpha = 0 (the ellipse is conservative by
+// Tile-local x range [lo[ly], hi[ly]) of each tile row ly that splat s can reach: the pixel
+// centres on the chord of its skip ellipse at the row's pixel-centre height (widened by
+// kChordMargin), within its box [bx0, bx1). Lanes outside it would compute alpha = 0 (the ellipse is conservative by
 // SKIP_LOG_MARGIN), so leaving them out changes no result. All TILE_SIZE rows in one SIMD loop;
 // NaN-safe (falls back to the box).
 template <typename T>
@@ -118,9 +129,9 @@ GSW_CPU_INLINE void row_spans(const PackedSplat<T>& s, T x_centre0, T y_centre0,
   for (int ly = 0; ly < TILE_SIZE; ++ly) {
     const T dy = s.my - (y_centre0 + T(ly));
     const T disc = s.a_r2 - s.det * dy * dy;
-    const T half = sqrt(disc > T(0) ? disc : T(0)) * s.inv_a;
+    const T half = sqrt(disc > T(0) ? disc : T(0)) * s.inv_a + T(kChordMargin);
     const T mid = s.mx + s.b_over_a * dy - x_centre0;
-    const T l = ceil(mid - half) - T(1), h = floor(mid + half) + T(2);
+    const T l = ceil(mid - half), h = floor(mid + half) + T(1);
     const T lc = l > box0 ? (l < box1 ? l : box1) : box0;
     const T hc = h < box1 ? (h > lc ? h : lc) : box1;
     lo[ly] = static_cast<int32_t>(lc);
@@ -136,17 +147,17 @@ GSW_CPU_INLINE bool any_set(const int32_t* flags) {
 }
 
 // One lane block of a row for one splat, front to back (fixed trip count, so the loop becomes
-// straight-line SIMD together with `pixel_fn`); lanes outside [lo, hi) are masked. Per pixel:
+// straight-line SIMD together with `pixel_fn`); lanes from hi on are masked. Per pixel:
 // w = blending weight (0 when masked, skipped, finished or terminating here), passed to
 // pixel_fn(q, w) in the same loop, and updates of the transmittance, liveness and
 // last-contributor arrays (indexed by the lane q).
 template <typename T, typename F>
-GSW_CPU_INLINE void blend_lanes(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int lo, int hi,
-                                T* tr, int32_t* alive, int32_t* last, F&& pixel_fn) {
+GSW_CPU_INLINE void blend_lanes(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int hi, T* tr,
+                                int32_t* alive, int32_t* last, F&& pixel_fn) {
   for (int q = 0; q < kLaneBlock; ++q) {
     const T power = gaussian_power(s.conic, s.mx, s.my, x_centre0 + T(q), pyc);
     const T alpha0 = splat_alpha(s.opacity, power);
-    const bool open = (alive[q] != 0) & (q >= lo) & (q < hi);
+    const bool open = (alive[q] != 0) & (q < hi);
     const T alpha = open ? alpha0 : T(0);
     const bool term = (alpha > T(0)) & blend_terminates(tr[q], alpha);
     alive[q] = term ? 0 : alive[q];
@@ -161,15 +172,16 @@ GSW_CPU_INLINE void blend_lanes(const PackedSplat<T>& s, int j, T x_centre0, T p
 constexpr int kAliveCheckInterval = 16;
 
 // Front-to-back traversal of one tile, splat-major over the lane blocks each splat can reach:
-// identical decisions to a per-pixel loop. Calls pixel_fn(j, ly, lx, w) for every lane of every
-// visited block of splat j (w = 0 where it does not blend) and splat_end(j) after its last row.
+// identical decisions to a per-pixel loop. Calls pixel_fn(j, k, q, w) for every lane q of every
+// visited block of splat j (k: tile-local flat pixel index < kTileAlloc; w = 0 where it does not
+// blend) and splat_end(j) after its last row. `tr` and `last` hold kTileAlloc values.
 template <typename T, typename F, typename G>
 GSW_CPU_INLINE void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, T* tr,
                             int32_t* last, F&& pixel_fn, G&& splat_end) {
-  int32_t alive[kTilePixels];
-  for (int k = 0; k < kTilePixels; ++k) {
+  int32_t alive[kTileAlloc];
+  for (int k = 0; k < kTileAlloc; ++k) {
     tr[k] = T(1);
-    last[k] = 0;
+    last[k] = alive[k] = 0;
   }
   // Pixels outside the image (partial tiles) are never open.
   for (int ly = 0; ly < TILE_SIZE; ++ly)
@@ -189,11 +201,11 @@ GSW_CPU_INLINE void traverse_front_to_back(const TileView& v, const std::vector<
     for (int ly = s.by0; ly < s.by1; ++ly) {
       const T pyc = y_centre0 + T(ly);
       const int lo = span_lo[ly], hi = span_hi[ly];
-      for (int b0 = lo - lo % kLaneBlock; b0 < hi; b0 += kLaneBlock) {
+      for (int b0 = lo; b0 < hi; b0 += kLaneBlock) {
         const int k0 = ly * TILE_SIZE + b0;
         if (!any_set(alive + k0)) continue;
-        blend_lanes(s, j, x_centre0 + T(b0), pyc, lo - b0, hi - b0, tr + k0, alive + k0, last + k0,
-                    [&](int q, T w) { pixel_fn(j, ly, b0 + q, w); });
+        blend_lanes(s, j, x_centre0 + T(b0), pyc, hi - b0, tr + k0, alive + k0, last + k0,
+                    [&](int q, T w) { pixel_fn(j, ly * TILE_SIZE + b0 + q, q, w); });
       }
     }
     if (s.by1 > s.by0) splat_end(j);
@@ -206,13 +218,13 @@ template <typename T>
 GSW_CPU_INLINE void flush_lanes(int k_sums, T* __restrict lanes, T* __restrict r) {
   for (int k = 0; k < k_sums; ++k) {
     T acc = T(0);
-    for (int lx = 0; lx < TILE_SIZE; ++lx) acc += lanes[k * TILE_SIZE + lx];
+    for (int q = 0; q < kLaneBlock; ++q) acc += lanes[k * kLaneBlock + q];
     r[k] += acc;
   }
   T m = r[k_sums];
-  for (int lx = 0; lx < TILE_SIZE; ++lx) m = m < lanes[k_sums * TILE_SIZE + lx] ? lanes[k_sums * TILE_SIZE + lx] : m;
+  for (int q = 0; q < kLaneBlock; ++q) m = m < lanes[k_sums * kLaneBlock + q] ? lanes[k_sums * kLaneBlock + q] : m;
   r[k_sums] = m;
-  for (int k = 0; k < (k_sums + 1) * TILE_SIZE; ++k) lanes[k] = T(0);
+  for (int k = 0; k < (k_sums + 1) * kLaneBlock; ++k) lanes[k] = T(0);
 }
 
 // Contribution traversal of one tile with CC weight channels (CC in 1..3 unrolled; CC = 0: C at
@@ -222,23 +234,22 @@ GSW_CPU_KERNEL void contribution_tile(const TileView& v, const std::vector<Packe
                        const T* __restrict wmap, T* __restrict lane, T* out) {
   const int nc = CC > 0 ? CC : C;
   const int S = nc + 2;
-  T* __restrict hits = lane + nc * TILE_SIZE;
-  T* __restrict mx = hits + TILE_SIZE;
-  T tr[kTilePixels];
-  int32_t last[kTilePixels];
+  T* __restrict hits = lane + nc * kLaneBlock;
+  T* __restrict mx = hits + kLaneBlock;
+  T tr[kTileAlloc];
+  int32_t last[kTileAlloc];
   traverse_front_to_back(
       v, splats, tr, last,
-      [&](int, int ly, int lx, T w) {
-        const int k = ly * TILE_SIZE + lx;
-        if constexpr (CC >= 1) lane[lx] += wmap[k] * w;  // unrolled: the loop stays vectorizable
-        if constexpr (CC >= 2) lane[TILE_SIZE + lx] += wmap[kTilePixels + k] * w;
-        if constexpr (CC >= 3) lane[2 * TILE_SIZE + lx] += wmap[2 * kTilePixels + k] * w;
+      [&](int, int k, int q, T w) {
+        if constexpr (CC >= 1) lane[q] += wmap[k] * w;  // unrolled: the loop stays vectorizable
+        if constexpr (CC >= 2) lane[kLaneBlock + q] += wmap[kTileAlloc + k] * w;
+        if constexpr (CC >= 3) lane[2 * kLaneBlock + q] += wmap[2 * kTileAlloc + k] * w;
         if constexpr (CC == 0)
-          for (int ch = 0; ch < nc; ++ch) lane[ch * TILE_SIZE + lx] += wmap[ch * kTilePixels + k] * w;
+          for (int ch = 0; ch < nc; ++ch) lane[ch * kLaneBlock + q] += wmap[ch * kTileAlloc + k] * w;
         // Select-free forms (selects here stop the vectorizer): w is in [0, 1], so ceil(w) is
         // the hit indicator; max(a, b) = (a + b + |a - b|) / 2 (exact up to one rounding).
-        hits[lx] += ceil(w);
-        mx[lx] = T(0.5) * (mx[lx] + w + std::abs(mx[lx] - w));
+        hits[q] += ceil(w);
+        mx[q] = T(0.5) * (mx[q] + w + std::abs(mx[q] - w));
       },
       [&](int j) { flush_lanes(nc + 1, lane, out + int64_t(S) * j); });
 }
@@ -250,13 +261,12 @@ GSW_CPU_KERNEL void forward_tile(const RasterParams<T>& p, const PackedSplat<T>*
   const int64_t P = int64_t(p.width) * p.height;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
-  T tr[kTilePixels], col[3][kTilePixels], dep[kTilePixels];
-  int32_t last[kTilePixels];
-  for (int k = 0; k < kTilePixels; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
+  T tr[kTileAlloc], col[3][kTileAlloc], dep[kTileAlloc];
+  int32_t last[kTileAlloc];
+  for (int k = 0; k < kTileAlloc; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
   const PackedSplat<T>* sp = splats.data();  // no TLS lookup in the lambda
-  traverse_front_to_back(v, splats, tr, last, [&](int j, int ly, int lx, T w) {
+  traverse_front_to_back(v, splats, tr, last, [&](int j, int k, int, T w) {
     const PackedSplat<T>& s = sp[j];
-    const int k = ly * TILE_SIZE + lx;
     col[0][k] += w * s.color[0];
     col[1][k] += w * s.color[1];
     col[2][k] += w * s.color[2];
@@ -287,12 +297,12 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
   T* out = scratch + int64_t(S) * v.start;
   std::fill(out, out + int64_t(S) * (v.end - v.start), T(0));
   // Per-pixel state, walking back to front from each pixel's last blended splat.
-  T tr[kTilePixels], t_final[kTilePixels], v_tfinal[kTilePixels];
-  T vi[3][kTilePixels], vd[kTilePixels];
-  T behind[3][kTilePixels], behind_d[kTilePixels];  // colour/depth behind, per unit T
-  int32_t n_pix[kTilePixels];
+  T tr[kTileAlloc], t_final[kTileAlloc], v_tfinal[kTileAlloc];
+  T vi[3][kTileAlloc], vd[kTileAlloc];
+  T behind[3][kTileAlloc], behind_d[kTileAlloc];  // colour/depth behind, per unit T
+  int32_t n_pix[kTileAlloc];
   int max_n = 0;
-  for (int k = 0; k < kTilePixels; ++k) {
+  for (int k = 0; k < kTileAlloc; ++k) {
     n_pix[k] = 0;
     tr[k] = t_final[k] = v_tfinal[k] = vd[k] = behind_d[k] = T(1);
     for (int c = 0; c < 3; ++c) vi[c][k] = behind[c][k] = T(0);
@@ -312,9 +322,10 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
                     vi[2][k] * p.background[2] - (g.v_alpha ? g.v_alpha[pix] : T(0));
     }
   }
-  // Largest n_contrib of each lane block: splat j touches no pixel of a block with max <= j.
-  int32_t blk_n[kTilePixels / kLaneBlock];
-  for (int k = 0; k < kTilePixels / kLaneBlock; ++k) {
+  // Largest n_contrib of each aligned group of kLaneBlock pixels (a lane block spans at most
+  // two): splat j touches no pixel of a block whose groups have maxima <= j.
+  int32_t blk_n[kTileAlloc / kLaneBlock];
+  for (int k = 0; k < kTileAlloc / kLaneBlock; ++k) {
     int32_t m = 0;
     for (int q = 0; q < kLaneBlock; ++q) m = std::max(m, n_pix[k * kLaneBlock + q]);
     blk_n[k] = m;
@@ -322,13 +333,12 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
   // Per-lane (tile-local x) partial sums of one splat's cotangents.
-  T l_mx[TILE_SIZE], l_my[TILE_SIZE], l_a[TILE_SIZE], l_b[TILE_SIZE], l_c[TILE_SIZE];
-  T l_op[TILE_SIZE], l_r[TILE_SIZE], l_g[TILE_SIZE], l_bl[TILE_SIZE], l_d[TILE_SIZE];
+  T l_mx[kLaneBlock], l_my[kLaneBlock], l_a[kLaneBlock], l_b[kLaneBlock], l_c[kLaneBlock];
+  T l_op[kLaneBlock], l_r[kLaneBlock], l_g[kLaneBlock], l_bl[kLaneBlock], l_d[kLaneBlock];
   for (int j = max_n - 1; j >= 0; --j) {
     const PackedSplat<T>& s = splats[j];
-    for (int lx = 0; lx < TILE_SIZE; ++lx)
-      l_mx[lx] = l_my[lx] = l_a[lx] = l_b[lx] = l_c[lx] = l_op[lx] = l_r[lx] = l_g[lx] =
-          l_bl[lx] = l_d[lx] = T(0);
+    for (int q = 0; q < kLaneBlock; ++q)
+      l_mx[q] = l_my[q] = l_a[q] = l_b[q] = l_c[q] = l_op[q] = l_r[q] = l_g[q] = l_bl[q] = l_d[q] = T(0);
     row_spans(s, x_centre0, y_centre0, span_lo, span_hi);
     for (int ly = s.by0; ly < s.by1; ++ly) {
       const T pyc = y_centre0 + T(ly);
@@ -344,9 +354,8 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
         T* bd = behind_d + k0;
         const int32_t* np = n_pix + k0;
         const int qlo = lo - b0, qhi = hi - b0;
-        for (int q = 0; q < kLaneBlock; ++q) {  // fixed trip count; lanes outside [lo, hi) masked
-          const int lx = b0 + q;
-          const T pxc = x_centre0 + T(lx);
+        for (int q = 0; q < kLaneBlock; ++q) {  // fixed trip count; lanes from hi on masked
+          const T pxc = x_centre0 + T(b0 + q);
           const T power = gaussian_power(s.conic, s.mx, s.my, pxc, pyc);
           const T G = splat_gaussian(power);
           const T alpha0 = splat_alpha_from_gaussian(s.opacity, power, G);
@@ -357,22 +366,22 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
           const T t = trr[q] * inv_om;  // transmittance in front of splat j (unchanged if a = 0)
           trr[q] = t;
           const T w = a * t;
-          l_r[lx] += w * v0[q];
-          l_g[lx] += w * v1[q];
-          l_bl[lx] += w * v2[q];
-          l_d[lx] += w * vdr[q];
+          l_r[q] += w * v0[q];
+          l_g[q] += w * v1[q];
+          l_bl[q] += w * v2[q];
+          l_d[q] += w * vdr[q];
           T v_alpha = t * ((s.color[0] - b0r[q]) * v0[q] + (s.color[1] - b1r[q]) * v1[q] +
                            (s.color[2] - b2r[q]) * v2[q] + (s.depth - bd[q]) * vdr[q]) -
                       tf[q] * inv_om * vtf[q];
           v_alpha = a > T(0) ? v_alpha : T(0);
           const SplatGrad<T> sg = splat_alpha_vjp_from_gaussian(s.conic, s.mx - pxc, s.my - pyc, G,
                                                                 s.opacity, v_alpha);
-          l_mx[lx] += sg.mean2d.x;
-          l_my[lx] += sg.mean2d.y;
-          l_a[lx] += sg.conic.a;
-          l_b[lx] += sg.conic.b;
-          l_c[lx] += sg.conic.c;
-          l_op[lx] += sg.opacity;
+          l_mx[q] += sg.mean2d.x;
+          l_my[q] += sg.mean2d.y;
+          l_a[q] += sg.conic.a;
+          l_b[q] += sg.conic.b;
+          l_c[q] += sg.conic.c;
+          l_op[q] += sg.opacity;
           b0r[q] = a * s.color[0] + om * b0r[q];
           b1r[q] = a * s.color[1] + om * b1r[q];
           b2r[q] = a * s.color[2] + om * b2r[q];
@@ -381,17 +390,17 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
       }
     }
     T* r = out + int64_t(S) * j;
-    for (int lx = 0; lx < TILE_SIZE; ++lx) {
-      r[0] += l_mx[lx];
-      r[1] += l_my[lx];
-      r[2] += l_a[lx];
-      r[3] += l_b[lx];
-      r[4] += l_c[lx];
-      r[5] += l_op[lx];
-      r[6] += l_r[lx];
-      r[7] += l_g[lx];
-      r[8] += l_bl[lx];
-      r[9] += l_d[lx];
+    for (int q = 0; q < kLaneBlock; ++q) {
+      r[0] += l_mx[q];
+      r[1] += l_my[q];
+      r[2] += l_a[q];
+      r[3] += l_b[q];
+      r[4] += l_c[q];
+      r[5] += l_op[q];
+      r[6] += l_r[q];
+      r[7] += l_g[q];
+      r[8] += l_bl[q];
+      r[9] += l_d[q];
     }
   }
 }
@@ -447,16 +456,16 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
     gather_splats(p, recs.get(), v, splats);
     T* out = scratch + int64_t(S) * v.start;
     std::fill(out, out + int64_t(S) * splats.size(), T(0));
-    // Tile-local copy of the weight map, [C][kTilePixels].
-    wts.assign(size_t(C) * kTilePixels, T(0));
+    // Tile-local copy of the weight map, [C][kTileAlloc] (zero padded).
+    wts.assign(size_t(C) * kTileAlloc, T(0));
     for (int py = v.y0; py < v.y1; ++py)
       for (int px = v.x0; px < v.x1; ++px)
         for (int ch = 0; ch < C; ++ch)
-          wts[size_t(ch) * kTilePixels + (py - v.y0) * TILE_SIZE + (px - v.x0)] =
+          wts[size_t(ch) * kTileAlloc + (py - v.y0) * TILE_SIZE + (px - v.x0)] =
               c.weights[ch * P + int64_t(py) * p.width + px];
-    // Per-lane partial sums of the current splat, [C + 2][TILE_SIZE], flushed after its last row.
+    // Per-lane partial sums of the current splat, [C + 2][kLaneBlock], flushed after its last row.
     // (Plain pointers: thread_local access inside the hot lambdas would cost a TLS lookup.)
-    lanes.assign(size_t(S) * TILE_SIZE, T(0));
+    lanes.assign(size_t(S) * kLaneBlock, T(0));
     if (C == 1)
       contribution_tile<T, 1>(v, splats, C, wts.data(), lanes.data(), out);
     else if (C == 3)
