@@ -295,7 +295,6 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
   T* out = scratch + int64_t(S) * v.start;
-  std::fill(out, out + int64_t(S) * (v.end - v.start), T(0));
   // Per-pixel state, walking back to front from each pixel's last blended splat.
   T tr[kTileAlloc], t_final[kTileAlloc], v_tfinal[kTileAlloc];
   T vi[3][kTileAlloc], vd[kTileAlloc];
@@ -330,9 +329,11 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
     for (int q = 0; q < kLaneBlock; ++q) m = std::max(m, n_pix[k * kLaneBlock + q]);
     blk_n[k] = m;
   }
+  // Records of splats no pixel reaches are zero; the others are written once, below.
+  std::fill(out + int64_t(S) * max_n, out + int64_t(S) * (v.end - v.start), T(0));
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
-  // Per-lane (tile-local x) partial sums of one splat's cotangents.
+  // Per-lane-slot partial sums of one splat's cotangents.
   T l_mx[kLaneBlock], l_my[kLaneBlock], l_a[kLaneBlock], l_b[kLaneBlock], l_c[kLaneBlock];
   T l_op[kLaneBlock], l_r[kLaneBlock], l_g[kLaneBlock], l_bl[kLaneBlock], l_d[kLaneBlock];
   for (int j = max_n - 1; j >= 0; --j) {
@@ -389,7 +390,7 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
         }
       }
     }
-    T* r = out + int64_t(S) * j;
+    T r[S] = {};
     for (int q = 0; q < kLaneBlock; ++q) {
       r[0] += l_mx[q];
       r[1] += l_my[q];
@@ -402,6 +403,7 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
       r[8] += l_bl[q];
       r[9] += l_d[q];
     }
+    std::copy(r, r + S, out + int64_t(S) * j);
   }
 }
 
