@@ -285,125 +285,134 @@ GSW_CPU_KERNEL void forward_tile(const RasterParams<T>& p, const PackedSplat<T>*
   }
 }
 
+// Per-pixel state of one tile's backward walk (tile-local, kTileAlloc entries, pads inert), walking
+// back to front from each pixel's last blended splat.
+template <typename T>
+struct BackwardPixels {
+  T tr[kTileAlloc], t_final[kTileAlloc], v_tfinal[kTileAlloc];
+  T vi[3][kTileAlloc], vd[kTileAlloc];
+  T behind[3][kTileAlloc], behind_d[kTileAlloc];  // colour/depth behind, per unit T
+  int32_t n_pix[kTileAlloc];
+  // Largest n_contrib of each aligned group of kLaneBlock pixels: splat j touches no pixel of a
+  // block whose group has a maximum <= j.
+  int32_t blk_n[kTileAlloc / kLaneBlock];
+  int max_n;  // largest n_contrib of the tile
+};
+
+template <typename T>
+GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterGradParams<T>& g,
+                                         const TileView& v, BackwardPixels<T>& px) {
+  const int64_t P = int64_t(p.width) * p.height;
+  px.max_n = 0;
+  for (int k = 0; k < kTileAlloc; ++k) {
+    px.n_pix[k] = 0;
+    px.tr[k] = px.t_final[k] = px.v_tfinal[k] = px.vd[k] = px.behind_d[k] = T(1);
+    for (int c = 0; c < 3; ++c) px.vi[c][k] = px.behind[c][k] = T(0);
+  }
+  for (int py = v.y0; py < v.y1; ++py) {
+    for (int x = v.x0; x < v.x1; ++x) {
+      const int k = (py - v.y0) * TILE_SIZE + (x - v.x0);
+      const int64_t pix = int64_t(py) * p.width + x;
+      px.n_pix[k] = p.n_contrib[pix];
+      px.max_n = std::max(px.max_n, px.n_pix[k]);
+      px.tr[k] = px.t_final[k] = p.final_T[pix];
+      for (int c = 0; c < 3; ++c) px.vi[c][k] = g.v_image[c * P + pix];
+      px.vd[k] = g.v_depth ? g.v_depth[pix] : T(0);
+      px.behind_d[k] = T(0);
+      // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
+      px.v_tfinal[k] = px.vi[0][k] * p.background[0] + px.vi[1][k] * p.background[1] +
+                       px.vi[2][k] * p.background[2] - (g.v_alpha ? g.v_alpha[pix] : T(0));
+    }
+  }
+  for (int k = 0; k < kTileAlloc / kLaneBlock; ++k) {
+    int32_t m = 0;
+    for (int q = 0; q < kLaneBlock; ++q) m = std::max(m, px.n_pix[k * kLaneBlock + q]);
+    px.blk_n[k] = m;
+  }
+}
+
+// Backward of splat j over the aligned lane block at tile-local pixel k0 (pixel centres pxc0 + q,
+// pyc; lanes outside [qlo, qhi) masked): steps the block's pixels back over splat j and adds the
+// splat's cotangents per lane slot to l (rows in kSplatGradSize record order).
+template <typename T>
+GSW_CPU_INLINE void backward_block(const PackedSplat<T>& s, int j, BackwardPixels<T>& px, int k0, T pxc0,
+                                   T pyc, int qlo, int qhi, T (&l)[kSplatGradSize][kLaneBlock]) {
+  T* trr = px.tr + k0;
+  const T* tf = px.t_final + k0;
+  const T* vtf = px.v_tfinal + k0;
+  const T *v0 = px.vi[0] + k0, *v1 = px.vi[1] + k0, *v2 = px.vi[2] + k0, *vdr = px.vd + k0;
+  T *b0r = px.behind[0] + k0, *b1r = px.behind[1] + k0, *b2r = px.behind[2] + k0;
+  T* bd = px.behind_d + k0;
+  const int32_t* np = px.n_pix + k0;
+  for (int q = 0; q < kLaneBlock; ++q) {  // fixed trip count; lanes outside [qlo, qhi) masked
+    const T pxc = pxc0 + T(q);
+    const T power = gaussian_power(s.conic, s.mx, s.my, pxc, pyc);
+    const T G = splat_gaussian(power);
+    const T alpha0 = splat_alpha_from_gaussian(s.opacity, power, G);
+    const bool open = (j < np[q]) & (q >= qlo) & (q < qhi);
+    const T a = open ? alpha0 : T(0);
+    const T om = T(1) - a;
+    const T inv_om = T(1) / om;
+    const T t = trr[q] * inv_om;  // transmittance in front of splat j (unchanged if a = 0)
+    trr[q] = t;
+    const T w = a * t;
+    l[6][q] += w * v0[q];
+    l[7][q] += w * v1[q];
+    l[8][q] += w * v2[q];
+    l[9][q] += w * vdr[q];
+    T v_alpha = t * ((s.color[0] - b0r[q]) * v0[q] + (s.color[1] - b1r[q]) * v1[q] +
+                     (s.color[2] - b2r[q]) * v2[q] + (s.depth - bd[q]) * vdr[q]) -
+                tf[q] * inv_om * vtf[q];
+    v_alpha = a > T(0) ? v_alpha : T(0);
+    const SplatGrad<T> sg = splat_alpha_vjp_from_gaussian(s.conic, s.mx - pxc, s.my - pyc, G, s.opacity, v_alpha);
+    l[0][q] += sg.mean2d.x;
+    l[1][q] += sg.mean2d.y;
+    l[2][q] += sg.conic.a;
+    l[3][q] += sg.conic.b;
+    l[4][q] += sg.conic.c;
+    l[5][q] += sg.opacity;
+    b0r[q] = a * s.color[0] + om * b0r[q];
+    b1r[q] = a * s.color[1] + om * b1r[q];
+    b2r[q] = a * s.color[2] + om * b2r[q];
+    bd[q] = a * s.depth + om * bd[q];
+  }
+}
+
 // Backward blending of one tile: per-splat cotangent records into scratch[slot].
 template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
                                   std::vector<PackedSplat<T>>& splats, T* scratch) {
-  const int64_t P = int64_t(p.width) * p.height;
   constexpr int S = kSplatGradSize;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
   T* out = scratch + int64_t(S) * v.start;
-  // Per-pixel state, walking back to front from each pixel's last blended splat.
-  T tr[kTileAlloc], t_final[kTileAlloc], v_tfinal[kTileAlloc];
-  T vi[3][kTileAlloc], vd[kTileAlloc];
-  T behind[3][kTileAlloc], behind_d[kTileAlloc];  // colour/depth behind, per unit T
-  int32_t n_pix[kTileAlloc];
-  int max_n = 0;
-  for (int k = 0; k < kTileAlloc; ++k) {
-    n_pix[k] = 0;
-    tr[k] = t_final[k] = v_tfinal[k] = vd[k] = behind_d[k] = T(1);
-    for (int c = 0; c < 3; ++c) vi[c][k] = behind[c][k] = T(0);
-  }
-  for (int py = v.y0; py < v.y1; ++py) {
-    for (int px = v.x0; px < v.x1; ++px) {
-      const int k = (py - v.y0) * TILE_SIZE + (px - v.x0);
-      const int64_t pix = int64_t(py) * p.width + px;
-      n_pix[k] = p.n_contrib[pix];
-      max_n = std::max(max_n, n_pix[k]);
-      tr[k] = t_final[k] = p.final_T[pix];
-      for (int c = 0; c < 3; ++c) vi[c][k] = g.v_image[c * P + pix];
-      vd[k] = g.v_depth ? g.v_depth[pix] : T(0);
-      behind_d[k] = T(0);
-      // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
-      v_tfinal[k] = vi[0][k] * p.background[0] + vi[1][k] * p.background[1] +
-                    vi[2][k] * p.background[2] - (g.v_alpha ? g.v_alpha[pix] : T(0));
-    }
-  }
-  // Largest n_contrib of each aligned group of kLaneBlock pixels (a lane block spans at most
-  // two): splat j touches no pixel of a block whose groups have maxima <= j.
-  int32_t blk_n[kTileAlloc / kLaneBlock];
-  for (int k = 0; k < kTileAlloc / kLaneBlock; ++k) {
-    int32_t m = 0;
-    for (int q = 0; q < kLaneBlock; ++q) m = std::max(m, n_pix[k * kLaneBlock + q]);
-    blk_n[k] = m;
-  }
+  BackwardPixels<T> px;
+  load_backward_pixels(p, g, v, px);
   // Records of splats no pixel reaches are zero; the others are written once, below.
-  std::fill(out + int64_t(S) * max_n, out + int64_t(S) * (v.end - v.start), T(0));
+  std::fill(out + int64_t(S) * px.max_n, out + int64_t(S) * (v.end - v.start), T(0));
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
-  // Per-lane-slot partial sums of one splat's cotangents.
-  T l_mx[kLaneBlock], l_my[kLaneBlock], l_a[kLaneBlock], l_b[kLaneBlock], l_c[kLaneBlock];
-  T l_op[kLaneBlock], l_r[kLaneBlock], l_g[kLaneBlock], l_bl[kLaneBlock], l_d[kLaneBlock];
-  for (int j = max_n - 1; j >= 0; --j) {
+  T l[S][kLaneBlock];  // per-lane-slot partial sums of one splat's cotangents
+  for (int j = px.max_n - 1; j >= 0; --j) {
     const PackedSplat<T>& s = splats[j];
-    for (int q = 0; q < kLaneBlock; ++q)
-      l_mx[q] = l_my[q] = l_a[q] = l_b[q] = l_c[q] = l_op[q] = l_r[q] = l_g[q] = l_bl[q] = l_d[q] = T(0);
+    for (int k = 0; k < S; ++k)
+      for (int q = 0; q < kLaneBlock; ++q) l[k][q] = T(0);
     row_spans(s, x_centre0, y_centre0, span_lo, span_hi);
     for (int ly = s.by0; ly < s.by1; ++ly) {
-      const T pyc = y_centre0 + T(ly);
       const int lo = span_lo[ly], hi = span_hi[ly];
       for (int b0 = lo - lo % kLaneBlock; b0 < hi; b0 += kLaneBlock) {
         const int k0 = ly * TILE_SIZE + b0;
-        if (j >= blk_n[k0 / kLaneBlock]) continue;
-        T* trr = tr + k0;
-        const T* tf = t_final + k0;
-        const T* vtf = v_tfinal + k0;
-        const T *v0 = vi[0] + k0, *v1 = vi[1] + k0, *v2 = vi[2] + k0, *vdr = vd + k0;
-        T *b0r = behind[0] + k0, *b1r = behind[1] + k0, *b2r = behind[2] + k0;
-        T* bd = behind_d + k0;
-        const int32_t* np = n_pix + k0;
-        const int qlo = lo - b0, qhi = hi - b0;
-        for (int q = 0; q < kLaneBlock; ++q) {  // fixed trip count; lanes from hi on masked
-          const T pxc = x_centre0 + T(b0 + q);
-          const T power = gaussian_power(s.conic, s.mx, s.my, pxc, pyc);
-          const T G = splat_gaussian(power);
-          const T alpha0 = splat_alpha_from_gaussian(s.opacity, power, G);
-          const bool open = (j < np[q]) & (q >= qlo) & (q < qhi);
-          const T a = open ? alpha0 : T(0);
-          const T om = T(1) - a;
-          const T inv_om = T(1) / om;
-          const T t = trr[q] * inv_om;  // transmittance in front of splat j (unchanged if a = 0)
-          trr[q] = t;
-          const T w = a * t;
-          l_r[q] += w * v0[q];
-          l_g[q] += w * v1[q];
-          l_bl[q] += w * v2[q];
-          l_d[q] += w * vdr[q];
-          T v_alpha = t * ((s.color[0] - b0r[q]) * v0[q] + (s.color[1] - b1r[q]) * v1[q] +
-                           (s.color[2] - b2r[q]) * v2[q] + (s.depth - bd[q]) * vdr[q]) -
-                      tf[q] * inv_om * vtf[q];
-          v_alpha = a > T(0) ? v_alpha : T(0);
-          const SplatGrad<T> sg = splat_alpha_vjp_from_gaussian(s.conic, s.mx - pxc, s.my - pyc, G,
-                                                                s.opacity, v_alpha);
-          l_mx[q] += sg.mean2d.x;
-          l_my[q] += sg.mean2d.y;
-          l_a[q] += sg.conic.a;
-          l_b[q] += sg.conic.b;
-          l_c[q] += sg.conic.c;
-          l_op[q] += sg.opacity;
-          b0r[q] = a * s.color[0] + om * b0r[q];
-          b1r[q] = a * s.color[1] + om * b1r[q];
-          b2r[q] = a * s.color[2] + om * b2r[q];
-          bd[q] = a * s.depth + om * bd[q];
-        }
+        if (j < px.blk_n[k0 / kLaneBlock])
+          backward_block(s, j, px, k0, x_centre0 + T(b0), y_centre0 + T(ly), lo - b0, hi - b0, l);
       }
     }
-    T r[S] = {};
-    for (int q = 0; q < kLaneBlock; ++q) {
-      r[0] += l_mx[q];
-      r[1] += l_my[q];
-      r[2] += l_a[q];
-      r[3] += l_b[q];
-      r[4] += l_c[q];
-      r[5] += l_op[q];
-      r[6] += l_r[q];
-      r[7] += l_g[q];
-      r[8] += l_bl[q];
-      r[9] += l_d[q];
+    T* r = out + int64_t(S) * j;
+    for (int k = 0; k < S; ++k) {
+      T acc = T(0);
+      for (int q = 0; q < kLaneBlock; ++q) acc += l[k][q];
+      r[k] = acc;
     }
-    std::copy(r, r + S, out + int64_t(S) * j);
   }
 }
 
