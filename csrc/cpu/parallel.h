@@ -10,7 +10,9 @@
 // and the loader picks the one the CPU supports (GCC/Clang function multiversioning): the pixel
 // loops run 8 float lanes wide on any AVX2 machine without building with -march=native. Both
 // clones are deterministic; they may differ from each other in the last bits (FMA contraction).
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__)) && !defined(GSW_NO_CPU_CLONES)
+// GCC 12+ (ISA-level dispatch; older GCCs and Clang build the baseline only).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && \
+    !defined(GSW_NO_CPU_CLONES)
 #define GSW_CPU_KERNEL __attribute__((target_clones("arch=x86-64-v3", "default")))
 #else
 #define GSW_CPU_KERNEL
