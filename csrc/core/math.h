@@ -639,13 +639,24 @@ GSW_HD T blend_exp(T x) {
 }
 
 // Blending opacity of one splat at one pixel; returns 0 when the splat is skipped
-// (power > 0 or alpha < ALPHA_MIN). Branch-free so pixel loops vectorize.
+// (power > 0 or alpha < ALPHA_MIN). Branch-free so pixel loops vectorize. splat_gaussian is its
+// Gaussian factor exp(min(power, 0)).
 template <typename T>
-GSW_HD T splat_alpha(T opacity, T power) {
-  const T a = opacity * blend_exp(power > T(0) ? T(0) : power);
+GSW_HD T splat_gaussian(T power) {
+  return blend_exp(power > T(0) ? T(0) : power);
+}
+// splat_alpha for a precomputed G = splat_gaussian(power) (backward passes reuse G in
+// splat_alpha_vjp_from_gaussian instead of evaluating exp() twice).
+template <typename T>
+GSW_HD T splat_alpha_from_gaussian(T opacity, T power, T G) {
+  const T a = opacity * G;
   const T alpha = a < T(ALPHA_MAX) ? a : T(ALPHA_MAX);
   const T kept = alpha < T(ALPHA_MIN) ? T(0) : alpha;
   return power > T(0) ? T(0) : kept;
+}
+template <typename T>
+GSW_HD T splat_alpha(T opacity, T power) {
+  return splat_alpha_from_gaussian(opacity, power, splat_gaussian(power));
 }
 
 // Half extents (pixels) of the axis-aligned box around the 2-D mean outside which a splat is
@@ -669,14 +680,12 @@ struct SplatGrad {
   T opacity;
 };
 
-// VJP of splat_alpha at one pixel for a non-skipped splat: returns the cotangent
+// VJP of splat_alpha at one pixel for a non-skipped splat, given the offset (dx, dy) = mean2d -
+// pixel centre and the Gaussian factor G = exp(exponent) at that pixel: returns the cotangent
 // contributions (zero where alpha is clamped to ALPHA_MAX). Branch-free.
 template <typename T>
-GSW_HD SplatGrad<T> splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py,
-                                    T opacity, T v_alpha) {
-  const T dx = mean_x - px, dy = mean_y - py;
-  const T power = T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
-  const T G = blend_exp(power);
+GSW_HD SplatGrad<T> splat_alpha_vjp_from_gaussian(const Sym2<T>& conic, T dx, T dy, T G, T opacity,
+                                                  T v_alpha) {
   const T v = opacity * G < T(ALPHA_MAX) ? v_alpha : T(0);
   const T v_power = opacity * G * v;
   SplatGrad<T> g;
@@ -687,6 +696,14 @@ GSW_HD SplatGrad<T> splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T 
   g.mean2d.x = -(conic.a * dx + conic.b * dy) * v_power;
   g.mean2d.y = -(conic.b * dx + conic.c * dy) * v_power;
   return g;
+}
+// splat_alpha_vjp_from_gaussian at pixel centre (px, py).
+template <typename T>
+GSW_HD SplatGrad<T> splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py,
+                                    T opacity, T v_alpha) {
+  const T dx = mean_x - px, dy = mean_y - py;
+  const T power = T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  return splat_alpha_vjp_from_gaussian(conic, dx, dy, blend_exp(power), opacity, v_alpha);
 }
 
 // Whether a pixel with transmittance T stops before blending a splat of opacity alpha

@@ -6,6 +6,24 @@
 #include <atomic>
 #include <cstdint>
 
+// Per-tile kernels are compiled twice, for x86-64-v3 (AVX2 + FMA) and for the build's baseline,
+// and the loader picks the one the CPU supports (GCC/Clang function multiversioning): the pixel
+// loops run 8 float lanes wide on any AVX2 machine without building with -march=native. Both
+// clones are deterministic; they may differ from each other in the last bits (FMA contraction).
+// GCC 12+ (ISA-level dispatch; older GCCs and Clang build the baseline only).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12 && \
+    !defined(GSW_NO_CPU_CLONES)
+#define GSW_CPU_KERNEL __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define GSW_CPU_KERNEL
+#endif
+// Helpers of a GSW_CPU_KERNEL: always inlined, so they are compiled for the kernel's clone.
+#if defined(__GNUC__) || defined(__clang__)
+#define GSW_CPU_INLINE inline __attribute__((always_inline))
+#else
+#define GSW_CPU_INLINE inline
+#endif
+
 namespace gsw::cpu {
 
 // Static chunks over [0, n): for uniform per-item work (per-Gaussian ops).
