@@ -10,6 +10,7 @@ from pathlib import Path
 from gsw.cli.common import (DEFAULT_BITS, add_background_options, add_bits_option, add_device_option,
                             add_message_options, background_of, check_output, message_from_args, output_folder,
                             positive_int, print_json, read_images, reading)
+from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
 from gsw.stats import DETECTION_FPR
 
 
@@ -53,7 +54,8 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb.add_argument("--message-weight", type=float, default=None,
                      help="weight of the message loss (default: LossWeights.message)")
     add_background_options(emb, "default: black")
-    emb.add_argument("--seed", type=int, default=0)
+    add_record_options(emb)
+    emb.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
     add_device_option(emb)
     emb.add_argument("--no-progress", action="store_true")
     emb.add_argument("--json", action="store_true")
@@ -71,11 +73,12 @@ def _add_embed_image_parser(subparsers: argparse._SubParsersAction) -> None:
     emi.add_argument("--batch", type=positive_int, default=8,
                      help="same-size images optimised together (default %(default)s)")
     add_message_options(emi, claim=False)
+    add_record_options(emi)
     emi.add_argument("--psnr", type=float, default=ImageEmbedConfig.psnr,
                      help="PSNR of the watermark in dB (higher = fainter and less robust; default %(default)s)")
     emi.add_argument("--steps", type=int, default=ImageEmbedConfig.steps,
                      help="optimisation steps (more = more robust, linear time; default %(default)s)")
-    emi.add_argument("--seed", type=int, default=0)
+    emi.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
     add_device_option(emi)
     emi.add_argument("--no-progress", action="store_true")
     emi.add_argument("--json", action="store_true")
@@ -128,6 +131,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
     from gsw.mark.embed import embed
 
     message, num_bits = message_from_args(args, required=False)
+    check_record(args, message, num_bits)
     config = embed_config(args)
     device = resolve_device(args.device)
     g, cams, images, inputs = _load_model(args)
@@ -145,12 +149,14 @@ def cmd_embed(args: argparse.Namespace) -> int:
         record = watermark_record(num_bits=num_bits, background=config.background, cameras=cams,
                                   decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats)
         write_watermark_json(tmp, record)
+        size = record["resolution"] and (record["resolution"]["width"], record["resolution"]["height"])
+        recorded = record_issued(args, res.message, gaussians=res.gaussians, size=size, background=config.background)
+    issued, note = issued_summary(recorded, res.message_hex, res.message.int().tolist())
     if args.json:
-        print_json(dict(message=res.message_hex, bits=res.message.int().tolist(), output=str(output), **record))
+        print_json(dict(**issued, output=str(output), **record))
     else:
-        print(f"embedded {res.message_hex} into {output}: {len(res.gaussians):,} Gaussians, "
-              f"mean bit accuracy {100 * stats['mean_bit_accuracy']:.2f} %, mean PSNR {stats['mean_psnr']:.2f} dB "
-              "(keep the message: the model folder does not store it)")
+        print(f"embedded into {output}: {len(res.gaussians):,} Gaussians, mean bit accuracy "
+              f"{100 * stats['mean_bit_accuracy']:.2f} %, mean PSNR {stats['mean_psnr']:.2f} dB; {note}")
     return 0
 
 
@@ -185,6 +191,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     sources, output = [Path(p) for p in args.images], Path(args.output)
     message, num_bits = message_from_args(args, required=False)
     targets = _image_targets(sources, output, args.force)
+    check_record(args, message, num_bits)
     images = read_images(sources)
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
 
@@ -192,8 +199,13 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
         return embed_images(images, message, num_bits=num_bits, config=cfg, batch_size=args.batch,
                             progress=not args.no_progress)
 
+    def record():  # before the outputs appear: a registry error leaves no unrecorded watermarked image
+        sizes = {tuple(r.image.shape[:0:-1]) for r in results}
+        return record_issued(args, results[0].message, size=sizes.pop() if len(sizes) == 1 else None)
+
     if len(sources) == 1:
         results = run()
+        recorded = record()
         output.parent.mkdir(parents=True, exist_ok=True)
         write_image(output, results[0].image)
     else:
@@ -201,17 +213,20 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
             results = run()
             for target, res in zip(targets, results):
                 write_image(tmp / target.name, res.image)
+            recorded = record()
     for target, res in zip(targets, results):
         if not torch.equal(read_image(target), res.image.cpu()):
             raise RuntimeError(f"{target} does not hold the image that was verified")
-    rows = [dict(image=str(t), source=str(s), message=r.message_hex, psnr=r.psnr, bit_accuracy=r.bit_accuracy,
+    rows = [dict(image=str(t), source=str(s), psnr=r.psnr, bit_accuracy=r.bit_accuracy,
                  p_value=r.p_value, seconds=r.seconds) for t, s, r in zip(targets, sources, results)]
+    issued, note = issued_summary(recorded, results[0].message_hex, results[0].message.int().tolist())
     if args.json:
-        print_json(dict(message=results[0].message_hex, bits=results[0].message.int().tolist(), images=rows))
+        print_json(dict(**issued, images=rows))
     else:
         for r in rows:
-            print(f"embedded {r['message']} into {r['image']}: PSNR {r['psnr']:.2f} dB, read back "
+            print(f"embedded into {r['image']}: PSNR {r['psnr']:.2f} dB, read back "
                   f"{100 * r['bit_accuracy']:.2f} % of the bits (p = {r['p_value']:.2e}) in {r['seconds']:.1f} s")
+        print(note)
     weak = [r["image"] for r in rows if r["p_value"] > DETECTION_FPR]
     if weak:
         print(f"gsw embed-image: warning: not detectable at p <= {DETECTION_FPR:g}: {', '.join(weak)} "
