@@ -21,6 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ext = subparsers.add_parser("extract", help="read the message bits of images")
     ext.add_argument("images", nargs="+")
     add_bits_option(ext, DEFAULT_BITS, "message length (default: %(default)s)")
+    ext.add_argument("--embed-size", metavar="WxH", type=_size,
+                     help="embedding resolution: read every image resized to it, as verify does")
     ext.add_argument("--json", action="store_true")
     ext.set_defaults(func=cmd_extract)
 
@@ -238,13 +240,24 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------ extract, verify
 
 
+def _size(text: str) -> tuple[int, int]:
+    """argparse type: ``WIDTHxHEIGHT`` -> (width, height)."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 800x800, got {text!r}") from None
+    if width <= 0 or height <= 0:
+        raise argparse.ArgumentTypeError(f"sizes must be positive, got {text!r}")
+    return width, height
+
+
 def cmd_extract(args: argparse.Namespace) -> int:
     """Reads the message bits of images."""
     from gsw.mark.detect import extract
 
     results = []
     for path, img in zip(args.images, read_images(args.images)):
-        ext = extract(img, num_bits=args.bits)
+        ext = extract(img, num_bits=args.bits, embed_size=args.embed_size and args.embed_size[::-1])
         results.append(dict(image=path, bits=ext.bits[0].int().tolist(),
                             hex=ext.hex[0] if args.bits % 4 == 0 else None))
     if args.json:
