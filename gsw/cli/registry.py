@@ -1,7 +1,9 @@
-"""``gsw keys list|show`` (the registry of issued marks) and ``gsw identify`` (who leaked this?).
+"""``gsw keys list|show`` (the registry of issued marks), ``gsw identify`` (who leaked this?) and the
+``--label`` / ``--registry`` options with which ``gsw embed`` / ``gsw embed-image`` record the marks they issue.
 
-Messages are secrets: no command prints one unless asked with ``--show-secret``. Exit status of
-``gsw identify``: 0 when a recipient is identified, 1 when nobody is, 2 on an error.
+Messages are secrets: no command prints one unless asked with ``--show-secret`` (an embedding without
+``--label`` prints its new message once, since nothing else keeps it). Exit status of ``gsw identify``:
+0 when a recipient is identified, 1 when nobody is, 2 on an error.
 """
 
 from __future__ import annotations
@@ -200,8 +202,9 @@ def _print_identification(result, num_images: int, top: int) -> None:
               f"{', '.join(m.label for m in result.skipped[:5])}{' ...' if len(result.skipped) > 5 else ''}")
     for r in result.results[:max(top, len(result.identified))]:
         verdict = "IDENTIFIED" if r.identified else "          "
-        print(f"{verdict}  {r.mark.label}  (id {r.mark.id}, {r.mark.num_bits} bits): adjusted p = "
-              f"{r.adjusted_p_value:.2e}, best image {100 * r.best_bit_accuracy:.1f} % of the bits")
+        print(f"{verdict}  {r.mark.label}  (id {r.mark.id}, {r.mark.num_bits} bits): adjusted p "
+              f"{'=' if r.exact else '>='} {r.adjusted_p_value:.2e}, best image {100 * r.best_bit_accuracy:.1f} % "
+              "of the bits")
     if result.identified:
         print(f"identified: {', '.join(result.recipients)}")
     else:
