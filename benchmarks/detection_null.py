@@ -230,6 +230,7 @@ def marked_demo(cache: Path):
     from gsw.gaussians import Gaussians
     from gsw.mark.embed import EmbedConfig, embed
     from gsw.mark.loss import LossWeights
+    from gsw.mark.message import random_message
     from gsw.scenes import default_scene
 
     path = cache / "demo_marked_256_k32_seed0.pt"
@@ -237,7 +238,8 @@ def marked_demo(cache: Path):
         scene = default_scene(width=256, height=256, n_cameras=24)
         bg = tuple(float(v) for v in torch.as_tensor(scene.background).flatten())
         cfg = EmbedConfig(epochs=8, background=bg, seed=0, lpips_net="alex", weights=LossWeights())
-        res = embed(scene.gaussians, scene.cameras, num_bits=32, config=cfg, progress=False)
+        res = embed(scene.gaussians, scene.cameras, message=random_message(32, seed=0), num_bits=32, config=cfg,
+                    progress=False)
         g = res.gaussians
         path.parent.mkdir(parents=True, exist_ok=True)
         torch.save(dict(means=g.means, log_scales=g.log_scales, quats=g.quats, opacity_logits=g.opacity_logits,

@@ -35,6 +35,7 @@ def main() -> int:
     from gsw.mark import EmbedConfig, embed, verify
     from gsw.mark.fgd import PRUNE_THRESHOLD, fgd_prune
     from gsw.mark.loss import LossWeights, lpips_weights
+    from gsw.mark.message import random_message
     from gsw.metrics.image import psnr, ssim
     from gsw.train import resolve_device
     from gsw.decoder.pretrain.evaluation import unbiasedness
@@ -140,7 +141,8 @@ def main() -> int:
         cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, mask=args.mask,
                           attacks=args.attacks, lr_f_dc=args.lr_f_dc, lr_f_rest=args.lr_f_rest,
                           weights=lpips_weights(lp, LossWeights(message=args.message_weight)))
-        res = embed(g, train.cameras, num_bits=k, images=train_images, config=cfg, progress=True)
+        res = embed(g, train.cameras, message=random_message(k, seed=cfg.seed), num_bits=k, images=train_images,
+                    config=cfg, progress=True)
         v = verify((res.gaussians, test.cameras), res.message, background=bg)
         v0 = verify((g, test.cameras), res.message, background=bg)
         q = quality(g, res.gaussians, test.cameras, gt=test_images)

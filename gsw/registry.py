@@ -48,7 +48,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["SCHEMA_VERSION", "BUSY_TIMEOUT_S", "Mark", "Registry", "RegistryError", "UnknownMarkError",
            "default_registry_path", "open_registry", "hash_gaussians", "hash_model_file",
-           "shipped_decoder_sha256"]
+           "record_mark", "shipped_decoder_sha256"]
 
 #: Version of the table layout, stored as ``PRAGMA user_version``.
 SCHEMA_VERSION = 1
@@ -435,3 +435,45 @@ def open_registry(path: str | os.PathLike | None = None, *, create: bool = True,
         conn.close()
         raise
     return registry
+
+
+def record_mark(registry: Registry | str | os.PathLike | None, label: str, message: MessageLike, *,
+                num_bits: int | None = None, gaussians: Gaussians | None = None, model_hash: str | None = None,
+                size: tuple[int, int] | None = None, background: Sequence[float] | None = None,
+                decoder_sha256: str | None = None) -> Mark:
+    """Records an issued mark (what ``gsw embed --label`` / ``gsw embed-image --label`` do), in one transaction.
+
+    Example (``res`` from :func:`gsw.embed`, cameras of one size)::
+
+        record_mark("marks.sqlite", "alice", res.message, gaussians=res.gaussians,
+                    size=(cams[0].width, cams[0].height), background=(1.0, 1.0, 1.0))
+
+    Args:
+        registry: an open :class:`Registry`, or its file (None: :func:`default_registry_path`), opened
+            (created with mode 0600 if missing) and closed here.
+        label: the recipient.
+        message: the embedded message (bits, hex or ``key:<secret>``).
+        num_bits: message length (inferred from bits or hex).
+        gaussians: the watermarked model; its :func:`hash_gaussians` is recorded (or pass ``model_hash``).
+        model_hash: the model's hash, when ``gaussians`` is not given.
+        size: ``(width, height)`` of the embedding renders (None when they had several sizes).
+        background: render background RGB.
+        decoder_sha256: the decoder file's sha256; default: the shipped ``num_bits`` decoder's.
+
+    Returns:
+        The :class:`Mark` as stored.
+
+    Raises:
+        ValueError: bad label / message / size, a label or (decoder, message) already registered.
+        RegistryError: the registry cannot be opened or written.
+    """
+    _, k = _message_hex(message, num_bits)
+    if gaussians is not None:
+        model_hash = hash_gaussians(gaussians)
+    width, height = (None, None) if size is None else (int(size[0]), int(size[1]))
+    fields = dict(num_bits=k, decoder_sha256=decoder_sha256 or shipped_decoder_sha256(k), model_hash=model_hash,
+                  width=width, height=height, background=background)
+    if isinstance(registry, Registry):
+        return registry.get(registry.add(label, message, **fields))
+    with open_registry(registry) as reg:
+        return reg.get(reg.add(label, message, **fields))

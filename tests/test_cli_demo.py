@@ -27,3 +27,11 @@ def test_demo_table(tmp_path, capsys) -> None:
     assert "48-bit message" in lines[0] and any(line.startswith("PSNR vs original render") for line in lines)
     assert [line.split()[-1] for line in lines if line.startswith("LPIPS")] == ["off"]
     assert "{" not in out
+
+
+def test_demo_default_message_is_the_public_seeded_one(tmp_path, capsys) -> None:
+    from gsw.mark.message import message_to_hex, random_message
+
+    assert main(["demo", "--output", str(tmp_path / "demo"), "--seed", "3", *TINY, "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["message"] == message_to_hex(random_message(32, seed=3))  # reproducible: `make demo`

@@ -134,3 +134,96 @@ def test_identify_refuses_marks_it_cannot_test(setup, tmp_path, capsys) -> None:
     assert "none of the 1 registered marks can be tested" in capsys.readouterr().err
     assert main(["identify", str(leak), "--registry", str(foreign), "--device", "tpu"]) == 2
     assert "--device must be auto, cpu or cuda" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------------ issuing marks
+
+EMBED = ["--epochs", "1", "--lpips", "none", "--device", "cpu", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    from gsw.data import save_inria_model
+    from gsw.scenes import default_scene
+
+    scene = default_scene(width=48, height=48, n_cameras=4, detail=0.4)
+    folder = tmp_path_factory.mktemp("model")
+    save_inria_model(folder, scene.gaussians, scene.cameras, iteration=100)
+    return folder
+
+
+def _assert_no_file_holds(folder: Path, messages: list[str]) -> None:
+    """No file under ``folder`` (or ``folder`` itself) holds any message, as hex text or as raw bytes."""
+    files = [folder] if folder.is_file() else [p for p in folder.rglob("*") if p.is_file()]
+    assert files
+    for path in files:
+        data = path.read_bytes()
+        for text in messages:
+            assert text.encode() not in data.lower() and bytes.fromhex(text) not in data, (path, text)
+
+
+def test_two_embeds_without_a_message_get_different_secret_messages(model_dir, tmp_path, capsys) -> None:
+    outs, messages = [tmp_path / "a", tmp_path / "b"], []
+    for out in outs:  # same options, same --seed (0)
+        assert main(["embed", str(model_dir), "--output", str(out), "--bits", "64", *EMBED, "--json"]) == 0
+        messages.append(json.loads(capsys.readouterr().out)["message"])
+    assert messages[0] != messages[1] and all(len(m) == 16 for m in messages)
+    for out in outs:
+        _assert_no_file_holds(out, messages)
+    images = []
+    for name in ("a.png", "b.png"):
+        write_image(tmp_path / "src.png", torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(1)))
+        assert main(["embed-image", str(tmp_path / "src.png"), "--output", str(tmp_path / name), "--bits", "64",
+                     "--steps", "2", "--no-progress", "--json"]) in (0, 1)
+        images.append(json.loads(capsys.readouterr().out)["message"])
+    assert images[0] != images[1]
+    for name in ("a.png", "b.png"):
+        _assert_no_file_holds(tmp_path / name, images)
+
+
+def test_embed_records_the_issued_mark(model_dir, tmp_path, capsys) -> None:
+    from gsw.data import load_inria_model
+    from gsw.registry import hash_gaussians
+
+    reg, out = tmp_path / "marks.sqlite", tmp_path / "m"
+    assert main(["embed", str(model_dir), "--output", str(out), "--bits", "48", "--white", *EMBED,
+                 "--label", "alice", "--registry", str(reg), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert "message" not in summary and "bits" not in summary  # kept in the registry, not printed
+    assert summary["mark"]["label"] == "alice" and summary["registry"] == str(reg)
+    with open_registry(reg, create=False) as r:
+        mark = r.get("alice")
+    assert (mark.num_bits, mark.decoder_sha256) == (48, shipped_decoder_sha256(48))
+    assert mark.model_hash == hash_gaussians(load_inria_model(out).gaussians)
+    assert (mark.width, mark.height, mark.background) == (48, 48, (1.0, 1.0, 1.0))
+    assert mark.message_hex not in json.dumps(summary)
+    _assert_no_file_holds(out, [mark.message_hex])
+    # refused before any embedding: a label already registered, --registry without --label, a bad label
+    for extra in (["--label", "alice", "--registry", str(reg)], ["--registry", str(reg)], ["--label", "123"]):
+        assert main(["embed", str(model_dir), "--output", str(tmp_path / "m2"), *EMBED, *extra]) == 2
+        assert not (tmp_path / "m2").exists()
+    err = capsys.readouterr().err
+    assert "already registered" in err and "--label" in err and "all digits" in err
+
+
+def test_embed_image_records_the_mark_and_identify_names_the_recipient(setup, tmp_path, capsys) -> None:
+    reg = tmp_path / "marks.sqlite"
+    with open_registry(reg) as r:
+        r.add("alice", random_message(BITS, seed=7), decoder_sha256=shipped_decoder_sha256(BITS))
+    src, out = tmp_path / "poster.png", tmp_path / "poster_bob.png"
+    write_image(src, 0.25 + 0.5 * torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(0)))
+    # bob's message: what the decoder already reads from the poster (a faint 40 dB pass keeps it exactly)
+    message = message_to_hex(extract(read_image(src), num_bits=BITS).bits[0])
+    args = ["--bits", str(BITS), "--message", message, "--steps", "5", "--psnr", "40", "--device", "cpu",
+            "--no-progress", "--registry", str(reg)]
+    assert main(["embed-image", str(src), "--output", str(out), *args, "--label", "bob"]) == 0
+    text = capsys.readouterr().out
+    with open_registry(reg, create=False) as r:
+        bob = r.get("bob")
+    assert "recorded as mark" in text and message not in text and bob.message_hex == message
+    assert (bob.width, bob.height, bob.num_bits, bob.model_hash) == (64, 64, BITS, None)
+    assert main(["identify", str(out), "--registry", str(reg), "--device", "cpu", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["recipients"] == ["bob"]
+    # the same message for another recipient is refused before any work
+    assert main(["embed-image", str(src), "--output", str(tmp_path / "x.png"), *args, "--label", "carol"]) == 2
+    assert "already issued" in capsys.readouterr().err and not (tmp_path / "x.png").exists()

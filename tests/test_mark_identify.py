@@ -10,27 +10,14 @@ import pytest
 import torch
 
 import gsw.mark
-from gsw.mark.identify import _holm, _mark_p_value, identify
+import gsw.mark.identify
+from gsw.mark.identify import _holm, identify
 from gsw.mark.image import ImageEmbedConfig, embed_image
 from gsw.mark.message import random_message
 from gsw.registry import Mark, open_registry, shipped_decoder_sha256
 from gsw.stats import binomial_p_value
 
 BITS = 48
-
-
-def test_mark_p_value_is_bonferroni_over_frames() -> None:
-    message = torch.tensor([1.0, 0.0] * 16)
-    frames = torch.stack([message.clone() for _ in range(3)])
-    frames[0, :10] = 1 - frames[0, :10]  # 22 of 32 right
-    frames[1, :2] = 1 - frames[1, :2]  # 30 of 32 right (the best)
-    frames[2, :20] = 1 - frames[2, :20]  # 12 of 32 right
-    assert _mark_p_value(frames, message) == pytest.approx(3 * binomial_p_value(30, 32))
-    assert _mark_p_value(frames[:1], message) == pytest.approx(binomial_p_value(22, 32))
-    assert _mark_p_value(frames[2:], message) == pytest.approx(binomial_p_value(12, 32))
-    assert _mark_p_value(frames[2:].expand(40, -1), message) == 1.0  # capped
-    # near-duplicate frames add no evidence: repeating the best frame only raises the bound
-    assert _mark_p_value(frames[1:2].expand(10, -1), message) > _mark_p_value(frames[1:2], message)
 
 
 def test_holm_adjustment() -> None:
@@ -91,8 +78,11 @@ def test_marked_image_names_its_recipient_and_no_one_else(marked) -> None:
     assert found.recipients == ["carol"]
     assert len(found.results) == 5 and found.num_images == 1 and not found.skipped
     best = found.identified[0]
-    assert best.matches == [BITS] and best.adjusted_p_value <= found.fpr
-    assert best.adjusted_p_value == pytest.approx(5 * binomial_p_value(BITS, BITS))
+    assert best.matches == [BITS] and best.adjusted_p_value <= found.fpr and best.exact
+    # the calibrated evidence of gsw.verify at the registered embedding size, Holm over 5 marks
+    claim = gsw.mark.verify([image], best.mark.message, num_bits=BITS, embed_size=(64, 64))
+    assert best.p_value == pytest.approx(claim.p_value) and best.p_value >= binomial_p_value(BITS, BITS)
+    assert best.adjusted_p_value == pytest.approx(5 * claim.p_value)
     assert all(not r.identified and r.adjusted_p_value > found.fpr for r in found.results[1:])
     assert "message_hex" not in str(found.to_dict()) and found.to_dict()["recipients"] == ["carol"]
 
@@ -137,22 +127,42 @@ def test_a_thousand_marks_decode_once_and_stay_correct(marked, tmp_path, monkeyp
         reg.add("carol", carol.message, decoder_sha256=sha)
         assert len(reg) == 1000
         calls = []
-        real_extract = gsw.mark.extract
+        real_read = gsw.mark.identify.read_images
 
-        def counting_extract(*args, **kwargs):
-            calls.append(kwargs.get("num_bits"))
-            return real_extract(*args, **kwargs)
+        def counting_read(images, decoder, **kwargs):
+            calls.append((decoder.num_bits, kwargs.get("embed_size")))
+            return real_read(images, decoder, **kwargs)
 
-        monkeypatch.setattr(gsw.mark, "extract", counting_extract)
+        monkeypatch.setattr(gsw.mark.identify, "read_images", counting_read)
         start = time.perf_counter()
         found = identify([image, cover], reg)
         seconds = time.perf_counter() - start
         nobody = identify([cover], reg)
-    assert calls == [BITS, BITS]  # one decoding pass of the images per call, not one per mark
+    assert calls == [(BITS, None)] * 2  # one decoding pass of the images per call, not one per mark
     assert found.recipients == ["carol"] and len(found.results) == 1000
-    assert found.identified[0].adjusted_p_value == pytest.approx(1000 * 2 * binomial_p_value(BITS, BITS))
+    claim = gsw.mark.verify([image, cover], carol.message, num_bits=BITS)  # no size registered: scale search
+    assert found.identified[0].adjusted_p_value == pytest.approx(1000 * claim.p_value)
+    assert sum(r.exact for r in found.results) >= 10
     assert nobody.recipients == []
     assert seconds < 20.0, f"identifying 2 images against 1,000 marks took {seconds:.1f} s"
+
+
+def test_screening_keeps_the_decisions_and_bounds_the_screened_p_values(marked) -> None:
+    path, cover, image = marked
+    with open_registry(path, create=False) as reg:
+        marks = reg.list()
+    for source in ([image, cover], [cover]):
+        full = identify(source, marks, exact=len(marks))
+        screened = identify(source, marks, exact=0)
+        assert all(r.exact for r in full.results)
+        assert screened.recipients == full.recipients
+        exact = {r.mark.id: r.p_value for r in full.results}
+        assert any(not r.exact for r in screened.results)
+        for r in screened.results:
+            if r.exact:  # could be identified: computed exactly
+                assert r.p_value == pytest.approx(exact[r.mark.id]) and r.p_value <= full.fpr
+            else:  # a lower bound of the calibrated value, already above the fpr
+                assert full.fpr < r.p_value <= exact[r.mark.id] + 1e-15
 
 
 def test_marks_of_unknown_decoders_are_skipped_and_custom_decoders_used(marked) -> None:

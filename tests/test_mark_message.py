@@ -42,3 +42,16 @@ def test_fisher_combination() -> None:
     # two p-values: p = x (1 - ln x) with x = p1 p2
     x = 0.1 * 0.2
     assert fisher_combined_p_value([0.1, 0.2]) == pytest.approx(x * (1 - math.log(x)))
+
+
+def test_default_messages_are_secret_and_fresh(monkeypatch) -> None:
+    import secrets
+
+    drawn = [random_message(64) for _ in range(3)]
+    assert all(not torch.equal(a, b) for i, a in enumerate(drawn) for b in drawn[i + 1:])
+    assert not torch.equal(as_message(None, 64), as_message(None, 64))
+    # the bits come from the OS entropy pool (secrets), whatever torch's global seed
+    monkeypatch.setattr(secrets, "randbits", lambda k: (1 << k) - 1)
+    torch.manual_seed(0)
+    assert torch.equal(as_message(None, 32), torch.ones(32))
+    assert torch.equal(random_message(32, seed=5), random_message(32, seed=5))  # seeded: public, reproducible

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,7 @@ import torch
 from gsw.decoder.null import NullModel, NullModelError
 from gsw.mark.evidence import assess
 from gsw.mark.scales import MAX_READ_SIDE, MIN_READ_SIDE, SEARCH_FACTORS, read_images, read_plan
-from gsw.stats import binomial_p_value
+from gsw.stats import binomial_p_value, hommel_combined_p_value
 
 
 class ScaleToy(torch.nn.Module):
@@ -102,3 +104,42 @@ def test_assess_errors():
 def test_shipped_decoder_on_noise_is_not_detected():
     ev = assess([torch.rand(3, 96, 96), torch.rand(3, 96, 96)], np.ones(32, dtype=int), num_bits=32)
     assert ev.null_model == "calibrated" and len(ev.images) == 2 and not ev.detected()
+
+
+def test_extract_reads_at_the_embedding_size_when_known(tmp_path, capsys):
+    from gsw.cli.main import main
+    from gsw.data.images import resize_image, write_image
+    from gsw.mark import extract
+
+    g = torch.Generator().manual_seed(5)
+    big = torch.rand(3, 128, 96, generator=g)  # e.g. a render at 2x the 64x48 embedding size
+    small = resize_image(big[None], 64, 48)[0]
+    known = extract(big, num_bits=32, embed_size=(64, 48))
+    assert torch.equal(known.logits, extract(small, num_bits=32).logits)  # the same reading as verify's
+    assert not torch.equal(extract(big, num_bits=32).logits, known.logits)  # without it: the image as given
+    write_image(tmp_path / "big.png", big)
+    assert main(["extract", str(tmp_path / "big.png"), "--embed-size", "48x64", "--json"]) == 0
+    from gsw.data.images import read_image
+
+    expected = extract(read_image(tmp_path / "big.png"), num_bits=32, embed_size=(64, 48)).hex[0]
+    assert json.loads(capsys.readouterr().out)[0]["hex"] == expected
+    with pytest.raises(SystemExit) as exc:
+        main(["extract", str(tmp_path / "big.png"), "--embed-size", "48"])
+    assert exc.value.code == 2 and "WIDTHxHEIGHT" in capsys.readouterr().err
+
+
+def test_score_messages_is_the_null_model_p_value_of_every_message():
+    from gsw.decoder.null import load_null_model
+    from gsw.mark.evidence import score_messages
+    from gsw.mark.scales import Reading
+
+    gen = np.random.default_rng(0)
+    null = load_null_model(32)
+    readings = [Reading([1.0, 0.5, 2.0], [(64, 64), (32, 32), (128, 128)], torch.randn(3, 32)) for _ in range(4)]
+    msgs = gen.integers(0, 2, (6, 32)).astype(np.int8)
+    sc = score_messages(readings, msgs, null)
+    for j, m in enumerate(msgs):
+        per = [null.p_values(r.bits.numpy().astype(np.int8), m, np.asarray(r.factors)) for r in readings]
+        assert sc.p_values[:, j] == pytest.approx([min(1.0, 3 * p.min()) for p in per])
+        assert sc.chosen[:, j].tolist() == [int(np.argmin(p)) for p in per]
+        assert sc.combined[j] == pytest.approx(float(hommel_combined_p_value(sc.p_values[:, j])))

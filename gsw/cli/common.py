@@ -45,17 +45,19 @@ def add_bits_option(parser: argparse._ActionsContainer, default: int | None, hel
     parser.add_argument("--bits", type=positive_int, choices=AVAILABLE_BITS, default=default, help=help_text)
 
 
-def add_message_options(parser: argparse.ArgumentParser, *, claim: bool) -> None:
+def add_message_options(parser: argparse.ArgumentParser, *, claim: bool,
+                        default_help: str = "a fresh secret message, printed once") -> None:
     """``--message HEX``, ``--key SECRET`` and ``--bits``: the message to embed (``claim=False``) or to test for.
 
-    Turn them into a message with :func:`message_from_args`.
+    Turn them into a message with :func:`message_from_args`; ``default_help`` describes the message used
+    when neither is given (embedding only).
     """
     group = parser.add_argument_group("message (--message or --key)")
     if claim:
         group.add_argument("--message", metavar="HEX", help="the embedded message, in hex")
         group.add_argument("--key", metavar="SECRET", help="the secret key the message was derived from")
     else:
-        group.add_argument("--message", metavar="HEX", help="hex message (default: drawn from --seed)")
+        group.add_argument("--message", metavar="HEX", help=f"hex message (default: {default_help})")
         group.add_argument("--key", metavar="SECRET", help="derive the message from a secret key")
     source = "the hex message, the model's watermark.json" if claim else "the hex message"
     add_bits_option(group, None, f"message length (default: from {source}, else {DEFAULT_BITS})")

@@ -11,6 +11,7 @@ from gsw.cli.common import (DEFAULT_BITS, add_background_options, add_bits_optio
                             add_message_options, add_resize_images_option, background_of, check_output, input_paths,
                             message_from_args, not_detectable_warning, output_file, output_folder, positive_int,
                             print_json, read_images, reading)
+from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
 from gsw.stats import DETECTION_FPR
 
 
@@ -21,6 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ext = subparsers.add_parser("extract", help="read the message bits of images")
     ext.add_argument("images", nargs="+")
     add_bits_option(ext, DEFAULT_BITS, "message length (default: %(default)s)")
+    ext.add_argument("--embed-size", metavar="WxH", type=_size,
+                     help="embedding resolution: read every image resized to it, as verify does")
     ext.add_argument("--json", action="store_true")
     ext.set_defaults(func=cmd_extract)
 
@@ -55,12 +58,13 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb.add_argument("--message-weight", type=float, default=None,
                      help="weight of the message loss (default: LossWeights.message)")
     add_background_options(emb, "default: black")
-    emb.add_argument("--seed", type=int, default=0)
+    emb.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
     emb.add_argument("--holdout-every", type=int, default=8, metavar="N",
                      help="embed without every N-th camera and verify the output on those (with fewer than N "
                           "cameras, or 0: verify on the embedding cameras; default %(default)s)")
     emb.add_argument("--fpr", type=float, default=DETECTION_FPR,
                      help="false-positive rate of the output check (exit 1 if not detected; default %(default)g)")
+    add_record_options(emb)
     add_device_option(emb)
     emb.add_argument("--no-progress", action="store_true")
     emb.add_argument("--json", action="store_true")
@@ -78,11 +82,12 @@ def _add_embed_image_parser(subparsers: argparse._SubParsersAction) -> None:
     emi.add_argument("--batch", type=positive_int, default=8,
                      help="same-size images optimised together (default %(default)s)")
     add_message_options(emi, claim=False)
+    add_record_options(emi)
     emi.add_argument("--psnr", type=float, default=ImageEmbedConfig.psnr,
                      help="PSNR of the watermark in dB (higher = fainter and less robust; default %(default)s)")
     emi.add_argument("--steps", type=int, default=ImageEmbedConfig.steps,
                      help="optimisation steps (more = more robust, linear time; default %(default)s)")
-    emi.add_argument("--seed", type=int, default=0)
+    emi.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
     add_device_option(emi)
     emi.add_argument("--no-progress", action="store_true")
     emi.add_argument("--json", action="store_true")
@@ -140,6 +145,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
     from gsw.mark.embed import embed
 
     message, num_bits = message_from_args(args, required=False)
+    check_record(args, message, num_bits)
     config = embed_config(args)
     device = resolve_device(args.device)
     output, inputs = Path(args.output), input_paths(args, "input", "cameras", "images", "registry")
@@ -159,15 +165,16 @@ def cmd_embed(args: argparse.Namespace) -> int:
         record = watermark_record(num_bits=num_bits, background=config.background, cameras=cams,
                                   decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats)
         write_watermark_json(tmp, record)
+        size = record["resolution"] and (record["resolution"]["width"], record["resolution"]["height"])
+        recorded = record_issued(args, res.message, gaussians=res.gaussians, size=size, background=config.background)
     check = verify_written_model(output, cams, checked, held_out, res.message, num_bits=num_bits,
                                  background=config.background, fpr=args.fpr, device=device)
+    issued, note = issued_summary(recorded, res.message_hex, res.message.int().tolist())
     if args.json:
-        print_json(dict(message=res.message_hex, bits=res.message.int().tolist(), output=str(output),
-                        verification=check, **record))
+        print_json(dict(**issued, output=str(output), verification=check, **record))
     else:
-        print(f"embedded {res.message_hex} into {output}: {len(res.gaussians):,} Gaussians, "
-              f"mean bit accuracy {100 * stats['mean_bit_accuracy']:.2f} %, mean PSNR {stats['mean_psnr']:.2f} dB "
-              "(keep the message: the model folder does not store it)")
+        print(f"embedded into {output}: {len(res.gaussians):,} Gaussians, mean bit accuracy "
+              f"{100 * stats['mean_bit_accuracy']:.2f} %, mean PSNR {stats['mean_psnr']:.2f} dB; {note}")
         print(f"verified {output} on {check['where']}: bit accuracy {100 * check['bit_accuracy']:.2f} %, "
               f"p = {check['p_value']:.2e} ({'' if check['detected'] else 'NOT '}detected at p <= {args.fpr:g})")
     if not check["detected"]:
@@ -207,6 +214,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     sources, output = [Path(p) for p in args.images], Path(args.output)
     message, num_bits = message_from_args(args, required=False)
     targets = _image_targets(sources, output)
+    check_record(args, message, num_bits)
     images = read_images(sources)
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
 
@@ -214,21 +222,29 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
         return embed_images(images, message, num_bits=num_bits, config=cfg, batch_size=args.batch,
                             progress=not args.no_progress)
 
-    with (output_file if len(sources) == 1 else output_folder)(output, sources, args.force) as tmp:
+    def record():  # before the outputs appear: a registry error leaves no unrecorded watermarked image
+        sizes = {tuple(r.image.shape[:0:-1]) for r in results}
+        return record_issued(args, results[0].message, size=sizes.pop() if len(sizes) == 1 else None)
+
+    inputs = [*sources, *input_paths(args, "registry")]
+    with (output_file if len(sources) == 1 else output_folder)(output, inputs, args.force) as tmp:
         results = run()
         for target, res in zip(targets, results):
             write_image(tmp if len(sources) == 1 else tmp / target.name, res.image)
+        recorded = record()
     for target, res in zip(targets, results):
         if not torch.equal(read_image(target), res.image.cpu()):
             raise RuntimeError(f"{target} does not hold the image that was verified")
-    rows = [dict(image=str(t), source=str(s), message=r.message_hex, psnr=r.psnr, bit_accuracy=r.bit_accuracy,
+    rows = [dict(image=str(t), source=str(s), psnr=r.psnr, bit_accuracy=r.bit_accuracy,
                  p_value=r.p_value, seconds=r.seconds) for t, s, r in zip(targets, sources, results)]
+    issued, note = issued_summary(recorded, results[0].message_hex, results[0].message.int().tolist())
     if args.json:
-        print_json(dict(message=results[0].message_hex, bits=results[0].message.int().tolist(), images=rows))
+        print_json(dict(**issued, images=rows))
     else:
         for r in rows:
-            print(f"embedded {r['message']} into {r['image']}: PSNR {r['psnr']:.2f} dB, read back "
+            print(f"embedded into {r['image']}: PSNR {r['psnr']:.2f} dB, read back "
                   f"{100 * r['bit_accuracy']:.2f} % of the bits (p = {r['p_value']:.2e}) in {r['seconds']:.1f} s")
+        print(note)
     weak = [r["image"] for r in rows if r["p_value"] > DETECTION_FPR]
     if weak:
         not_detectable_warning("embed-image", DETECTION_FPR, weak, "raise --steps or lower --psnr")
@@ -239,13 +255,24 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------ extract, verify
 
 
+def _size(text: str) -> tuple[int, int]:
+    """argparse type: ``WIDTHxHEIGHT`` -> (width, height)."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 800x800, got {text!r}") from None
+    if width <= 0 or height <= 0:
+        raise argparse.ArgumentTypeError(f"sizes must be positive, got {text!r}")
+    return width, height
+
+
 def cmd_extract(args: argparse.Namespace) -> int:
     """Reads the message bits of images."""
     from gsw.mark.detect import extract
 
     results = []
     for path, img in zip(args.images, read_images(args.images)):
-        ext = extract(img, num_bits=args.bits)
+        ext = extract(img, num_bits=args.bits, embed_size=args.embed_size and args.embed_size[::-1])
         results.append(dict(image=path, bits=ext.bits[0].int().tolist(),
                             hex=ext.hex[0] if args.bits % 4 == 0 else None))
     if args.json:

@@ -1,7 +1,9 @@
-"""``gsw keys list|show`` (the registry of issued marks) and ``gsw identify`` (who leaked this?).
+"""``gsw keys list|show`` (the registry of issued marks), ``gsw identify`` (who leaked this?) and the
+``--label`` / ``--registry`` options with which ``gsw embed`` / ``gsw embed-image`` record the marks they issue.
 
-Messages are secrets: no command prints one unless asked with ``--show-secret``. Exit status of
-``gsw identify``: 0 when a recipient is identified, 1 when nobody is, 2 on an error.
+Messages are secrets: no command prints one unless asked with ``--show-secret`` (an embedding without
+``--label`` prints its new message once, since nothing else keeps it). Exit status of ``gsw identify``:
+0 when a recipient is identified, 1 when nobody is, 2 on an error.
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from typing import Any
 
 from gsw.stats import DETECTION_FPR
 
-__all__ = ["register", "cmd_keys_list", "cmd_keys_show", "cmd_identify"]
+__all__ = ["register", "cmd_keys_list", "cmd_keys_show", "cmd_identify", "add_record_options", "check_record",
+           "record_issued", "issued_summary"]
 
 _REGISTRY_HELP = ("registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw/registry.sqlite, "
                   "i.e. ~/.local/share/gsw/registry.sqlite)")
@@ -51,6 +54,70 @@ def _describe(mark, show_secret: bool) -> list[tuple[str, str]]:
     if show_secret:
         rows.insert(3, ("message", mark.message_hex))
     return rows
+
+
+# ------------------------------------------------------------------------------------------------ recording
+
+
+def add_record_options(parser: argparse.ArgumentParser) -> None:
+    """``--label NAME`` and ``--registry FILE`` of the embedding commands: record the issued mark."""
+    group = parser.add_argument_group("registry (record the issued mark; see `gsw keys`, `gsw identify`)")
+    group.add_argument("--label", metavar="NAME",
+                       help="record the mark under this recipient label in the registry (the message is then kept "
+                            "there and not printed)")
+    group.add_argument("--registry", metavar="FILE", help=_REGISTRY_HELP + "; needs --label")
+
+
+def check_record(args: argparse.Namespace, message, num_bits: int) -> None:
+    """Before embedding (a long job): ``--registry`` needs ``--label``; the registry opens (it is created
+    if missing) and holds neither the label nor, for a given message, that message.
+
+    Raises:
+        ValueError, RegistryError: with what is wrong; nothing is embedded then.
+    """
+    from gsw.mark.message import message_to_hex
+    from gsw.registry import UnknownMarkError, _check_label, open_registry, shipped_decoder_sha256
+
+    if args.label is None:
+        if args.registry is not None:
+            raise ValueError("--registry records the issued mark: pass --label NAME (the recipient) too")
+        return
+    label = _check_label(args.label)
+    with open_registry(args.registry) as reg:
+        try:
+            reg.get(label)
+        except UnknownMarkError:
+            pass
+        else:
+            raise ValueError(f"label {label!r} is already registered in {reg.path}; choose another")
+        if message is not None:
+            text, sha = message_to_hex(message), shipped_decoder_sha256(num_bits)
+            if any(m.message_hex == text and m.decoder_sha256 == sha for m in reg.list(num_bits=num_bits)):
+                raise ValueError(f"this message is already issued in {reg.path} (two recipients would be "
+                                 "indistinguishable); use another --message/--key, or none")
+
+
+def record_issued(args: argparse.Namespace, message, **fields: Any):
+    """Records the issued mark when ``--label`` was given (:func:`gsw.registry.record_mark`; ``fields``:
+    its ``gaussians``, ``size``, ``background``). Returns ``(mark, registry path)`` or None."""
+    from gsw.registry import default_registry_path, record_mark
+
+    if args.label is None:
+        return None
+    mark = record_mark(args.registry, args.label, message, **fields)
+    return mark, args.registry or str(default_registry_path())
+
+
+def issued_summary(recorded, message_hex: str, bits: list[int]) -> tuple[dict[str, Any], str]:
+    """(JSON fields, text) that show a newly issued message once: the message itself (keep it: no output
+    file stores it), or, when recorded, where the registry keeps it."""
+    if recorded is None:
+        return (dict(message=message_hex, bits=bits),
+                f"message {message_hex} (secret: keep it; no output file stores it)")
+    mark, path = recorded
+    return (dict(mark=mark.to_dict(), registry=str(path)),
+            f"message recorded as mark {mark.id} for {mark.label!r} in {path} "
+            f"(see it with: gsw keys show {mark.id} --registry {path} --show-secret)")
 
 
 def cmd_keys_list(args: argparse.Namespace) -> int:
@@ -135,8 +202,9 @@ def _print_identification(result, num_images: int, top: int) -> None:
               f"{', '.join(m.label for m in result.skipped[:5])}{' ...' if len(result.skipped) > 5 else ''}")
     for r in result.results[:max(top, len(result.identified))]:
         verdict = "IDENTIFIED" if r.identified else "          "
-        print(f"{verdict}  {r.mark.label}  (id {r.mark.id}, {r.mark.num_bits} bits): adjusted p = "
-              f"{r.adjusted_p_value:.2e}, best image {100 * r.best_bit_accuracy:.1f} % of the bits")
+        print(f"{verdict}  {r.mark.label}  (id {r.mark.id}, {r.mark.num_bits} bits): adjusted p "
+              f"{'=' if r.exact else '>='} {r.adjusted_p_value:.2e}, best image {100 * r.best_bit_accuracy:.1f} % "
+              "of the bits")
     if result.identified:
         print(f"identified: {', '.join(result.recipients)}")
     else:

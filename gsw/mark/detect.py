@@ -103,22 +103,28 @@ def _as_images(images: ImageLike) -> list[Tensor]:
 
 
 @torch.no_grad()
-def extract(images: ImageLike, *, num_bits: int = 32, decoder: torch.nn.Module | None = None) -> Extraction:
+def extract(images: ImageLike, *, num_bits: int = 32, decoder: torch.nn.Module | None = None,
+            embed_size: tuple[int, int] | None = None) -> Extraction:
     """Reads the watermark bits from one or more images (e.g. screenshots of renders).
 
     Args:
         images: [3, H, W], [B, 3, H, W] or a list of [3, H, W] RGB images in [0, 1] (sizes may differ).
         num_bits: message length of the decoder.
         decoder: a custom decoder (LL2 subband -> logits); default: the shipped one for `num_bits`.
+        embed_size: ``(height, width)`` of the embedding renders, when known (a model's ``watermark.json``,
+            the registry): every image is resized to it before decoding, as :func:`verify` reads it
+            (:func:`gsw.mark.scales.read_plan`). None: each image is read as given. Without a claimed
+            message there is no p-value to pay for a scale search, so extract never searches.
 
     Returns:
         An :class:`Extraction`.
     """
-    from gsw.decoder.dwt import ll_subband
+    from gsw.mark.scales import read_images
 
-    imgs = _as_images(images)
+    imgs = [img[0] for img in _as_images(images)]
     dec = load_decoder_for(num_bits, decoder, imgs[0].device)
-    logits = torch.cat([dec(ll_subband(img)) for img in imgs])
+    readings = read_images(imgs, dec, embed_size=embed_size, factors=(1.0,))
+    logits = torch.stack([r.logits[0] for r in readings]).to(imgs[0].device)
     return Extraction((logits > 0).float(), logits)
 
 

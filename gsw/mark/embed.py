@@ -56,7 +56,7 @@ class EmbedConfig:
             the unperturbed render.  Combines with ``attacks`` (the image attack then hits that render).
         model_noise: std of that parameter noise.
         background: render background.
-        seed: RNG seed (view order, attacks).
+        seed: RNG seed (view order, attacks); never the message (a missing message is drawn secretly).
     """
 
     epochs: int = 8
@@ -136,7 +136,9 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
     Args:
         gaussians: the trained model (not modified).
         cameras: its training views.
-        message: None (random, seeded by ``config.seed``), bits, a hex string or `"key:<secret>"` (see
+        message: None (a fresh secret message from the OS entropy pool, never from ``config.seed``: read it
+            from the result's ``message`` / ``message_hex`` and keep it, or record it with
+            :func:`gsw.registry.record_mark`), bits, a hex string or `"key:<secret>"` (see
             :func:`gsw.mark.message.as_message`).
         num_bits: message length (32, 48 or 64 with the shipped decoders).
         images: optional [3, H, W] training images, used by FGD phase 1's error weighting.
@@ -151,7 +153,7 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
     cfg = config or EmbedConfig()
     _check(cfg, cameras)
     gaussians.check_finite()
-    bits = as_message(message, num_bits, seed=cfg.seed if message is None else None)
+    bits = as_message(message, num_bits)  # None: secret (os.urandom); the seed drives the optimisation only
     device = gaussians.device
     dec = load_decoder_for(num_bits, decoder, device)
     timings: dict[str, float] = {}

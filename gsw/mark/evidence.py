@@ -24,11 +24,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from gsw.decoder.null import NullModel, NullModelError, decoder_fingerprint, load_null_model
-from gsw.mark.scales import SEARCH_FACTORS, read_images
+from gsw.decoder.null import NullModel, NullModelError, decoder_fingerprint, load_null_model, reading_direction
+from gsw.mark.scales import SEARCH_FACTORS, Reading, read_images
 from gsw.stats import DETECTION_FPR, bonferroni_p_value, hommel_combined_p_value
 
-__all__ = ["Evidence", "ImageEvidence", "assess", "message_bits", "resolve_null_model"]
+__all__ = ["Evidence", "ImageEvidence", "Scores", "assess", "message_bits", "resolve_null_model", "score_messages",
+           "shipped_null_model"]
 
 
 @dataclass
@@ -99,6 +100,71 @@ def message_bits(message: Tensor | Sequence[int] | np.ndarray, num_bits: int) ->
     return m.astype(np.int8)
 
 
+@dataclass
+class Scores:
+    """Images scored against M messages at once (:func:`score_messages`).
+
+    Attributes:
+        p_values: [F, M] per image and message: the smallest p-value over the image's readings times their
+            number (Bonferroni over the scale search).
+        matches: [F, M] matching bits at the chosen reading.
+        chosen: [F, M] index of the chosen reading (the first among ties: factor 1 / the embedding size).
+        combined: [M] Hommel combination over the F images, valid under any dependence between them.
+    """
+
+    p_values: np.ndarray
+    matches: np.ndarray
+    chosen: np.ndarray
+    combined: np.ndarray
+
+
+def score_messages(readings: Sequence[Reading], messages: np.ndarray, model: NullModel) -> Scores:
+    """The p-values of decoded readings against M messages: the one scoring rule of :func:`assess` and
+    :func:`gsw.mark.identify.identify`.
+
+    Args:
+        readings: per image, its readings (:func:`gsw.mark.scales.read_images`).
+        messages: [M, k] message bits (int8 0/1).
+        model: the decoder's null model (:meth:`NullModel.tail_table` per message and reading direction).
+
+    Returns:
+        :class:`Scores`.
+    """
+    msgs = np.asarray(messages, dtype=np.int8)
+    k, cols = msgs.shape[1], np.arange(msgs.shape[0])
+    tables: dict[str, np.ndarray] = {}
+
+    def table(direction: str) -> np.ndarray:  # [M, k + 2], built only for the directions read
+        if direction not in tables:
+            tables[direction] = np.stack([model.tail_table(m, direction) for m in msgs])
+        return tables[direction]
+
+    p_rows, match_rows, chosen_rows = [], [], []
+    for r in readings:
+        bits = r.bits.numpy().astype(np.int32)  # [S, k]
+        if bits.shape[-1] != k:
+            raise ValueError(f"the decoder returned {bits.shape[-1]} bits, num_bits={k}")
+        matches = bits @ msgs.T.astype(np.int32) + (1 - bits) @ (1 - msgs.T.astype(np.int32))  # [S, M]
+        p = np.stack([table(reading_direction(f))[cols, row] for f, row in zip(r.factors, matches)])  # [S, M]
+        best = p.argmin(axis=0)  # first among ties
+        p_rows.append(bonferroni_p_value(p, axis=0))
+        match_rows.append(matches[best, cols])
+        chosen_rows.append(best)
+    p_values = np.stack(p_rows)
+    return Scores(p_values, np.stack(match_rows), np.stack(chosen_rows), hommel_combined_p_value(p_values, axis=0))
+
+
+_SHIPPED_NULLS: dict[int, NullModel] = {}
+
+
+def shipped_null_model(num_bits: int) -> NullModel:
+    """The shipped null model of the ``num_bits`` decoder (:func:`gsw.decoder.null.load_null_model`), loaded
+    once per process so that its tail tables (one per message) are computed once."""
+    if num_bits not in _SHIPPED_NULLS:
+        _SHIPPED_NULLS[num_bits] = load_null_model(num_bits)
+    return _SHIPPED_NULLS[num_bits]
+
+
 def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel | None,
                        shipped_decoder: bool) -> tuple[NullModel, str]:
     """The null model to use with ``decoder`` and its label.
@@ -113,7 +179,7 @@ def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel 
         null.check_decoder(decoder)
         return null, "calibrated"
     try:
-        shipped = load_null_model(num_bits)
+        shipped = shipped_null_model(num_bits)
     except NullModelError:
         if shipped_decoder:
             raise
@@ -162,15 +228,9 @@ def assess(images: Tensor | Sequence[Tensor], message: Tensor | Sequence[int] | 
         raise ValueError(f"the decoder reads {out_bits} bits, num_bits={num_bits}")
     model, label = resolve_null_model(num_bits, decoder, null, shipped)
     readings = read_images(images, decoder, embed_size=embed_size, factors=factors, batch_size=batch_size)
+    sc = score_messages(readings, m[None], model)
     per_image = []
-    for r in readings:
-        bits = r.bits.numpy().astype(np.int8)
-        if bits.shape[-1] != num_bits:
-            raise ValueError(f"the decoder returned {bits.shape[-1]} bits, num_bits={num_bits}")
-        ps = model.p_values(bits, m, np.asarray(r.factors))
-        best = int(np.argmin(ps))  # first (factor 1 / the embedding size) among ties
-        matches = int((bits[best] == m).sum())
-        per_image.append(ImageEvidence(matches / num_bits, matches, r.factors[best], tuple(r.sizes[best]),
-                                       len(ps), float(bonferroni_p_value(ps))))
-    combined = float(hommel_combined_p_value([e.p_value for e in per_image]))
-    return Evidence(per_image, combined, num_bits, label)
+    for r, p, matches, best in zip(readings, sc.p_values[:, 0], sc.matches[:, 0], sc.chosen[:, 0]):
+        per_image.append(ImageEvidence(int(matches) / num_bits, int(matches), r.factors[best], tuple(r.sizes[best]),
+                                       len(r.factors), float(p)))
+    return Evidence(per_image, float(sc.combined[0]), num_bits, label)

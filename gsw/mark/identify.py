@@ -1,15 +1,23 @@
 """Identification: which registered recipient's mark do these images (or video frames) carry?
 
-:func:`identify` decodes every image once per decoder found in the registry, then tests every registered
-mark of that decoder against the decoded bits: one p-value per mark (:func:`_mark_p_value`, all images
-taken together), then Holm's step-down correction over the marks tested, so the chance that an unmarked
-source names *anyone* stays at or below ``fpr`` however many marks are registered (family-wise error
-control under any dependence between the marks' tests). A recipient is identified when their adjusted
-p-value is at or below ``fpr``.
+:func:`identify` reads the images once per decoder and embedding size found in the registry (a mark that
+records its embedding resolution is read at that size, the others with the scale search), then scores
+every registered mark with the calibrated evidence of :func:`gsw.verify`
+(:func:`gsw.mark.evidence.score_messages`: the decoder's null model, the scale search counted in,
+Hommel's combination over the images, valid for near-duplicate frames), and applies Holm's step-down
+correction over the marks tested, so the chance that an unmarked source names *anyone* stays at or below
+``fpr`` however many marks are registered (family-wise error control under any dependence). A recipient
+is identified when their adjusted p-value is at or below ``fpr``.
+
+Screening (speed, same decisions): a calibrated p-value is never below the fair-coin one computed from the
+same readings, and Holm's decisions depend only on the p-values at or below ``fpr`` (and on the number of
+marks). So the calibrated value (one tail table per message) is computed for every mark whose fair-coin
+value is at or below ``fpr``, and for the ``exact`` best others; the remaining marks keep their fair-coin
+value, a lower bound already above ``fpr`` (``MarkResult.exact`` is False).
 
 The price of the correction: with M marks the best one must reach about ``fpr / M``. With one image at
 the default 1e-6 and 1,000 marks, a 32-bit mark needs all 32 bits right; 48 and 64 bits leave room for
-errors (:func:`gsw.stats.false_positive_threshold` at ``fpr / M``).
+errors.
 
 Example:
     >>> from gsw.registry import open_registry       # doctest: +SKIP
@@ -25,36 +33,19 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Union
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from gsw.decoder.null import NullModel
+from gsw.mark.evidence import resolve_null_model, score_messages
+from gsw.mark.scales import read_images
 from gsw.registry import Mark, Registry, shipped_decoder_sha256
-from gsw.stats import DETECTION_FPR, binomial_p_value
+from gsw.stats import DETECTION_FPR
 
 __all__ = ["MarkResult", "Identification", "identify"]
 
 ImageLike = Union[Tensor, Sequence[Tensor]]
-
-
-def _mark_p_value(bits_per_frame: Tensor, message: Tensor) -> float:
-    """P-value of "these frames carry ``message``": the chance an unmarked source matches as well.
-
-    Today a conservative value that holds however correlated the frames are (a video's frames are
-    near-duplicates, so Fisher's independence assumption would be optimistic): Bonferroni over the F
-    frames of the per-frame binomial p-value, ``min(1, F * min_f P(Bin(k, 1/2) >= matches_f))``. It assumes
-    each frame of an unmarked source reads k fair coin flips. This function is the hook that the
-    calibrated per-decoder null model replaces; :func:`identify` calls nothing else to score a mark.
-
-    Args:
-        bits_per_frame: [F, k] decoded bits in {0, 1}, one row per image/frame.
-        message: [k] the mark's bits in {0, 1}.
-
-    Returns:
-        The p-value in (0, 1].
-    """
-    frames, k = bits_per_frame.shape
-    best = int((bits_per_frame == message.to(bits_per_frame)).sum(dim=1).max())
-    return min(1.0, frames * binomial_p_value(best, k))
 
 
 def _holm(p_values: Sequence[float]) -> list[float]:
@@ -74,10 +65,12 @@ class MarkResult:
 
     Attributes:
         mark: the registry entry (its message stays out of ``repr`` and of :meth:`to_dict` by default).
-        p_value: :func:`_mark_p_value` of all images together.
+        p_value: the calibrated p-value of all images together (as :func:`gsw.verify` computes it), or,
+            when ``exact`` is False, its fair-coin lower bound (then above ``fpr``).
         adjusted_p_value: Holm-adjusted over every mark tested.
-        matches: per image, the number of message bits read correctly.
+        matches: per image, the number of message bits read correctly at the chosen scale.
         identified: ``adjusted_p_value <= fpr``.
+        exact: whether ``p_value`` is the calibrated value (see the module docstring).
     """
 
     mark: Mark
@@ -85,6 +78,7 @@ class MarkResult:
     adjusted_p_value: float
     matches: list[int]
     identified: bool
+    exact: bool = True
 
     @property
     def best_bit_accuracy(self) -> float:
@@ -95,7 +89,7 @@ class MarkResult:
         """JSON-ready: id, label, bits, p-values, per-image matches (the message only with ``show_secret``)."""
         out = {"id": self.mark.id, "label": self.mark.label, "num_bits": self.mark.num_bits,
                "p_value": self.p_value, "adjusted_p_value": self.adjusted_p_value, "identified": self.identified,
-               "best_bit_accuracy": self.best_bit_accuracy, "matches": self.matches}
+               "p_value_exact": self.exact, "best_bit_accuracy": self.best_bit_accuracy, "matches": self.matches}
         if show_secret:
             out["message_hex"] = self.mark.message_hex
         return out
@@ -128,6 +122,7 @@ class Identification:
         """JSON-ready summary (messages only with ``show_secret``)."""
         return {"identified": [r.to_dict(show_secret) for r in self.identified],
                 "recipients": self.recipients, "fpr": self.fpr, "correction": "holm",
+                "null_model": "calibrated (per decoder; fair coin for custom decoders without one)",
                 "num_images": self.num_images, "marks_tested": len(self.results),
                 "skipped": [{"id": m.id, "label": m.label, "decoder_sha256": m.decoder_sha256} for m in self.skipped],
                 "results": [r.to_dict(show_secret) for r in self.results]}
@@ -153,9 +148,31 @@ def _groups(marks: Sequence[Mark], decoders: Mapping[str, torch.nn.Module]
     return groups, skipped
 
 
+def _score_group(images: list[Tensor], group: list[Mark], decoder: torch.nn.Module, model: NullModel,
+                 fpr: float, exact: int) -> list[tuple[Mark, float, list[int], bool]]:
+    """(mark, p-value, per-image matches, exact) of the marks of one decoder (see the module docstring)."""
+    out = []
+    by_size: dict[tuple[int, int] | None, list[Mark]] = {}
+    for mark in group:
+        size = (mark.height, mark.width) if mark.width and mark.height else None
+        by_size.setdefault(size, []).append(mark)
+    for size, marks in by_size.items():
+        readings = read_images(images, decoder, embed_size=size)  # once per embedding size
+        messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
+        fair = score_messages(readings, messages, NullModel.fair(messages.shape[1]))
+        order = np.argsort(fair.combined, kind="stable")
+        todo = sorted(set(order[:exact].tolist()) | set(np.flatnonzero(fair.combined <= fpr).tolist()))
+        calibrated = score_messages(readings, messages[todo], model) if todo else None
+        at = {j: i for i, j in enumerate(todo)}
+        for j, mark in enumerate(marks):
+            sc, col = (calibrated, at[j]) if j in at else (fair, j)
+            out.append((mark, float(sc.combined[col]), sc.matches[:, col].tolist(), j in at))
+    return out
+
+
 def identify(images: ImageLike, registry: Registry | Sequence[Mark], *, fpr: float = DETECTION_FPR,
              decoders: Mapping[str, torch.nn.Module] | None = None,
-             device: str | torch.device | None = None) -> Identification:
+             device: str | torch.device | None = None, exact: int = 10) -> Identification:
     """Tests images against every registered mark and names the recipients they identify.
 
     Args:
@@ -164,8 +181,11 @@ def identify(images: ImageLike, registry: Registry | Sequence[Mark], *, fpr: flo
         registry: an open :class:`~gsw.registry.Registry`, or the marks to test.
         fpr: family-wise false-positive rate: the chance that an unmarked source identifies anyone.
         decoders: custom decoders (LL2 subband -> logits) by the sha256 their marks record; the shipped
-            decoders are used for marks that record a shipped decoder's sha256.
+            decoders are used for marks that record a shipped decoder's sha256. A custom decoder's p-values
+            use the fair coin unless its weights are the shipped ones.
         device: where to decode (default: where the images are).
+        exact: besides the marks that could be identified, the calibrated p-value is computed for this many
+            best marks of each decoder and embedding size (for reporting; decisions do not depend on it).
 
     Returns:
         An :class:`Identification`.
@@ -175,23 +195,23 @@ def identify(images: ImageLike, registry: Registry | Sequence[Mark], *, fpr: flo
     """
     if not 0.0 < fpr < 1.0:
         raise ValueError(f"fpr must lie in (0, 1), got {fpr}")
-    from gsw.mark import extract  # the detection path (it needs the package, not the rasterizer)
+    from gsw.mark.detect import _as_images, load_decoder_for
 
     if isinstance(images, Tensor):
         images = list(images.unsqueeze(0) if images.dim() == 3 else images)
     images = [img.to(device) if device is not None else img for img in images]
     if not images:
         raise ValueError("no images given")
+    images = [img[0] for img in _as_images(images)]
     marks = registry.list() if isinstance(registry, Registry) else list(registry)
     groups, skipped = _groups(marks, decoders or {})
-    tested: list[tuple[Mark, float, list[int]]] = []
+    tested: list[tuple[Mark, float, list[int], bool]] = []
     for (sha, k), group in groups.items():
-        bits = extract(images, num_bits=k, decoder=(decoders or {}).get(sha)).bits.cpu()  # [F, k], once
-        messages = torch.stack([m.message for m in group])  # [M, k]
-        matches = (bits[None] == messages[:, None]).sum(dim=2)  # [M, F]
-        for mark, message, row in zip(group, messages, matches.tolist()):
-            tested.append((mark, _mark_p_value(bits, message), row))
-    adjusted = _holm([p for _, p, _ in tested])
-    results = sorted((MarkResult(m, p, a, row, a <= fpr) for (m, p, row), a in zip(tested, adjusted)),
+        custom = (decoders or {}).get(sha)
+        decoder = load_decoder_for(k, custom, images[0].device)
+        model, _ = resolve_null_model(k, decoder, None, custom is None)
+        tested += _score_group(images, group, decoder, model, fpr, exact)
+    adjusted = _holm([p for _, p, _, _ in tested])
+    results = sorted((MarkResult(m, p, a, row, a <= fpr, ex) for (m, p, row, ex), a in zip(tested, adjusted)),
                      key=lambda r: (r.adjusted_p_value, r.p_value, r.mark.id))
     return Identification([r for r in results if r.identified], results, skipped, len(images), fpr)

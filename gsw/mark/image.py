@@ -92,7 +92,8 @@ def embed_image(image: Tensor, message: MessageLike = None, *, num_bits: int = 3
 
     Args:
         image: [3,H,W] RGB in [0, 1] (float) or uint8; both sides >= :data:`MIN_SIDE`.
-        message: bits, a hex string, ``"key:<secret>"`` or None (random, drawn from ``config.seed``).
+        message: bits, a hex string, ``"key:<secret>"`` or None (a fresh secret message from the OS entropy
+            pool, never from ``config.seed``; the result's ``message`` / ``message_hex`` is the only copy).
         num_bits: message length (32, 48 or 64 with the shipped decoders).
         config: :class:`ImageEmbedConfig` (default settings when None).
         decoder: a custom decoder (LL2 -> logits, as :func:`gsw.decoder.load_decoder` returns); default: the
@@ -145,7 +146,7 @@ def embed_images(images: Sequence[Tensor], message: MessageLike = None, *, num_b
             checked.append(_check_image(img))
         except (TypeError, ValueError) as err:
             raise type(err)(f"image {i}: {err}" if len(images) > 1 else str(err)) from None
-    bits = as_message(message, num_bits, seed=cfg.seed if message is None else None)
+    bits = as_message(message, num_bits)  # None: secret (os.urandom); the seed drives the optimisation only
     dec = load_decoder_for(num_bits, decoder, device)
     chunks = same_size_groups(checked, batch_size)
     results: list[ImageEmbedResult | None] = [None] * len(checked)

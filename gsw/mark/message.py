@@ -2,13 +2,17 @@
 
 A message is a [k] float tensor of 0/1 bits. :func:`as_message` accepts bits, a hex string of
 exactly k/4 digits or a secret key string (hashed with SHA-256 into k bits).
+
+Messages are secrets: without one, :func:`as_message` draws a fresh message from the operating system's
+entropy pool (:mod:`secrets`), never from a seed, so two embeds never share a message by accident. A
+seeded message (:func:`random_message` with ``seed``) is reproducible and therefore public: for tests,
+benchmarks and ``gsw demo`` only.
 """
 
 from __future__ import annotations
 
 import hashlib
-import math
-import os
+import secrets
 from typing import Sequence, Union
 
 import torch
@@ -19,9 +23,18 @@ MessageLike = Union[None, str, Sequence[int], Tensor]
 
 
 def random_message(num_bits: int, *, seed: int | None = None) -> Tensor:
-    """A uniformly random [num_bits] 0/1 message (from the OS entropy pool when seed is None)."""
+    """A uniformly random [num_bits] 0/1 message.
+
+    Args:
+        num_bits: message length.
+        seed: None (default): a secret message, each bit from the OS entropy pool (:func:`secrets.randbits`);
+            an int: a reproducible, public message (torch generator seeded with it).
+    """
+    if num_bits <= 0:
+        raise ValueError(f"num_bits must be positive, got {num_bits}")
     if seed is None:
-        seed = int.from_bytes(hashlib.sha256(os.urandom(32)).digest()[:8], "little")
+        value = secrets.randbits(num_bits)
+        return torch.tensor([(value >> i) & 1 for i in range(num_bits)], dtype=torch.float32)
     gen = torch.Generator().manual_seed(seed)
     return torch.randint(0, 2, (num_bits,), generator=gen).float()
 
@@ -58,10 +71,11 @@ def as_message(message: MessageLike, num_bits: int, *, seed: int | None = None) 
     """Normalises any accepted message form to a [num_bits] float 0/1 tensor.
 
     Args:
-        message: None (random), a hex string (`0x` optional, num_bits/4 digits), `key:<secret>`
+        message: None (a fresh secret message, :func:`random_message`), a hex string (`0x` optional, num_bits/4 digits), `key:<secret>`
             (derived from the secret), or a sequence/tensor of num_bits 0/1 values.
         num_bits: message length.
-        seed: seed of the random message when `message` is None.
+        seed: when `message` is None, a seed makes the message reproducible (and public: tests, demo);
+            without one it is secret.
 
     Raises:
         ValueError: wrong length, non-binary values or malformed hex.

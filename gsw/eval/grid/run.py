@@ -24,6 +24,7 @@ from gsw.eval.grid.summary import GridSummary, aggregate, cell_metrics, detectio
 from gsw.eval.report import evaluate_watermark
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import embed
+from gsw.mark.message import random_message
 from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
@@ -109,7 +110,8 @@ def run_cell(spec: GridSpec, scene: GridScene, cell: Cell, *, decoder: torch.nn.
         (``original`` / ``watermarked``).
     """
     cfg = spec.config(cell.method, cell.seed, scene.background)
-    res = embed(scene.gaussians, scene.cameras, num_bits=cell.bits,
+    message = random_message(cell.bits, seed=cfg.seed)  # seeded (public): grid cells are reproducible
+    res = embed(scene.gaussians, scene.cameras, message=message, num_bits=cell.bits,
                 images=None if scene.images is None else list(scene.images), config=cfg, decoder=decoder,
                 progress=False)
     start = time.perf_counter()
