@@ -157,7 +157,7 @@ DISTORTIONS: tuple[str, ...] = ("noise", "sh0", "splat", "spz", "8bit")
 
 def distort(g: Gaussians, kinds: tuple[str, ...], rng: random.Random, generator: torch.Generator,
             sigma: float = 0.1) -> tuple[str, Gaussians]:
-    """One distortion of ``kinds`` (uniformly, from ``rng``) applied to ``g``, differentiably.
+    """One distortion of ``kinds`` (``kinds[int(rng.random() * len(kinds))]``) applied to ``g``, differentiably.
 
     Args:
         g: the model.
@@ -172,7 +172,7 @@ def distort(g: Gaussians, kinds: tuple[str, ...], rng: random.Random, generator:
     unknown = [k for k in kinds if k not in DISTORTIONS]
     if unknown or not kinds:
         raise ValueError(f"unknown model distortions {unknown or kinds}; choose from {DISTORTIONS}")
-    kind = rng.choice(list(kinds))
+    kind = kinds[int(rng.random() * len(kinds))]
     if kind == "noise":
         return kind, noise(g, sigma, generator)
     return kind, {"sh0": sh0, "splat": splat_st, "spz": spz_st, "8bit": quantize_st}[kind](g)

@@ -37,8 +37,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb = subparsers.add_parser("embed", help="watermark a model, writing a new INRIA model folder")
-    emb.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
-    emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
+    emb.add_argument("input", help="INRIA model folder, or a .ply/.splat (views sampled around it without --cameras)")
+    emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input; optional)")
     emb.add_argument("--images", help="folder of the training images (optional, for FGD)")
     emb.add_argument("--output", required=True, help="new model folder (never the input)")
     emb.add_argument("--force", action="store_true", help="replace an existing output folder")
@@ -111,8 +111,8 @@ def _load_model(args: argparse.Namespace):
         with reading(src):
             model = load_inria_model(src, images_dir=args.images, background=background_of(args))
         return model.gaussians, model.cameras, model.images, [src]
-    if not args.cameras:
-        raise ValueError(f"{src} is a file: pass --cameras cameras.json (or give an INRIA model folder)")
+    if not args.cameras:  # a bare model: embed() samples views around its content
+        return load_gaussians(src), None, None, [src]
     with reading(args.cameras):
         cameras = load_inria_cameras(args.cameras)
     return load_gaussians(src), cameras, None, [src, Path(args.cameras)]
@@ -136,6 +136,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
         res = embed(g.to(device), cams, message=message, num_bits=num_bits,
                     images=None if images is None else list(images.to(device)), config=config,
                     progress=not args.no_progress)
+        cams = res.cameras
         save_inria_model(tmp, res.gaussians, cams, iteration=0)
         stats = dict(gaussians_in=len(g), gaussians_out=len(res.gaussians),
                      pruned=res.prune.num_removed if res.prune else 0,
