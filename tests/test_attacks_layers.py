@@ -81,3 +81,19 @@ def test_paper_layers_are_the_presets_strengths():
     assert torch.equal(singles[N.GaussianBlur](x), IMAGE_ATTACKS["blur"](x))
     torch.testing.assert_close(singles[N.JPEG](x), IMAGE_ATTACKS["jpeg"](x), rtol=0, atol=1e-6)
     torch.testing.assert_close(singles[N.Resize](x), IMAGE_ATTACKS["scaling"](x), rtol=0, atol=1e-6)
+
+
+def test_matched_noise_layers_reach_the_paper_strengths_and_are_seeded():
+    from gsw.attacks.layers import matched_noise_layers
+    from gsw.attacks.presets import PAPER_IMAGE_ATTACKS
+
+    layers = matched_noise_layers(jpeg_mode="real")
+    assert layers["noise"].strongest == PAPER_IMAGE_ATTACKS["noise"]["sigma"]
+    assert layers["rotation"].strongest == PAPER_IMAGE_ATTACKS["rotation"]["degrees"]
+    assert layers["crop"].strongest == PAPER_IMAGE_ATTACKS["crop"]["keep_area"]
+    assert layers["jpeg"].strongest == PAPER_IMAGE_ATTACKS["jpeg"]["quality"]
+    x = torch.rand(2, 3, 48, 48)
+    for name, layer in layers.items():
+        a = layer(x, generator=torch.Generator().manual_seed(4))
+        b = layer(x, generator=torch.Generator().manual_seed(4))
+        assert torch.equal(a, b), name

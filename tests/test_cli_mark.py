@@ -193,3 +193,22 @@ def test_embed_robustness_flags_reach_the_config() -> None:
     default = embed_config(build_parser().parse_args(["embed", "in", "--output", "out", "--white"]))
     assert default.model_attacks == 0.0 and default.weights.message == LossWeights().message
     assert default.background == (1.0, 1.0, 1.0)
+
+
+def test_embed_a_bare_ply_without_cameras_samples_views(model_dir, tmp_path, monkeypatch) -> None:
+    import dataclasses
+
+    import gsw.cli.mark as cli_mark
+
+    def small(args):  # the CLI's config, with few small sampled views (a CPU test)
+        return dataclasses.replace(embed_config(args), sampled_views=2, sampled_view_size=64)
+
+    monkeypatch.setattr(cli_mark, "embed_config", small)
+    ply = model_dir / "point_cloud" / "iteration_100" / "point_cloud.ply"
+    out = tmp_path / "bare"
+    rc, text = _run(["embed", str(ply), "--output", str(out), "--epochs", "1", "--lpips", "none", "--no-fgd",
+                     "--device", "cpu", "--no-progress", "--json"])
+    assert rc == 0
+    model = load_inria_model(out)
+    assert len(model.cameras) == 2 and all((c.width, c.height) == (64, 64) for c in model.cameras)
+    assert json.loads(text)["output"] == str(out)

@@ -46,6 +46,9 @@ def _differences(cfg: EmbedConfig) -> dict[str, object]:
 def test_methods_are_the_intended_embedder_configurations() -> None:
     expected = {
         "3d-gsw": {},
+        "paper": {},
+        "wild": {"novel_views": 0.5, "render_scales": (0.5, 2.0), "attacks": 0.5, "attack_ranges": "matched",
+                 "model_attacks": 0.5, "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
         "no-fgd": {"fgd": False},
         "no-mask": {"mask": "none"},
         "no-subband": {"weights.subband": 0.0},
@@ -107,8 +110,9 @@ def test_spec_defaults_cells_and_settings() -> None:
     assert [c.name for c in small.cells()] == ["no-fgd_64b_seed3", "no-fgd_48b_seed3"] and small.report_bits == 64
     # the selection is not a setting: a grid can grow in the same folder
     assert small.settings() == GridSpec().settings()
-    assert "methods" not in small.settings() and small.settings()["model_attacks"] == ["parameter_noise", "remove",
-                                                                                       "clone"]
+    assert "methods" not in small.settings() and small.settings()["model_attacks"] == [
+        "parameter_noise", "remove", "clone", "reduce_sh", "export_splat", "export_spz", "quantize",
+        "export_compressed_ply"]
 
 
 # ------------------------------------------------------------------------------------------ detection, aggregation

@@ -93,14 +93,14 @@ def test_bad_attack_settings(scene) -> None:
 def test_train_time_model_attack_is_differentiable_and_spares_positions(scene) -> None:
     import random
 
-    from gsw.mark.embed import _perturbed
+    from gsw.attacks.distort import distort
 
     g = scene.gaussians.clone()
     sh = g.sh.clone().requires_grad_()
     g = type(g)(g.means, g.log_scales, g.quats, g.opacity_logits, sh)
     seen = set()
     for seed in range(8):
-        out = _perturbed(g, random.Random(seed), torch.Generator().manual_seed(seed), 0.1)
+        _, out = distort(g, ("noise", "sh0"), random.Random(seed), torch.Generator().manual_seed(seed), 0.1)
         assert torch.equal(out.means, g.means)
         if torch.equal(out.log_scales, g.log_scales):  # the SH-degree-0 variant
             assert (out.sh[:, 1:] == 0).all() and torch.equal(out.sh[:, :1], g.sh[:, :1])
@@ -121,6 +121,60 @@ def test_embed_with_train_time_model_and_image_attacks_runs(scene) -> None:
     res = embed(scene.gaussians, scene.cameras, num_bits=32, config=cfg, progress=False)
     assert len(res.history) == len(scene.cameras)
     assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)
+
+
+def _quick(scene, **kw) -> EmbedConfig:
+    bg = tuple(float(v) for v in scene.background)
+    return EmbedConfig(**{"epochs": 1, "lpips_net": None, "weights": LossWeights(lpips=0.0), "background": bg,
+                          "fgd": False, **kw})
+
+
+def test_embed_without_cameras_samples_views_around_the_content(scene) -> None:
+    from gsw.mark.views import content_bounds
+
+    cfg = _quick(scene, sampled_views=3, sampled_view_size=64, fgd=True)
+    res = embed(scene.gaussians, None, num_bits=32, config=cfg, progress=False)
+    assert len(res.cameras) == 3 and len(res.history) == 3 and len(res.bit_accuracy) == 3
+    centre, radius = content_bounds(scene.gaussians)
+    for cam in res.cameras:
+        assert (cam.width, cam.height) == (64, 64) and cam.name.startswith("sampled_")
+        uv, depth = cam.project(centre[None].float())
+        assert depth[0] > 0 and 0 <= uv[0, 0] <= 64 and 0 <= uv[0, 1] <= 64
+        assert float((cam.center.double() - centre).norm()) > radius
+    again = embed(scene.gaussians, None, num_bits=32, config=cfg, progress=False)
+    assert all(torch.equal(a.viewmat, b.viewmat) for a, b in zip(res.cameras, again.cameras))
+    with pytest.raises(ValueError, match="at least one camera"):
+        embed(scene.gaussians, [], config=cfg, progress=False)
+
+
+def test_embed_with_novel_views_render_scales_and_export_distortions(scene) -> None:
+    cfg = _quick(scene, novel_views=0.5, render_scales=(0.5, 2.0), max_render_side=128, model_attacks=1.0,
+                 model_attack_kinds=("splat", "spz", "8bit", "sh0", "noise"), attacks=0.5, attack_ranges="matched")
+    res = embed(scene.gaussians, scene.cameras, num_bits=32, config=cfg, progress=False)
+    assert len(res.history) == len(scene.cameras) and res.cameras == list(scene.cameras)
+    assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)
+    for bad, match in (({"novel_views": 1.5}, "novel_views"), ({"render_scales": (2.0, 1.0)}, "render_scales"),
+                       ({"attack_ranges": "strong"}, "attack_ranges"), ({"model_attack_kinds": ("blur",)}, "kinds")):
+        with pytest.raises(ValueError, match=match):
+            embed(scene.gaussians, scene.cameras, config=_quick(scene, **bad), progress=False)
+
+
+def test_step_views_are_sampled_rescaled_and_seeded(scene) -> None:
+    from gsw.mark.embed import _Views
+
+    originals = [torch.zeros(3, c.height, c.width) for c in scene.cameras]
+    cfg = _quick(scene, novel_views=0.5, render_scales=(0.5, 2.0), max_render_side=128)
+
+    def steps():
+        views = _Views(scene.gaussians, scene.cameras, originals, cfg)
+        return [views.step(i % len(scene.cameras)) for i in range(12)]
+
+    a, b = steps(), steps()
+    assert any(c.name.startswith("sampled_") for c, _ in a) and any(not c.name.startswith("sampled_") for c, _ in a)
+    assert len({c.width for c, _ in a}) > 3 and max(max(c.width, c.height) for c, _ in a) <= 128
+    for (ca, ta), (cb, tb) in zip(a, b):
+        assert torch.equal(ca.viewmat, cb.viewmat) and ca.width == cb.width and torch.equal(ta, tb)
+        assert ta.shape == (3, ca.height, ca.width) and float(ta.sum()) > 0  # a fresh original render
 
 
 def test_extract_reads_images_of_different_sizes_one_by_one() -> None:

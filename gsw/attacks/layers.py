@@ -51,6 +51,7 @@ __all__ = [
     "quantize_st",
     "clamp_st",
     "training_noise_layers",
+    "matched_noise_layers",
     "paper_attacks",
 ]
 
@@ -300,6 +301,26 @@ def training_noise_layers(jpeg_mode: str = "real_diffgrad") -> dict[str, NoiseLa
         "noise": GaussianNoise(),
         "rotation": Rotation(),
         "combined": Combined([Crop(area=c["crop"]), GaussianBlur(sigma=c["blur"]), JPEG(c["jpeg"], jpeg_mode)]),
+    }
+
+
+def matched_noise_layers(jpeg_mode: str = "real_diffgrad") -> dict[str, NoiseLayer]:
+    """Training layers whose strongest draw is the evaluation's strength (train-time attack sampling that
+    matches :func:`paper_attacks`): each paper attack from none up to its paper strength
+    (:data:`gsw.attacks.presets.PAPER_IMAGE_ATTACKS`), blur up to the training range's 2 px, and the
+    combined crop -> blur -> JPEG at the paper's strengths. No identity layer."""
+    p = PAPER_IMAGE_ATTACKS
+    c = p["combined"]
+    q = float(p["jpeg"]["quality"])
+    return {
+        "crop": Crop(area=(1.0, p["crop"]["keep_area"])),
+        "resize": Resize(scale=(1.0, min(p["scaling"]["factor"], TRAINING_RANGES["resize"][1]))),
+        "jpeg": JPEG(quality=(90.0, q), mode=jpeg_mode),
+        "blur": GaussianBlur(sigma=(p["blur"]["sigma"], max(p["blur"]["sigma"], TRAINING_RANGES["blur"][1]))),
+        "noise": GaussianNoise(std=(0.0, p["noise"]["sigma"])),
+        "rotation": Rotation(degrees=(0.0, p["rotation"]["degrees"])),
+        "combined": Combined([Crop(area=(1.0, c["keep_area"])), GaussianBlur(sigma=(c["blur_sigma"],) * 2),
+                              JPEG((90.0, float(c["quality"])), jpeg_mode)]),
     }
 
 

@@ -39,6 +39,9 @@ __all__ = [
     "reduce_sh",
     "prune_by_opacity",
     "quantize",
+    "export_splat",
+    "export_spz",
+    "export_compressed_ply",
     "finetune",
 ]
 
@@ -216,6 +219,63 @@ def quantize(g: Gaussians, bits: int = 8) -> Gaussians:
     if not isinstance(bits, int) or isinstance(bits, bool) or not 1 <= bits <= 16:
         raise ValueError(f"bits must be an int in 1..16, got {bits!r}")
     return Gaussians(**{name: _quantize_columns(t, bits) for name, t in g.parameters().items()})
+
+
+def _export_roundtrip(g: Gaussians, suffix: str, save, load) -> Gaussians:
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"model{suffix}"
+        save(g, path)
+        return load(path).to(device=g.device, dtype=g.dtype)
+
+
+def export_splat(g: Gaussians) -> Gaussians:
+    """Export to antimatter15 ``.splat`` and load it back with the real codec (:mod:`gsw.io.splat`):
+    colours, opacities and rotations as bytes, the SH rest dropped (degree 0).
+
+    Args:
+        g: input Gaussians (not modified; at least one).
+
+    Returns:
+        New Gaussians (SH degree 0) on ``g``'s device and dtype.
+    """
+    from gsw.io.splat import load_splat, save_splat
+
+    return _export_roundtrip(g, ".splat", save_splat, load_splat)
+
+
+def export_spz(g: Gaussians) -> Gaussians:
+    """Export to Niantic ``.spz`` (version 3, default precisions) and load it back with the real codec
+    (:mod:`gsw.io.spz`): 24-bit fixed-point positions, byte alphas / colours / log-scales, smallest-three
+    rotations, SH rest at 5 (degree 1) and 4 bits.
+
+    Args:
+        g: input Gaussians (not modified).
+
+    Returns:
+        New Gaussians on ``g``'s device and dtype.
+    """
+    from gsw.io.spz import load_spz, save_spz
+
+    return _export_roundtrip(g, ".spz", save_spz, load_spz)
+
+
+def export_compressed_ply(g: Gaussians) -> Gaussians:
+    """Export to the PlayCanvas / SuperSplat compressed PLY and load it back with the real codec
+    (:mod:`gsw.io.compressed_ply`: chunk-wise 11/10/11-bit positions and scales, 8-bit colours, 2-10-10-10
+    rotations, 8-bit SH rest).
+
+    Args:
+        g: input Gaussians (not modified).
+
+    Returns:
+        New Gaussians on ``g``'s device and dtype.
+    """
+    from gsw.io.compressed_ply import load_compressed_ply, save_compressed_ply
+
+    return _export_roundtrip(g, ".compressed.ply", save_compressed_ply, load_compressed_ply)
 
 
 def finetune(g: Gaussians, cameras: Sequence["Camera"], *, steps: int = 300, quality: int | None = 50,

@@ -27,8 +27,9 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from torch import Tensor
 
-from gsw.attacks.model import (clone_random, finetune, parameter_noise, parameter_noise_attributes,
-                               prune_by_opacity, quantize, reduce_sh, remove_random)
+from gsw.attacks.model import (clone_random, export_compressed_ply, export_splat, export_spz, finetune,
+                               parameter_noise, parameter_noise_attributes, prune_by_opacity, quantize, reduce_sh,
+                               remove_random)
 from gsw.attacks.ops import (brightness, combined, contrast, crop, gaussian_blur, gaussian_noise, jpeg,
                              official_blur, official_crop, official_jpeg, official_noise, rotation, scaling)
 from gsw.gaussians import Gaussians
@@ -46,6 +47,7 @@ __all__ = [
     "MODEL_ATTACKS",
     "VIEW_MODEL_ATTACKS",
     "MODEL_ATTACK_NAMES",
+    "EXPORT_MODEL_ATTACKS",
     "bind_model_attacks",
     "TRAINING_RANGES",
     "TRAINING_COMBINED_RANGES",
@@ -154,7 +156,15 @@ MODEL_ATTACKS: dict[str, Callable[[Gaussians], Gaussians]] = {
     "reduce_sh": reduce_sh,
     "prune_by_opacity": prune_by_opacity,
     "quantize": quantize,
+    "export_splat": export_splat,
+    "export_spz": export_spz,
+    "export_compressed_ply": export_compressed_ply,
 }
+
+#: What leaving for a viewer does to a model: SH stripped to degree 0, ``.splat`` and ``.spz`` export and
+#: reload through the real codecs, 8-bit quantisation of every attribute, PlayCanvas compressed PLY.
+EXPORT_MODEL_ATTACKS: tuple[str, ...] = ("reduce_sh", "export_splat", "export_spz", "quantize",
+                                         "export_compressed_ply")
 
 #: Model attacks that render the model, at their defaults; call as ``fn(g, cameras, background=bg)``
 #: (:func:`bind_model_attacks` turns them into ``fn(g)``).

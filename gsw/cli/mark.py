@@ -41,8 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb = subparsers.add_parser("embed", help="watermark a model, writing a new INRIA model folder")
-    emb.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
-    emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
+    emb.add_argument("input", help="INRIA model folder, or a .ply/.splat (views sampled around it without --cameras)")
+    emb.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input; optional)")
     emb.add_argument("--images", help="folder of the training images (optional, for FGD)")
     add_resize_images_option(emb)
     emb.add_argument("--output", required=True, help="new model folder (never the input)")
@@ -126,8 +126,8 @@ def _load_model(args: argparse.Namespace):
                                      resize_images=args.resize_images)
         resized_notice("embed", model.resized)
         return model.gaussians, model.cameras, model.images
-    if not args.cameras:
-        raise ValueError(f"{src} is a file: pass --cameras cameras.json (or give an INRIA model folder)")
+    if not args.cameras:  # a bare model: embed() samples views around its content
+        return load_gaussians(src), None, None
     with reading(args.cameras):
         cameras = load_inria_cameras(args.cameras)
     return load_gaussians(src), cameras, None
@@ -151,11 +151,14 @@ def cmd_embed(args: argparse.Namespace) -> int:
     output, inputs = Path(args.output), input_paths(args, "input", "cameras", "images", "registry")
     check_output(output, inputs, args.force)  # before loading; output_folder checks again and commits exclusively
     g, cams, images = _load_model(args)
-    used, checked, held_out = split_views(len(cams), args.holdout_every)
+    bare = cams is None  # a bare model: embed() samples views around its content; the check uses those views
+    used, checked, held_out = split_views(0 if bare else len(cams), args.holdout_every)
     with output_folder(output, inputs, args.force) as tmp:
-        res = embed(g.to(device), [cams[i] for i in used], message=message, num_bits=num_bits,
+        res = embed(g.to(device), None if bare else [cams[i] for i in used], message=message, num_bits=num_bits,
                     images=None if images is None else list(images[used].to(device)), config=config,
                     progress=not args.no_progress)
+        if bare:
+            cams, checked = res.cameras, list(range(len(res.cameras)))
         save_inria_model(tmp, res.gaussians, cams, iteration=0)
         stats = dict(gaussians_in=len(g), gaussians_out=len(res.gaussians),
                      pruned=res.prune.num_removed if res.prune else 0,

@@ -5,11 +5,18 @@ phase 1 (prune) and phase 2 (split), then fine-tune the SH colours, opacities, s
 (positions frozen by default) with Adam, one shuffled view per step, against
 :class:`~gsw.mark.loss.WatermarkLoss`, with the gradient mask applied to the updates
 (:mod:`gsw.mark.mask`). Optional train-time attack sampling decodes an attacked copy of the
-render (noise, crop, JPEG, blur, rotation, scaling) to harden the watermark.
+render (noise, crop, JPEG, blur, rotation, scaling) to harden the watermark; train-time model distortions
+(:mod:`gsw.attacks.distort`: parameter noise, SH degree 0, straight-through ``.splat`` / ``.spz`` / 8-bit
+exports) decode the render of a distorted copy. The targets are renders of the original model, so steps may
+use viewpoints beyond the given cameras (:mod:`gsw.mark.views`: jittered, interpolated and orbit poses,
+varied focal length and render size; the fidelity losses apply there too), and a model without cameras is
+embedded from views sampled around its content.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import random
 import time
 from dataclasses import dataclass, field
@@ -25,6 +32,7 @@ from gsw.mark.fgd import PRUNE_THRESHOLD, TOP_PERCENT, PruneReport, SplitReport,
 from gsw.mark.loss import LossWeights, WatermarkLoss
 from gsw.mark.mask import UpdateMask
 from gsw.mark.message import MessageLike, as_message, message_to_hex
+from gsw.mark.views import ViewSampler, ViewSamplerConfig, scale_camera
 from gsw.metrics.image import psnr
 from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
@@ -55,8 +63,22 @@ class EmbedConfig:
             the positions, or the SH reduced to degree 0, each half of the time); fidelity losses stay on
             the unperturbed render.  Combines with ``attacks`` (the image attack then hits that render).
         model_noise: std of that parameter noise.
+        model_attack_kinds: the train-time model distortions drawn (uniformly) at those steps, names of
+            :data:`gsw.attacks.distort.DISTORTIONS` (``noise``, ``sh0``, ``splat``, ``spz``, ``8bit``).
+        attack_ranges: ranges of the image attacks: ``"training"`` (the decoder pre-training's,
+            :func:`gsw.attacks.layers.training_noise_layers`) or ``"matched"`` (up to the evaluation's
+            strengths, :func:`gsw.attacks.layers.matched_noise_layers`).
+        novel_views: share of the steps rendered from a sampled viewpoint (:class:`gsw.mark.views.ViewSampler`
+            around the content) instead of a given camera; its target is the original model's render there.
+        render_scales: ``(smallest, largest)`` render-size factor (log-uniform) of every step's camera, at most
+            ``max_render_side`` pixels per side (a random window of larger renders, :func:`gsw.mark.views.scale_camera`);
+            ``(1, 1)``: the cameras' own size.
+        max_render_side: largest rendered side during fine-tuning, pixels.
+        sampled_views: without cameras, how many sampled views stand in for them (FGD, epochs, final scores).
+        sampled_view_size: without cameras, the image side of those views, pixels.
         background: render background.
-        seed: RNG seed (view order, attacks); never the message (a missing message is drawn secretly).
+        seed: RNG seed (view order, attacks, sampled views); never the message (a missing message is drawn
+            secretly).
     """
 
     epochs: int = 8
@@ -77,6 +99,13 @@ class EmbedConfig:
     attacks: float = 0.0
     model_attacks: float = 0.0
     model_noise: float = 0.1
+    model_attack_kinds: tuple[str, ...] = ("noise", "sh0")
+    attack_ranges: str = "training"
+    novel_views: float = 0.0
+    render_scales: tuple[float, float] = (1.0, 1.0)
+    max_render_side: int = 1024
+    sampled_views: int = 48
+    sampled_view_size: int = 512
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
 
@@ -93,6 +122,7 @@ class EmbedResult:
         bit_accuracy: per training view, fraction of message bits decoded from the final render.
         psnr: per training view, PSNR (dB) of the final render against the original render.
         history: per step loss terms and bit accuracy.
+        cameras: the views embedded from (the given cameras, or the sampled ones standing in for them).
     """
 
     gaussians: Gaussians
@@ -104,21 +134,7 @@ class EmbedResult:
     bit_accuracy: list[float]
     psnr: list[float]
     history: list[dict[str, float]]
-
-
-def _perturbed(g: Gaussians, rng: random.Random, tgen: torch.Generator, sigma: float) -> Gaussians:
-    """A differentiable model attack for train-time sampling, one of two at random: N(0, sigma^2) on every
-    raw parameter but the positions, or the view-dependent SH dropped (degree 0).  The evaluation's
-    :func:`gsw.attacks.ops.parameter_noise_attributes` / :func:`gsw.attacks.ops.reduce_sh` return detached copies;
-    these keep the graph so the clean parameters learn a message that survives them."""
-    if rng.random() < 0.5:
-        def noisy(t: Tensor) -> Tensor:
-            return t + sigma * torch.randn(t.shape, generator=tgen).to(device=t.device, dtype=t.dtype)
-
-        return Gaussians(g.means, noisy(g.log_scales), noisy(g.quats), noisy(g.opacity_logits), noisy(g.sh))
-    return Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits,
-                     torch.cat([g.sh[:, :1], torch.zeros_like(g.sh[:, 1:])], dim=1))
-
+    cameras: list[Camera] = field(default_factory=list)
 
 
 def _sample_attack(gen: random.Random, attacks: dict, render: Tensor, tgen: torch.Generator) -> Tensor:
@@ -127,7 +143,7 @@ def _sample_attack(gen: random.Random, attacks: dict, render: Tensor, tgen: torc
 
 
 
-def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLike = None,
+def embed(gaussians: Gaussians, cameras: Sequence[Camera] | None = None, *, message: MessageLike = None,
           num_bits: int = 32, images: Sequence[Tensor] | None = None,
           config: EmbedConfig | None = None, decoder: torch.nn.Module | None = None,
           progress: bool = True) -> EmbedResult:
@@ -135,7 +151,9 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
 
     Args:
         gaussians: the trained model (not modified).
-        cameras: its training views.
+        cameras: its training views; None: ``config.sampled_views`` views sampled around the model's content
+            (:class:`gsw.mark.views.ViewSampler`, ``config.sampled_view_size`` pixels; returned in
+            :attr:`EmbedResult.cameras`).
         message: None (a fresh secret message from the OS entropy pool, never from ``config.seed``: read it
             from the result's ``message`` / ``message_hex`` and keep it, or record it with
             :func:`gsw.registry.record_mark`), bits, a hex string or `"key:<secret>"` (see
@@ -150,7 +168,8 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
         An :class:`EmbedResult`.
     """
     cfg = config or EmbedConfig()
-    cfg = config or EmbedConfig()
+    if cameras is None:
+        cameras = _stand_in_views(gaussians, cfg)
     _check(cfg, cameras)
     gaussians.check_finite()
     bits = as_message(message, num_bits)  # None: secret (os.urandom); the seed drives the optimisation only
@@ -173,7 +192,7 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
     t0 = time.perf_counter()
     params = _Trainable(model, cfg)
     loss_fn = WatermarkLoss(dec, cfg.weights, cfg.lpips_net, cfg.logit_scale).to(device)
-    history = _finetune(params, cameras, originals, loss_fn, bits.to(device), cfg, progress)
+    history = _finetune(params, _Views(gaussians, cameras, originals, cfg), loss_fn, bits.to(device), cfg, progress)
     timings["finetune"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -182,14 +201,34 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera], *, message: MessageLi
     timings["evaluate"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return EmbedResult(result, bits, message_to_hex(bits) if num_bits % 4 == 0 else "", prune, split,
-                       timings, accs, psnrs, history)
+                       timings, accs, psnrs, history, list(cameras))
+
+
+def _stand_in_views(gaussians: Gaussians, cfg: EmbedConfig) -> list[Camera]:
+    """Views sampled around a model's content (orbit poses at one size) for a model without cameras."""
+    if cfg.sampled_views < 1:
+        raise ValueError(f"EmbedConfig.sampled_views must be >= 1, got {cfg.sampled_views}")
+    sampler_cfg = ViewSamplerConfig(size_range=(1.0, 1.0), base_size=cfg.sampled_view_size,
+                                    elevation_deg=(-85.0, 85.0))
+    cams = ViewSampler(gaussians, None, sampler_cfg, seed=cfg.seed).sample_many(cfg.sampled_views)
+    return [dataclasses.replace(c, name=f"sampled_{i:03d}") for i, c in enumerate(cams)]
 
 
 def _check(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
-    """Refuses no cameras, attack probabilities outside [0, 1] and a negative model noise."""
+    """Refuses no cameras, probabilities outside [0, 1], a negative model noise and bad view settings."""
     if len(cameras) == 0:
         raise ValueError("embed needs at least one camera")
-    for name in ("attacks", "model_attacks"):
+    lo, hi = cfg.render_scales
+    if not 0 < lo <= hi:
+        raise ValueError(f"EmbedConfig.render_scales must satisfy 0 < low <= high, got {cfg.render_scales}")
+    if cfg.attack_ranges not in ("training", "matched"):
+        raise ValueError(f"EmbedConfig.attack_ranges must be 'training' or 'matched', got {cfg.attack_ranges!r}")
+    from gsw.attacks.distort import DISTORTIONS
+
+    if not cfg.model_attack_kinds or set(cfg.model_attack_kinds) - set(DISTORTIONS):
+        raise ValueError(f"EmbedConfig.model_attack_kinds must be names of {DISTORTIONS}, got "
+                         f"{cfg.model_attack_kinds}")
+    for name in ("attacks", "model_attacks", "novel_views"):
         if not 0.0 <= getattr(cfg, name) <= 1.0:
             raise ValueError(f"EmbedConfig.{name} is a probability in [0, 1], got {getattr(cfg, name)}")
     if cfg.model_noise < 0:
@@ -220,33 +259,76 @@ class _Trainable:
         return Gaussians(self.means, self.log_scales, self.quats, self.logits, torch.cat([self.dc, self.rest], dim=1))
 
 
-def _finetune(params: _Trainable, cameras: Sequence[Camera], originals: Sequence[Tensor], loss_fn: WatermarkLoss,
-              target: Tensor, cfg: EmbedConfig, progress: bool) -> list[dict[str, float]]:
+class _Views:
+    """Each step's camera and target: a given camera (its cached original render) or, with
+    ``cfg.novel_views``, a sampled viewpoint; rescaled by ``cfg.render_scales`` (a fresh original render)."""
+
+    def __init__(self, original: Gaussians, cameras: Sequence[Camera], originals: Sequence[Tensor],
+                 cfg: EmbedConfig) -> None:
+        self.original, self.cameras, self.originals, self.cfg = original, list(cameras), list(originals), cfg
+        self.rng = random.Random(cfg.seed + 1)
+        self.sampler = None
+        if cfg.novel_views > 0:
+            self.sampler = ViewSampler(original, cameras, ViewSamplerConfig(size_range=(1.0, 1.0),
+                                                                           max_side=cfg.max_render_side),
+                                       seed=cfg.seed + 2)
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def step(self, v: int) -> tuple[Camera, Tensor]:
+        """The camera and the original model's render for the step that would use given view ``v``."""
+        cam, target = self.cameras[v], self.originals[v]
+        if self.sampler is not None and self.rng.random() < self.cfg.novel_views:
+            cam, target = self.sampler.sample(), None
+        lo, hi = self.cfg.render_scales
+        if (lo, hi) != (1.0, 1.0):
+            scale = math.exp(self.rng.uniform(math.log(lo), math.log(hi)))
+            cam, target = scale_camera(cam, scale, self.cfg.max_render_side, self.rng), None
+        if target is None:
+            with torch.no_grad():
+                target = rasterize(self.original, cam, background=self.cfg.background, validate=False).image
+        return cam, target
+
+
+def _decoder_input(current: Gaussians, cam: Camera, render: Tensor, cfg: EmbedConfig, attacks: dict | None,
+                   rng: random.Random, tgen: torch.Generator) -> Tensor | None:
+    """What the message loss decodes at this step: None (the render), or the render of a distorted model
+    and / or an attacked image."""
+    from gsw.attacks.distort import distort
+
+    attacked = None
+    if cfg.model_attacks > 0 and rng.random() < cfg.model_attacks:
+        _, distorted = distort(current, cfg.model_attack_kinds, rng, tgen, cfg.model_noise)
+        attacked = rasterize(distorted, cam, background=cfg.background, validate=False).image
+    if attacks is not None and rng.random() < cfg.attacks:
+        base = render if attacked is None else attacked
+        attacked = _sample_attack(rng, attacks, base.clamp(0, 1), tgen)
+    return attacked
+
+
+def _finetune(params: _Trainable, views: _Views, loss_fn: WatermarkLoss, target: Tensor, cfg: EmbedConfig,
+              progress: bool) -> list[dict[str, float]]:
     """Adam over shuffled views against the watermark loss; returns the per-step loss terms and bit accuracy."""
     attacks = None
     if cfg.attacks > 0:
-        from gsw.attacks.layers import training_noise_layers
+        from gsw.attacks.layers import matched_noise_layers, training_noise_layers
 
-        attacks = {k: v for k, v in training_noise_layers().items() if k != "identity"}
+        layers = training_noise_layers() if cfg.attack_ranges == "training" else matched_noise_layers()
+        attacks = {k: v for k, v in layers.items() if k != "identity"}
     rng = random.Random(cfg.seed)
     tgen = torch.Generator().manual_seed(cfg.seed)
-    bg = cfg.background
     history: list[dict[str, float]] = []
-    with Progress(cfg.epochs * len(cameras), "embed", enabled=progress) as bar:
+    with Progress(cfg.epochs * len(views), "embed", enabled=progress) as bar:
         for _ in range(cfg.epochs):
-            order = list(range(len(cameras)))
+            order = list(range(len(views)))
             rng.shuffle(order)
             for v in order:
+                cam, original = views.step(v)
                 current = params.gaussians()
-                render = rasterize(current, cameras[v], background=bg, validate=False).image
-                attacked = None
-                if cfg.model_attacks > 0 and rng.random() < cfg.model_attacks:
-                    attacked = rasterize(_perturbed(current, rng, tgen, cfg.model_noise), cameras[v],
-                                         background=bg, validate=False).image
-                if attacks is not None and rng.random() < cfg.attacks:
-                    base = render if attacked is None else attacked
-                    attacked = _sample_attack(rng, attacks, base.clamp(0, 1), tgen)
-                loss, terms, out_logits = loss_fn(render, originals[v], target, attacked)
+                render = rasterize(current, cam, background=cfg.background, validate=False).image
+                attacked = _decoder_input(current, cam, render, cfg, attacks, rng, tgen)
+                loss, terms, out_logits = loss_fn(render, original, target, attacked)
                 params.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 params.mask.step(params.opt)
@@ -254,7 +336,7 @@ def _finetune(params: _Trainable, cameras: Sequence[Camera], originals: Sequence
                 terms.update(loss=float(loss.detach()), bit_acc=acc)
                 history.append(terms)
                 bar.update(loss=f"{terms['loss']:.4f}", bits=f"{acc:.3f}",
-                           psnr=f"{float(psnr(render.detach(), originals[v])):.1f}")
+                           psnr=f"{float(psnr(render.detach(), original)):.1f}")
     return history
 
 

@@ -8,7 +8,7 @@ import json
 from dataclasses import asdict, dataclass, field
 from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 
-from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
+from gsw.attacks.presets import EXPORT_MODEL_ATTACKS, IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
 from gsw.mark.embed import EmbedConfig
 from gsw.stats import DETECTION_FPR
 
@@ -20,9 +20,15 @@ __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "Gri
 #: and no wavelet-subband loss, with StegaNeRF's magnitude mask (no exponential) or no mask (WateRF).
 #: ``3d-gsw+attacks`` decodes an attacked copy of the render at half of the fine-tuning steps;
 #: ``3d-gsw+all-attacks`` also decodes the render of a perturbed model (parameter noise or SH degree 0) at
-#: half of them (``EmbedConfig.model_attacks``).
+#: half of them (``EmbedConfig.model_attacks``). ``paper`` pins the paper-faithful recipe (given cameras only,
+#: no train-time attacks) whatever the defaults; ``wild`` (issue 23) trains on sampled viewpoints and render
+#: sizes, with image attacks up to the evaluation's strengths and every model distortion (parameter noise,
+#: SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports).
 METHODS: dict[str, dict[str, Any]] = {
     "3d-gsw": {},
+    "paper": {"novel_views": 0.0, "render_scales": (1.0, 1.0), "attacks": 0.0, "model_attacks": 0.0},
+    "wild": {"novel_views": 0.5, "render_scales": (0.5, 2.0), "attacks": 0.5, "attack_ranges": "matched",
+             "model_attacks": 0.5, "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
     "no-fgd": {"fgd": False},
     "no-mask": {"mask": "none"},
     "no-subband": {"weights": {"subband": 0.0}},
@@ -37,6 +43,8 @@ ABLATIONS: tuple[str, ...] = ("3d-gsw", "no-fgd", "no-mask", "no-subband")
 
 #: The paper's model attacks (Gaussian noise on the parameters, remove 20 %, clone 20 %).
 PAPER_MODEL_ATTACKS: tuple[str, ...] = ("parameter_noise", "remove", "clone")
+#: The grid's default model attacks: the paper's and the exports (:data:`gsw.attacks.presets.EXPORT_MODEL_ATTACKS`).
+GRID_MODEL_ATTACKS: tuple[str, ...] = PAPER_MODEL_ATTACKS + EXPORT_MODEL_ATTACKS
 
 #: EmbedConfig fields set by the grid itself (a grid axis or the scene), not by overrides.
 _GRID_FIELDS = frozenset({"epochs", "seed", "background"})
@@ -163,7 +171,7 @@ class GridSpec:
     seeds: tuple[int, ...] = (0, 1, 2)
     epochs: int = 8
     image_attacks: tuple[str, ...] = tuple(IMAGE_ATTACKS)
-    model_attacks: tuple[str, ...] = PAPER_MODEL_ATTACKS
+    model_attacks: tuple[str, ...] = GRID_MODEL_ATTACKS
     sweeps: tuple[str, ...] = tuple(SWEEPS)
     embed: dict[str, Any] = field(default_factory=dict)
     fpr: float = DETECTION_FPR
