@@ -200,6 +200,8 @@ def main() -> int:
     ap.add_argument("--baseline", type=int, default=1, help="one-at-a-time gsw.embed runs")
     ap.add_argument("--scan-images", type=int, default=64)
     ap.add_argument("--scan-cpu-images", type=int, default=32)
+    ap.add_argument("--scan-only", type=int, default=0, metavar="MARKS",
+                    help="only time `gsw scan` over renders of the unmarked model against MARKS random marks")
     ap.add_argument("--budget-s", type=float, default=1e9, help="no new batch size after this many seconds")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--tag", default=None)
@@ -213,11 +215,23 @@ def main() -> int:
     cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, weights=lpips_weights(lp))
     res = dict(scene=args.scene, gaussians=len(g), size=f"{cams[0].width}x{cams[0].height}", views=len(cams),
                held_out_views=len(held), settings=vars(args))
+    if args.scan_only:
+        from gsw.mark.message import random_message
+
+        copies = [(g, random_message(args.bits, seed=i)) for i in range(args.scan_only)]
+        res["scan"] = bench_scan(args, dev, copies, held, bg)
+        return _write(args, dev, res)
     res["baseline"] = bench_baseline(args, dev, g, cams, held, bg, images, cfg) if args.baseline else None
     if res["baseline"]:
         print(json.dumps({"baseline": {x: y for x, y in res["baseline"].items() if x != "rows"}}), flush=True)
     res["fingerprint"], copies = bench_batches(args, dev, g, cams, held, bg, images, cfg)
     res["scan"] = bench_scan(args, dev, copies, held, bg) if args.scan_images else None
+    return _write(args, dev, res)
+
+
+def _write(args, dev, res) -> int:
+    import gsw
+
     res["machine"] = dict(device=str(dev), gpu=torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
                           cpu=platform.processor(), threads=torch.get_num_threads(), torch=torch.__version__,
                           python=platform.python_version(), gsw=gsw.__version__,

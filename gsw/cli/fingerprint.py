@@ -119,8 +119,6 @@ def _write_report(rows: list, output: str | None) -> None:
             print(f"{r.source}: {found}{best}")
         return
     path = Path(output)
-    if path.suffix.lower() not in (".csv", ".json"):
-        raise ValueError(f"--output {output}: the report is .csv or .json")
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path, "w") as f:
         if path.suffix.lower() == ".json":
@@ -142,6 +140,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
     if not 0.0 < args.fpr < 1.0:
         raise ValueError(f"--fpr must lie in (0, 1), got {args.fpr}")
+    if args.output is not None and Path(args.output).suffix.lower() not in (".csv", ".json"):
+        raise ValueError(f"--output {args.output}: the report is .csv or .json")
     with open_registry(args.registry, create=False) as reg:
         marks = reg.list()
     device = resolve_device(args.device)
