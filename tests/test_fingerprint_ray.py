@@ -82,19 +82,16 @@ def test_rerun_resumes(job, scene) -> None:
     assert report.runner == "none" and report.names("skipped") == NAMES
 
 
-def _dies_once(marker: str, payload: int) -> int:
-    if not os.path.exists(marker):
-        open(marker, "w").close()
-        os._exit(1)  # the worker process dies: no exception, no cleanup
-    return payload * 10
-
-
 def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
+    def dies_once(marker: str, payload: int) -> int:  # nested: shipped to the workers by value
+        if not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)  # the worker process dies: no exception, no cleanup
+        return payload * 10
+
     got = {}
-    failed = map_ray(lambda marker, p: _dies_once(marker, p), str(tmp_path / "died"), [1, 2],
-                     lambda i, r: got.__setitem__(i, r), max_retries=2)
+    failed = map_ray(dies_once, str(tmp_path / "died"), [1, 2], lambda i, r: got.__setitem__(i, r), max_retries=2)
     assert failed == [] and got == {0: 10, 1: 20}
     assert (tmp_path / "died").exists()
-    failed = map_ray(lambda marker, p: _dies_once(marker, p), str(tmp_path / "again"), [3], lambda i, r: None,
-                     max_retries=0)
+    failed = map_ray(dies_once, str(tmp_path / "again"), [3], lambda i, r: None, max_retries=0)
     assert [i for i, _ in failed] == [0]
