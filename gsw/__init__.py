@@ -44,6 +44,7 @@ _EXPORTS: dict[str, str] = {
     "Extraction": "gsw.mark", "Verdict": "gsw.mark", "extract": "gsw.mark", "verify": "gsw.mark",
     "ImageEmbedConfig": "gsw.mark", "ImageEmbedResult": "gsw.mark", "embed_image": "gsw.mark",
     "embed_images": "gsw.mark",
+    "fingerprint": "gsw.fingerprint",
 }
 
 

@@ -13,7 +13,7 @@ import sys
 from typing import Sequence
 
 from gsw import __version__
-from gsw.cli import decoder, demo, evaluate, export, mark, registry, render, train
+from gsw.cli import decoder, demo, evaluate, export, fingerprint, mark, registry, render, train
 
 #: Failures reported as ``gsw <command>: error: ...`` (exit status 2): bad input (ValueError, including JSON and
 #: dataset errors), files (OSError), devices and decoder weights (RuntimeError), missing optional packages.
@@ -34,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     registry.register(sub)
     export.register(sub)
     decoder.register(sub)
+    fingerprint.register(sub)
     return parser
 
 

@@ -37,7 +37,7 @@ from gsw.metrics.image import psnr
 from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
-__all__ = ["EmbedConfig", "EmbedResult", "embed"]
+__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "embed", "prepare_embedding"]
 
 
 @dataclass
@@ -143,6 +143,67 @@ def _sample_attack(gen: random.Random, attacks: dict, render: Tensor, tgen: torc
 
 
 
+@dataclass
+class EmbedSetup:
+    """The per-scene work of :func:`embed`, the same for every message embedded into one model
+    (:func:`prepare_embedding`; :mod:`gsw.fingerprint` does it once for many recipients).
+
+    Attributes:
+        model: the model after FGD (detached; the input model itself when FGD is off), on the input device.
+        originals: per camera, the [3, H, W] render of the input model (the fidelity targets).
+        decoder: the frozen decoder on the input device.
+        prune, split: FGD reports (None when FGD is off).
+        timings: seconds of "renders" and "fgd".
+    """
+
+    model: Gaussians
+    originals: list[Tensor]
+    decoder: torch.nn.Module
+    prune: PruneReport | None
+    split: SplitReport | None
+    timings: dict[str, float]
+
+
+def prepare_embedding(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: int = 32,
+                      images: Sequence[Tensor] | None = None, config: EmbedConfig | None = None,
+                      decoder: torch.nn.Module | None = None) -> EmbedSetup:
+    """Checks the inputs, renders the original views, runs FGD and sets up the decoder: everything of
+    :func:`embed` that does not depend on the message.
+
+    Args:
+        gaussians: the trained model (not modified).
+        cameras: its training views.
+        num_bits: message length (selects the shipped decoder).
+        images: optional [3, H, W] training images, used by FGD phase 1's error weighting.
+        config: :class:`EmbedConfig` (background, FGD settings).
+        decoder: a custom frozen decoder (LL2 subband -> logits); default: the shipped one.
+
+    Returns:
+        An :class:`EmbedSetup`.
+
+    Raises:
+        ValueError: no cameras, a bad config, non-finite parameters or a decoder of another length.
+    """
+    cfg = config or EmbedConfig()
+    _check(cfg, cameras)
+    gaussians.check_finite()
+    dec = load_decoder_for(num_bits, decoder, gaussians.device)
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    with torch.no_grad():
+        originals = [rasterize(gaussians, cam, background=cfg.background).image for cam in cameras]
+    timings["renders"] = time.perf_counter() - start
+
+    t0 = time.perf_counter()
+    model, prune, split = gaussians.detach().clone(), None, None
+    if cfg.fgd:
+        model, prune = fgd_prune(model, cameras, images, threshold=cfg.prune_threshold, background=cfg.background)
+        model, split = fgd_split(model, cameras, top_percent=cfg.top_percent, low_quantile=cfg.split_quantile,
+                                 background=cfg.background)
+    timings["fgd"] = time.perf_counter() - t0
+    return EmbedSetup(model, originals, dec, prune, split, timings)
+
+
 def embed(gaussians: Gaussians, cameras: Sequence[Camera] | None = None, *, message: MessageLike = None,
           num_bits: int = 32, images: Sequence[Tensor] | None = None,
           config: EmbedConfig | None = None, decoder: torch.nn.Module | None = None,
@@ -170,24 +231,12 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera] | None = None, *, mess
     cfg = config or EmbedConfig()
     if cameras is None:
         cameras = _stand_in_views(gaussians, cfg)
-    _check(cfg, cameras)
-    gaussians.check_finite()
     bits = as_message(message, num_bits)  # None: secret (os.urandom); the seed drives the optimisation only
-    device = gaussians.device
-    dec = load_decoder_for(num_bits, decoder, device)
-    timings: dict[str, float] = {}
     start = time.perf_counter()
-    with torch.no_grad():
-        originals = [rasterize(gaussians, cam, background=cfg.background).image for cam in cameras]
-    timings["renders"] = time.perf_counter() - start
-
-    t0 = time.perf_counter()
-    model, prune, split = gaussians.detach().clone(), None, None
-    if cfg.fgd:
-        model, prune = fgd_prune(model, cameras, images, threshold=cfg.prune_threshold, background=cfg.background)
-        model, split = fgd_split(model, cameras, top_percent=cfg.top_percent, low_quantile=cfg.split_quantile,
-                                 background=cfg.background)
-    timings["fgd"] = time.perf_counter() - t0
+    setup = prepare_embedding(gaussians, cameras, num_bits=num_bits, images=images, config=cfg, decoder=decoder)
+    model, originals, dec, prune, split = setup.model, setup.originals, setup.decoder, setup.prune, setup.split
+    device = gaussians.device
+    timings: dict[str, float] = dict(setup.timings)
 
     t0 = time.perf_counter()
     params = _Trainable(model, cfg)

@@ -1,0 +1,154 @@
+"""`gsw fingerprint` (one watermarked copy per recipient, registered) and `gsw scan` (who leaked these?).
+
+Both run on Ray when it is installed (a local Ray cluster, or ``--address`` to join one) and in one
+process otherwise. Messages are secrets: they go into the registry only, never into the output folders
+or the printed report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import sys
+from pathlib import Path
+
+from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, positive_int, print_json,
+                            reading)
+from gsw.stats import DETECTION_FPR
+
+__all__ = ["register", "cmd_fingerprint", "cmd_scan"]
+
+_REGISTRY_HELP = "registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw/registry.sqlite)"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Adds ``fingerprint`` and ``scan``."""
+    fp = subparsers.add_parser("fingerprint", help="one watermarked copy per recipient, each registered",
+                               description="Writes OUTPUT/<recipient>/ (an INRIA model folder) for every recipient of "
+                               "the recipients CSV (header: recipient[,message][,key]) and registers its secret "
+                               "message. A rerun skips finished recipients.")
+    fp.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
+    fp.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
+    fp.add_argument("--images", help="folder of the training images (optional, for FGD)")
+    fp.add_argument("--recipients", required=True, help="recipients CSV file")
+    fp.add_argument("--output", required=True, help="the job's folder (new, or this scene's earlier job)")
+    fp.add_argument("--registry", help=_REGISTRY_HELP)
+    add_bits_option(fp, 32, "message length (default: %(default)s)")
+    fp.add_argument("--batch", type=positive_int, default=4, help="recipients fine-tuned together (default %(default)s)")
+    fp.add_argument("--epochs", type=positive_int, default=8)
+    fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
+    fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
+    fp.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
+    fp.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
+    fp.add_argument("--message-weight", type=float, default=None, help="weight of the message loss")
+    add_background_options(fp, "default: black")
+    fp.add_argument("--seed", type=int, default=0, help="view order seed (messages are drawn from os.urandom)")
+    add_device_option(fp)
+    _add_ray_options(fp)
+    fp.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs per Ray task (default %(default)s)")
+    fp.add_argument("--max-retries", type=int, default=3, help="retries of a Ray task whose worker dies")
+    fp.add_argument("--no-progress", action="store_true")
+    fp.add_argument("--json", action="store_true", help="print the report as JSON")
+    fp.set_defaults(func=cmd_fingerprint, model_attack_prob=0.0)
+
+    sc = subparsers.add_parser("scan", help="test many images and videos against every registered mark",
+                               description="Each image, and each video (its frames together), is tested against every "
+                               "registered mark (gsw identify); a report of detections with calibrated p-values.")
+    sc.add_argument("inputs", nargs="+", metavar="DIR|GLOB|FILE", help="folders (recursive), glob patterns, image or "
+                    "video files")
+    sc.add_argument("--registry", help=_REGISTRY_HELP)
+    sc.add_argument("--output", help="report file: .csv or .json (default: a table on stdout)")
+    sc.add_argument("--fpr", type=float, default=DETECTION_FPR, help="family-wise false-positive rate per source")
+    sc.add_argument("--frames", type=positive_int, default=16, help="frames read per video (default %(default)s)")
+    add_device_option(sc)
+    _add_ray_options(sc)
+    sc.add_argument("--workers", type=positive_int, default=None, help="Ray Data workers (default: one per CPU/GPU)")
+    sc.set_defaults(func=cmd_scan)
+
+
+def _add_ray_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--address", help="Ray cluster to join (default: a local Ray cluster when Ray is installed)")
+    group.add_argument("--local", action="store_true", help="run in this process even when Ray is installed")
+
+
+def _use_ray(args: argparse.Namespace) -> bool | None:
+    return False if args.local else (True if args.address else None)
+
+
+def cmd_fingerprint(args: argparse.Namespace) -> int:
+    """Fingerprints a model for every recipient; exit 0 when every copy is written and registered."""
+    from gsw.cli.mark import _load_model, embed_config
+    from gsw.device import resolve_device
+    from gsw.fingerprint import fingerprint, read_recipients
+
+    with reading(args.recipients):
+        recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
+    device = resolve_device(args.device)
+    g, cams, images, _ = _load_model(args)
+    report = fingerprint(g, cams, recipients, args.output, args.registry, num_bits=args.bits,
+                         config=embed_config(args), images=None if images is None else list(images),
+                         batch_size=args.batch, device=device, use_ray=_use_ray(args), address=args.address,
+                         gpus_per_task=args.gpus_per_task, max_retries=args.max_retries,
+                         progress=not args.no_progress)
+    if args.json:
+        print_json(report.to_dict())
+        return 0
+    for r in report.recipients:
+        if r.status == "embedded":
+            print(f"embedded {r.name}: {100 * r.bit_accuracy:.2f} % of the bits (worst view "
+                  f"{100 * r.min_bit_accuracy:.1f} %), {r.psnr:.2f} dB -> {r.folder}")
+        else:
+            print(f"{r.status} {r.name} (finished earlier) -> {r.folder}")
+    print(f"{len(report.names('embedded'))} embedded, {len(report.recipients) - len(report.names('embedded'))} "
+          f"already done ({report.runner} runner, {report.timings.get('total', 0.0):.1f} s); messages are in the "
+          "registry only")
+    return 0
+
+
+def _write_report(rows: list, output: str | None) -> None:
+    from gsw._atomic import atomic_write
+
+    dicts = [r.to_dict() for r in rows]
+    if output is None:
+        for r in rows:
+            found = f"IDENTIFIED {r.identified}" if r.identified else ("error: " + r.error if r.error else "nobody")
+            best = "" if r.best_adjusted_p is None else f" (best {r.best_label}: adjusted p = {r.best_adjusted_p:.2e})"
+            print(f"{r.source}: {found}{best}")
+        return
+    path = Path(output)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "w") as f:
+        if path.suffix.lower() == ".json":
+            json.dump(dicts, f, indent=2)
+            f.write("\n")
+        else:
+            buf = io.StringIO()
+            writer = csv.DictWriter(buf, fieldnames=list(dicts[0]))
+            writer.writeheader()
+            writer.writerows(dicts)
+            f.write(buf.getvalue())
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    """Scans images and videos; exit 0 when some source identifies a recipient, 1 when none does."""
+    from gsw.device import resolve_device
+    from gsw.fingerprint.scan import scan
+    from gsw.registry import open_registry
+
+    if not 0.0 < args.fpr < 1.0:
+        raise ValueError(f"--fpr must lie in (0, 1), got {args.fpr}")
+    if args.output is not None and Path(args.output).suffix.lower() not in (".csv", ".json"):
+        raise ValueError(f"--output {args.output}: the report is .csv or .json")
+    with open_registry(args.registry, create=False) as reg:
+        marks = reg.list()
+    device = resolve_device(args.device)
+    rows = scan(args.inputs, marks, fpr=args.fpr, device=None if device.type == "cpu" else device,
+                frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers)
+    _write_report(rows, args.output)
+    hits = [r for r in rows if r.identified]
+    errors = [r for r in rows if r.error]
+    print(f"scanned {len(rows)} source(s): {len(hits)} identified, {len(errors)} unreadable", file=sys.stderr)
+    return 0 if hits else 1

@@ -1,0 +1,261 @@
+""":func:`fingerprint`: one watermarked copy per recipient of one scene, registered, resumable.
+
+Flow: check the recipients, the output folder (:class:`~gsw.fingerprint.store.JobFolder`) and the registry
+before any work; skip finished recipients; run the once-per-scene work (FGD) once
+(:func:`~gsw.fingerprint.shared.prepare_scene`); fine-tune the others in batches
+(:mod:`gsw.fingerprint.batched`) in this process or as Ray tasks (:mod:`gsw.fingerprint.run`); for every
+finished batch, in this process: write each copy's folder atomically, register the batch in one
+transaction, then write each completion marker.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from gsw.camera import Camera
+from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
+from gsw.gaussians import Gaussians
+from gsw.mark.embed import EmbedConfig
+
+__all__ = ["RecipientReport", "FingerprintReport", "fingerprint"]
+
+
+@dataclass
+class RecipientReport:
+    """What happened to one recipient (no message).
+
+    Attributes:
+        name: the recipient.
+        status: "embedded" (this run), "skipped" (finished earlier) or "completed" (only its marker was missing).
+        folder: its model folder.
+        mark_id: its registry id.
+        bit_accuracy, min_bit_accuracy, psnr, min_psnr: scores on the embedding views (embedded only).
+        seconds: its share of its batch's fine-tune time (embedded only).
+    """
+
+    name: str
+    status: str
+    folder: str
+    mark_id: int | None = None
+    bit_accuracy: float | None = None
+    min_bit_accuracy: float | None = None
+    psnr: float | None = None
+    min_psnr: float | None = None
+    seconds: float | None = None
+
+
+@dataclass
+class FingerprintReport:
+    """Result of :func:`fingerprint`.
+
+    Attributes:
+        recipients: one report per recipient, in input order.
+        runner: "ray", "local" or "none" (nothing to do).
+        scene_hash: the job's scene hash.
+        timings: seconds of "setup" (FGD), "finetune" (all batches) and "total".
+    """
+
+    recipients: list[RecipientReport]
+    runner: str
+    scene_hash: str
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def names(self, status: str) -> list[str]:
+        """The recipients with ``status``."""
+        return [r.name for r in self.recipients if r.status == status]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (no secrets)."""
+        return dict(runner=self.runner, scene_hash=self.scene_hash, timings=self.timings,
+                    recipients=[asdict(r) for r in self.recipients])
+
+
+def _recipients(recipients: str | os.PathLike | Sequence[Recipient | str]) -> list[Recipient]:
+    if isinstance(recipients, (str, os.PathLike)):
+        return read_recipients(recipients)
+    return check_recipients([r if isinstance(r, Recipient) else Recipient(str(r)) for r in recipients])
+
+
+def _check_registered(marks: dict, names: Sequence[str], decoder_sha: str, num_bits: int, path: Any) -> None:
+    for name in names:
+        m = marks.get(name)
+        if m is not None and (m.decoder_sha256 != decoder_sha or m.num_bits != num_bits):
+            raise ValueError(f"registry {path}: recipient {name!r} is registered for another decoder "
+                             f"({m.num_bits} bits, decoder {m.decoder_sha256[:12]}; this job: {num_bits} bits, "
+                             f"{decoder_sha[:12]}); use the registry of this decoder's marks")
+
+
+def _choose_runner(use_ray: bool | None, address: str | None, batches: int, log: Callable[[str], None]) -> str:
+    from gsw.fingerprint.run import SCALE_OUT_HINT, ray_available
+
+    if use_ray is False:
+        if address:
+            raise ValueError("an address was given but Ray is switched off")
+        return "local"
+    if not ray_available():
+        if use_ray or address:
+            raise ImportError(SCALE_OUT_HINT.replace("running in one process. ", ""))
+        log(SCALE_OUT_HINT)
+        return "local"
+    return "ray" if (use_ray or address or batches > 1) else "local"
+
+
+class _Writer:
+    """The one writer: copies, registry records and completion markers, batch by batch."""
+
+    def __init__(self, folder, registry, shared, record: dict, reports: dict, bar) -> None:
+        self.folder, self.registry, self.shared, self.record, self.reports, self.bar = (
+            folder, registry, shared, record, reports, bar)
+        self.messages: dict[str, str] = {}
+        self.steps = shared.config.epochs * len(shared.cameras)
+
+    def __call__(self, results: list) -> None:
+        from gsw.cli.metadata import watermark_record
+
+        cams, cfg, k = self.shared.cameras, self.shared.config, self.shared.num_bits
+        sizes = {(c.width, c.height) for c in cams}
+        width, height = next(iter(sizes)) if len(sizes) == 1 else (None, None)
+        hashes = []
+        for r in results:
+            stats = dict(self.shared.stats, mean_bit_accuracy=r.bit_accuracy, mean_psnr=r.psnr)
+            rec = watermark_record(num_bits=k, background=cfg.background, cameras=cams, config=cfg, stats=stats,
+                                   decoder=self.record["decoder"])
+            hashes.append(self.folder.write_copy(r.name, r.gaussians, cams, rec))
+        ids = self.registry.add_many([dict(label=r.name, message=self.messages[r.name], num_bits=k,
+                                           decoder_sha256=self.shared.decoder_sha256, model_hash=h, width=width,
+                                           height=height, background=cfg.background)
+                                      for r, h in zip(results, hashes)])
+        for r, h, mark_id in zip(results, hashes, ids):
+            self.folder.mark_done(r.name, h, mark_id)
+            self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
+                                                   r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
+                                                   r.seconds)
+        if self.bar is not None:
+            self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
+
+
+def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | os.PathLike | Sequence[Recipient | str],
+                output_dir: str | os.PathLike, registry: Any, *, num_bits: int = 32,
+                config: EmbedConfig | None = None, images: Sequence[Tensor] | None = None,
+                decoder: torch.nn.Module | None = None, batch_size: int = 4, device: str | torch.device | None = None,
+                use_ray: bool | None = None, address: str | None = None, gpus_per_task: float = 1.0,
+                max_retries: int = 3, progress: bool = True,
+                log: Callable[[str], None] | None = None) -> FingerprintReport:
+    """Writes one watermarked copy of ``model`` per recipient into ``output_dir/<recipient>/`` and registers it.
+
+    Args:
+        model: the trained model (not modified).
+        cameras: its training views (the embedding views).
+        recipients: a recipients CSV file (:mod:`gsw.fingerprint.plan`), or recipients / names.
+        output_dir: the job's folder (new, empty, or this scene's earlier job: finished recipients are skipped).
+        registry: an open :class:`~gsw.registry.Registry` or a registry file path (created if missing).
+        num_bits: message length.
+        config: embedding settings (default :class:`~gsw.mark.embed.EmbedConfig`).
+        images: optional training images for FGD phase 1.
+        decoder: a custom decoder (default: the shipped one).
+        batch_size: recipients fine-tuned together on one device.
+        device: where to compute (default: :func:`gsw.device.resolve_device` "auto").
+        use_ray: True: Ray tasks; False: this process; None: Ray when installed and there are several
+            batches (or an ``address``).
+        address: a Ray cluster to join (default: a local Ray cluster).
+        gpus_per_task: GPUs per Ray task on CUDA (e.g. 0.5 runs two batches per GPU).
+        max_retries: retries of a Ray task whose worker dies.
+        progress: show one progress bar for the job (and messages) on stderr.
+        log: where messages go (default: stderr when ``progress``).
+
+    Returns:
+        A :class:`FingerprintReport`.
+
+    Raises:
+        ValueError: malformed recipients, an output folder of another scene, a recipient registered for another
+            decoder or model; nothing is written then.
+        gsw.fingerprint.run.BatchFailure: batches that failed on Ray after their retries (the rest is written).
+    """
+    from gsw.device import resolve_device
+    from gsw.fingerprint.shared import decoder_sha256, scene_hash
+    from gsw.fingerprint.store import JobFolder
+    from gsw.registry import Registry, open_registry
+
+    start = time.perf_counter()
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    log = log or ((lambda text: print(f"gsw fingerprint: {text}", file=sys.stderr)) if progress else (lambda _t: None))
+    cfg = config or EmbedConfig()
+    people = _recipients(recipients)
+    dev = resolve_device(device if device is not None else "auto")
+    dec_sha = decoder_sha256(num_bits, decoder)
+    folder = JobFolder(output_dir, scene_hash=scene_hash(model, cameras, num_bits, cfg), decoder_sha256=dec_sha,
+                       num_bits=num_bits)
+    reg = registry if isinstance(registry, Registry) else open_registry(registry)
+    try:
+        return _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, batch_size, dev, use_ray,
+                    address, gpus_per_task, max_retries, progress, log, start)
+    finally:
+        if reg is not registry:
+            reg.close()
+
+
+def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, batch_size, dev, use_ray, address,
+         gpus_per_task, max_retries, progress, log, start) -> FingerprintReport:
+    """The body of :func:`fingerprint` once the inputs are checked."""
+    from gsw.fingerprint.run import run_local, run_ray
+    from gsw.fingerprint.shared import prepare_scene
+    from gsw.progress import Progress
+
+    marks = {m.label: m for m in reg.list()}
+    _check_registered(marks, [p.name for p in people], folder.decoder_sha256, num_bits, reg.path)
+    status = {p.name: folder.status(p.name, getattr(marks.get(p.name), "model_hash", None), p.name in marks)
+              for p in people}
+    folder.claim()
+    reports: dict[str, RecipientReport] = {}
+    for p in people:
+        if status[p.name] != "todo":
+            mark = marks[p.name]
+            if status[p.name] == "finish":
+                folder.mark_done(p.name, mark.model_hash, mark.id)
+            reports[p.name] = RecipientReport(p.name, "skipped" if status[p.name] == "done" else "completed",
+                                              str(folder.copy_path(p.name)), mark.id)
+    todo = assign_messages([p for p in people if status[p.name] == "todo"], num_bits,
+                           taken=[m.message_hex for m in marks.values() if m.decoder_sha256 == folder.decoder_sha256])
+    timings: dict[str, float] = {}
+    runner = "none"
+    if todo:
+        batches = [[(r.name, r.message) for r in todo[i:i + batch_size]] for i in range(0, len(todo), batch_size)]
+        runner = _choose_runner(use_ray, address, len(batches), log)
+        t0 = time.perf_counter()
+        shared = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
+                               device=dev)
+        timings["setup"] = time.perf_counter() - t0
+        steps = cfg.epochs * len(cameras)
+        with Progress(len(todo) * steps, "fingerprint", enabled=progress) as bar:
+            writer = _Writer(folder, reg, shared, {"decoder": _decoder_fingerprint(num_bits, decoder)}, reports,
+                             bar)
+            writer.messages = {r.name: r.message for r in todo}
+            t0 = time.perf_counter()
+            if runner == "ray":
+                def on_result(results: list) -> None:
+                    writer(results)
+                    bar.update(len(results) * steps)
+
+                run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
+                        max_retries=max_retries)
+            else:
+                run_local(shared, batches, str(dev), writer, on_step=bar.update)
+            timings["finetune"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - start
+    return FingerprintReport([reports[p.name] for p in people], runner, folder.scene_hash, timings)
+
+
+def _decoder_fingerprint(num_bits: int, decoder: torch.nn.Module | None) -> str:
+    """The decoder fingerprint ``watermark.json`` records (:func:`gsw.eval.grid.decoder_fingerprint`)."""
+    from gsw.decoder.zoo import load_decoder
+    from gsw.eval.grid import decoder_fingerprint
+
+    return decoder_fingerprint(load_decoder(num_bits) if decoder is None else decoder)

@@ -1,0 +1,153 @@
+"""The once-per-scene work of a fingerprinting job, done once and shared by every recipient.
+
+:func:`prepare_scene` (on the driver) checks the model, runs FGD and identifies the decoder
+(:func:`gsw.mark.embed.prepare_embedding`); the result, a :class:`SharedScene` of CPU tensors, travels to
+the workers (a Ray object). :func:`worker_scene` turns it, once per worker process and device, into a
+:class:`WorkerScene`: the models and original renders on the device and the loss with its decoder and
+LPIPS network, reused by every recipient batch that worker runs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import torch
+from torch import Tensor
+
+from gsw.camera import Camera
+from gsw.gaussians import Gaussians
+from gsw.mark.embed import EmbedConfig, prepare_embedding
+
+__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "worker_scene"]
+
+
+def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, config: EmbedConfig) -> str:
+    """``"scene-sha256:<hex>"`` of what makes two jobs' copies interchangeable: the model's tensors
+    (:func:`gsw.registry.hash_gaussians`), the cameras, the message length and the embedding settings."""
+    from gsw.registry import hash_gaussians
+
+    h = hashlib.sha256(hash_gaussians(gaussians).encode())
+    for cam in cameras:
+        h.update(cam.viewmat.detach().double().cpu().numpy().tobytes())
+        h.update(repr((float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), int(cam.width),
+                       int(cam.height))).encode())
+    h.update(f"bits={int(num_bits)};config={config!r}".encode())
+    return f"scene-sha256:{h.hexdigest()}"
+
+
+def decoder_sha256(num_bits: int, decoder: torch.nn.Module | None) -> str:
+    """What the registry records as the decoder: the shipped weight file's sha256, or a custom decoder's
+    weights' sha256 (:func:`gsw.decoder.null.decoder_fingerprint`)."""
+    if decoder is None:
+        from gsw.registry import shipped_decoder_sha256
+
+        return shipped_decoder_sha256(num_bits)
+    from gsw.decoder.null import decoder_fingerprint
+
+    return decoder_fingerprint(decoder)
+
+
+@dataclass
+class SharedScene:
+    """The per-scene part of a job, as CPU tensors (picklable, sent to every worker).
+
+    Attributes:
+        original: the input model.
+        model: the model after FGD, the starting point of every recipient's fine-tune.
+        cameras: the embedding views.
+        config: the embedding settings.
+        num_bits: message length.
+        decoder: a custom decoder, or None for the shipped one.
+        scene_hash: :func:`scene_hash`.
+        decoder_sha256: :func:`decoder_sha256`.
+        stats: Gaussian counts and the set-up timings (recorded in each copy's ``watermark.json``).
+    """
+
+    original: Gaussians
+    model: Gaussians
+    cameras: list[Camera]
+    config: EmbedConfig
+    num_bits: int
+    decoder: torch.nn.Module | None
+    scene_hash: str
+    decoder_sha256: str
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: int = 32,
+                  config: EmbedConfig | None = None, images: Sequence[Tensor] | None = None,
+                  decoder: torch.nn.Module | None = None, device: str | torch.device | None = None) -> SharedScene:
+    """Runs the once-per-scene work (checks, FGD) on ``device`` and returns it as a :class:`SharedScene`.
+
+    Args:
+        gaussians: the trained model (not modified).
+        cameras: its training views.
+        num_bits: message length.
+        config: embedding settings (:class:`~gsw.mark.embed.EmbedConfig`).
+        images: optional [3, H, W] training images for FGD phase 1.
+        decoder: a custom decoder (default: the shipped one).
+        device: where to run FGD (default: where the model is).
+
+    Raises:
+        ValueError: as :func:`gsw.mark.embed.prepare_embedding`.
+    """
+    cfg = config or EmbedConfig()
+    g = gaussians.detach().to(device) if device is not None else gaussians.detach()
+    imgs = None if images is None else [im.to(g.device) for im in images]
+    setup = prepare_embedding(g, cameras, num_bits=num_bits, images=imgs, config=cfg, decoder=decoder)
+    stats = dict(gaussians_in=len(g), gaussians_out=len(setup.model),
+                 pruned=setup.prune.num_removed if setup.prune else 0,
+                 split=setup.split.num_split if setup.split else 0, setup_timings=setup.timings)
+    return SharedScene(gaussians.detach().to("cpu"), setup.model.to("cpu"), list(cameras), cfg, num_bits,
+                       None if decoder is None else decoder.to("cpu"),
+                       scene_hash(gaussians, cameras, num_bits, cfg), decoder_sha256(num_bits, decoder), stats)
+
+
+@dataclass
+class WorkerScene:
+    """A :class:`SharedScene` ready to fine-tune on one device.
+
+    Attributes:
+        shared: the scene.
+        device: where it lives.
+        model: the FGD'd model on ``device``.
+        originals: per camera, the [3, H, W] render of the input model.
+        loss: the watermark loss (decoder + LPIPS) on ``device``.
+    """
+
+    shared: SharedScene
+    device: torch.device
+    model: Gaussians
+    originals: list[Tensor]
+    loss: torch.nn.Module
+
+
+_CACHE: dict[tuple[str, str], WorkerScene] = {}
+
+
+def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene:
+    """The :class:`WorkerScene` of ``shared`` on ``device``, built once per process and reused.
+
+    Args:
+        shared: the scene.
+        device: a torch device.
+    """
+    from gsw.mark.detect import load_decoder_for
+    from gsw.mark.loss import WatermarkLoss
+    from gsw.render.rasterize import rasterize
+
+    device = torch.device(device)
+    key = (shared.scene_hash, str(device))
+    if key not in _CACHE:
+        _CACHE.clear()  # one scene at a time per worker
+        cfg = shared.config
+        original = shared.original.to(device)
+        with torch.no_grad():
+            originals = [rasterize(original, cam, background=cfg.background).image for cam in shared.cameras]
+        dec = load_decoder_for(shared.num_bits, shared.decoder, device)
+        loss = WatermarkLoss(dec, cfg.weights, cfg.lpips_net, cfg.logit_scale).to(device)
+        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss)
+    return _CACHE[key]
+

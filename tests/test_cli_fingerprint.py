@@ -1,0 +1,99 @@
+"""`gsw fingerprint` and `gsw scan` on the command line (in one process: --local)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from gsw.cli.main import main
+from gsw.data import save_inria_model
+from gsw.data.images import write_image
+from gsw.registry import open_registry, shipped_decoder_sha256
+from gsw.scenes import default_scene
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
+    folder = tmp_path_factory.mktemp("model") / "m"
+    save_inria_model(folder, scene.gaussians, scene.cameras, iteration=7)
+    return folder
+
+
+def _fingerprint(model_dir, tmp_path, csv_text: str, *extra: str) -> int:
+    (tmp_path / "recipients.csv").write_text(csv_text, encoding="utf-8")
+    return main(["fingerprint", str(model_dir), "--recipients", str(tmp_path / "recipients.csv"), "--output",
+                 str(tmp_path / "out"), "--registry", str(tmp_path / "marks.sqlite"), "--local", "--epochs", "1",
+                 "--lpips", "none", "--batch", "2", "--device", "cpu", "--no-progress", *extra])
+
+
+def test_fingerprint_writes_registers_and_resumes(model_dir, tmp_path, capsys) -> None:
+    assert _fingerprint(model_dir, tmp_path, "recipient,key\nalice,\nbob,bobs-key\n", "--json") == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [r["status"] for r in report["recipients"]] == ["embedded", "embedded"] and report["runner"] == "local"
+    assert (tmp_path / "out" / "bob" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
+    with open_registry(tmp_path / "marks.sqlite") as reg:
+        secrets = [m.message_hex for m in reg.list()]
+    assert len(secrets) == 2 and not any(s in json.dumps(report) for s in secrets)
+    assert _fingerprint(model_dir, tmp_path, "recipient,key\nalice,\nbob,bobs-key\ncarol,\n") == 0
+    out = capsys.readouterr().out
+    assert "skipped alice" in out and "skipped bob" in out and "embedded carol" in out
+
+
+def test_malformed_recipients_file(model_dir, tmp_path, capsys) -> None:
+    assert _fingerprint(model_dir, tmp_path, "recipient,message\nalice,\nbob,00,extra\n") == 2
+    err = capsys.readouterr().err
+    assert "recipients.csv:3" in err and "3 fields" in err
+    assert not (tmp_path / "out").exists()
+    assert _fingerprint(model_dir, tmp_path, "recipient\nbob\nBOB\n") == 2
+    assert "duplicate recipient name" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def crawl(tmp_path_factory):
+    """A folder of one image marked for 'alice', one unmarked image and a text file; the registry."""
+    from gsw.mark.image import ImageEmbedConfig, embed_image
+    from gsw.render.rasterize import rasterize
+
+    root = tmp_path_factory.mktemp("crawl")
+    scene = default_scene(width=128, height=128, n_cameras=2, detail=0.5)
+    photo = rasterize(scene.gaussians, scene.cameras[0], background=scene.background).image.clamp(0, 1)
+    marked = embed_image(photo, "c0ffee42", config=ImageEmbedConfig(seed=0), progress=False)
+    (root / "web" / "sub").mkdir(parents=True)
+    write_image(root / "web" / "sub" / "leak.png", marked.image)
+    write_image(root / "web" / "plain.png", torch.rand(3, 96, 96))
+    (root / "web" / "notes.txt").write_text("not an image")
+    with open_registry(root / "marks.sqlite") as reg:
+        sha = shipped_decoder_sha256(32)
+        reg.add_many([dict(label="alice", message="c0ffee42", decoder_sha256=sha),
+                      dict(label="bob", message="12345678", decoder_sha256=sha)])
+    return root
+
+
+def test_scan_reports_detections(crawl, capsys) -> None:
+    report = crawl / "report.csv"
+    assert main(["scan", str(crawl / "web"), "--registry", str(crawl / "marks.sqlite"), "--output", str(report),
+                 "--local", "--device", "cpu"]) == 0
+    rows = {r["source"].rsplit("/", 1)[-1]: r for r in csv.DictReader(report.open(encoding="utf-8"))}
+    assert set(rows) == {"leak.png", "plain.png"}
+    assert rows["leak.png"]["identified"] == "alice" and float(rows["leak.png"]["best_adjusted_p"]) <= 1e-6
+    assert rows["plain.png"]["identified"] == ""
+    assert "c0ffee42" not in report.read_text()
+    assert "1 identified" in capsys.readouterr().err
+    js = crawl / "report.json"
+    assert main(["scan", str(crawl / "web" / "*.png"), "--registry", str(crawl / "marks.sqlite"), "--output",
+                 str(js), "--local"]) == 1  # only the unmarked image matches the pattern: nobody identified
+    data = json.loads(js.read_text())
+    assert [r["identified"] for r in data] == [""] and data[0]["images"] == 1
+
+
+def test_scan_bad_input(crawl, capsys) -> None:
+    reg = str(crawl / "marks.sqlite")
+    assert main(["scan", str(crawl / "missing"), "--registry", reg, "--local"]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+    assert main(["scan", str(crawl / "web"), "--registry", reg, "--output", str(crawl / "r.txt"), "--local"]) == 2
+    assert ".csv or .json" in capsys.readouterr().err
+    assert main(["scan", str(crawl / "web"), "--registry", str(crawl / "none.sqlite"), "--local"]) == 2

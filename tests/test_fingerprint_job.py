@@ -1,0 +1,139 @@
+"""gsw.fingerprint in one process: copies, registry records, markers, resume, bad input, the no-Ray path."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+import gsw
+from gsw.fingerprint.store import DONE_FILE, JOB_FILE
+from gsw.mark.embed import EmbedConfig
+from gsw.mark.loss import LossWeights
+from gsw.registry import hash_model_file, open_registry, shipped_decoder_sha256
+from gsw.scenes import default_scene
+
+
+def _scene(seed: int = 0):
+    return default_scene(width=32, height=32, n_cameras=2, detail=0.2, seed=seed)
+
+
+def _config(scene) -> EmbedConfig:
+    return EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0),
+                       background=tuple(float(v) for v in scene.background))
+
+
+def _run(scene, names, out, reg, **kw):
+    kw.setdefault("use_ray", False)
+    return gsw.fingerprint(scene.gaussians, scene.cameras, names, out, reg, config=_config(scene), batch_size=2,
+                           device="cpu", progress=False, **kw)
+
+
+@pytest.fixture(scope="module")
+def job(tmp_path_factory):
+    """A finished job of three recipients: (scene, output folder, registry path, report)."""
+    root = tmp_path_factory.mktemp("fp")
+    scene = _scene()
+    report = _run(scene, ["alice", "bob", "carol"], root / "out", root / "marks.sqlite")
+    return scene, root / "out", root / "marks.sqlite", report
+
+
+def _copy_job(job, tmp_path):
+    scene, out, reg, _ = job
+    shutil.copytree(out, tmp_path / "out")
+    shutil.copy(reg, tmp_path / "marks.sqlite")
+    return scene, tmp_path / "out", tmp_path / "marks.sqlite"
+
+
+def test_copies_registered_and_marked(job) -> None:
+    scene, out, reg, report = job
+    assert report.runner == "local" and report.names("embedded") == ["alice", "bob", "carol"]
+    assert (out / JOB_FILE).is_file()
+    with open_registry(reg) as r:
+        marks = {m.label: m for m in r.list()}
+    assert set(marks) == {"alice", "bob", "carol"}
+    assert len({m.message_hex for m in marks.values()}) == 3
+    for name, mark in marks.items():
+        ply = out / name / "point_cloud" / "iteration_0" / "point_cloud.ply"
+        assert mark.model_hash == hash_model_file(ply)
+        assert mark.decoder_sha256 == shipped_decoder_sha256(32) and (mark.width, mark.height) == (32, 32)
+        assert (out / name / DONE_FILE).is_file() and (out / name / "watermark.json").is_file()
+        for f in out.rglob("*"):  # the secret message is in the registry only
+            if f.is_file():
+                data = f.read_bytes().lower()
+                assert mark.message_hex.encode() not in data, f
+    rep = {r.name: r for r in report.recipients}
+    assert rep["bob"].mark_id == marks["bob"].id and 0 <= rep["bob"].bit_accuracy <= 1 and rep["bob"].psnr > 20
+
+
+def test_rerun_skips_finished_and_adds_new(job, tmp_path) -> None:
+    scene, out, reg = _copy_job(job, tmp_path)
+    ply = out / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply"
+    before = ply.stat().st_mtime_ns
+    report = _run(scene, ["alice", "bob", "carol", "dave"], out, reg)
+    assert [r.status for r in report.recipients] == ["skipped", "skipped", "skipped", "embedded"]
+    assert ply.stat().st_mtime_ns == before
+    again = _run(scene, ["alice", "dave"], out, reg)
+    assert again.runner == "none" and again.names("skipped") == ["alice", "dave"]
+
+
+def test_half_written_recipients(job, tmp_path) -> None:
+    scene, out, reg = _copy_job(job, tmp_path)
+    (out / "bob" / DONE_FILE).unlink()  # stopped between registration and marker
+    (out / "erin" / "point_cloud").mkdir(parents=True)  # stopped while writing, before registration
+    (out / "erin" / "junk.tmp").write_text("partial")
+    report = _run(scene, ["alice", "bob", "erin"], out, reg)
+    assert [r.status for r in report.recipients] == ["skipped", "completed", "embedded"]
+    assert (out / "bob" / DONE_FILE).is_file() and not (out / "erin" / "junk.tmp").exists()
+    with open_registry(reg) as r:
+        assert r.get("erin").model_hash == hash_model_file(out / "erin" / "point_cloud" / "iteration_0" /
+                                                           "point_cloud.ply")
+
+
+def _snapshot(folder):
+    return sorted((str(p.relative_to(folder)), p.stat().st_mtime_ns) for p in folder.rglob("*"))
+
+
+def test_output_folder_of_another_scene(job, tmp_path) -> None:
+    _, out, reg = _copy_job(job, tmp_path)
+    before = _snapshot(out)
+    with pytest.raises(ValueError, match="another scene"):
+        _run(_scene(seed=1), ["alice", "zed"], out, reg)
+    assert _snapshot(out) == before
+
+
+def test_folder_that_is_not_a_job(tmp_path) -> None:
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not a fingerprint job"):
+        _run(_scene(), ["alice"], tmp_path / "out", tmp_path / "r.sqlite")
+    assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
+
+
+def test_registry_of_another_decoder(tmp_path) -> None:
+    with open_registry(tmp_path / "r.sqlite") as r:
+        r.add("alice", "0123abcd", decoder_sha256="f" * 64)
+    with pytest.raises(ValueError, match="registered for another decoder"):
+        _run(_scene(), ["alice", "bob"], tmp_path / "out", tmp_path / "r.sqlite")
+    assert not (tmp_path / "out").exists()
+
+
+def test_name_registered_with_another_model(tmp_path) -> None:
+    with open_registry(tmp_path / "r.sqlite") as r:
+        r.add("alice", "0123abcd", decoder_sha256=shipped_decoder_sha256(32), model_hash="sha256:" + "0" * 64)
+    with pytest.raises(ValueError, match="already registered with another model"):
+        _run(_scene(), ["bob", "alice"], tmp_path / "out", tmp_path / "r.sqlite")
+    assert not (tmp_path / "out" / "bob").exists()
+
+
+def test_without_ray(tmp_path, monkeypatch) -> None:
+    import gsw.fingerprint.run as run
+
+    monkeypatch.setattr(run, "ray_available", lambda: False)
+    messages = []
+    report = _run(_scene(), ["a1", "b1", "c1"], tmp_path / "out", tmp_path / "r.sqlite", use_ray=None,
+                  log=messages.append)
+    assert report.runner == "local" and report.names("embedded") == ["a1", "b1", "c1"]
+    assert any("pip install gsw[ray]" in m for m in messages)
+    with pytest.raises(ImportError, match=r"pip install gsw\[ray\]"):
+        _run(_scene(), ["d1"], tmp_path / "out", tmp_path / "r.sqlite", use_ray=True)

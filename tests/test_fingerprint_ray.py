@@ -1,0 +1,97 @@
+"""gsw.fingerprint on a local Ray cluster of 2 workers (CPU): 4 recipients identified, retries, resume.
+
+Skips without Ray unless CI is set (CI installs the ``ray`` extra).
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+import gsw
+from gsw.mark.embed import EmbedConfig
+from gsw.mark.identify import identify
+from gsw.mark.loss import LossWeights
+from gsw.registry import open_registry
+from gsw.render.rasterize import rasterize
+from gsw.scenes import default_cameras, default_scene
+
+if not os.environ.get("CI"):
+    pytest.importorskip("ray")
+import ray  # noqa: E402
+
+from gsw.fingerprint.run import map_ray  # noqa: E402
+
+VIEWS = 6
+NAMES = ["r1", "r2", "r3", "r4"]
+#: Family-wise false-positive rate of the "no other recipient" check (the default of gsw identify).
+FPR = 1e-6
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return default_scene(width=64, height=64, n_cameras=VIEWS, detail=0.3)
+
+
+def _config(scene) -> EmbedConfig:
+    return EmbedConfig(epochs=10, lpips_net=None, weights=LossWeights(lpips=0.0, message=2.0), lr_f_dc=3e-2,
+                       background=tuple(float(v) for v in scene.background))
+
+
+@pytest.fixture(scope="module")
+def job(cluster, scene, tmp_path_factory):
+    root = tmp_path_factory.mktemp("fpray")
+    report = gsw.fingerprint(scene.gaussians, scene.cameras, NAMES, root / "out", root / "marks.sqlite",
+                             config=_config(scene), batch_size=2, device="cpu", use_ray=True, progress=False)
+    return root, report
+
+
+def test_four_recipients_on_two_workers(job, scene) -> None:
+    root, report = job
+    assert report.runner == "ray" and report.names("embedded") == NAMES
+    from gsw.data import load_inria_model
+
+    copy = load_inria_model(root / "out" / "r3").gaussians
+    bg = tuple(float(v) for v in scene.background)
+    unseen = default_cameras(VIEWS, 64, 64, azimuth_offset_deg=3.0)[1]  # 3 degrees off a training view
+    assert all(not bool((unseen.viewmat == c.viewmat).all()) for c in scene.cameras)
+    image = rasterize(copy, unseen, background=bg).image.clamp(0, 1)
+    with open_registry(root / "marks.sqlite") as reg:
+        found = identify(image, reg, fpr=FPR)
+    assert len(found.results) == 4
+    # r3's mark is the best match by a wide margin and nobody else is named. (At 64x64 the decoder reads a
+    # 16x16 subband; after this CPU-sized fine-tune one unseen render carries ~75-90 % of r3's bits, which
+    # is not always below 1e-6 over 4 marks: identification itself is shown on the GPU, BENCHMARKS.md #26.)
+    assert found.results[0].mark.label == "r3"
+    assert found.results[0].matches[0] >= max(r.matches[0] for r in found.results[1:]) + 2
+    assert set(found.recipients) <= {"r3"}
+
+
+def test_rerun_resumes(job, scene) -> None:
+    root, _ = job
+    report = gsw.fingerprint(scene.gaussians, scene.cameras, NAMES, root / "out", root / "marks.sqlite",
+                             config=_config(scene), batch_size=2, device="cpu", use_ray=True, progress=False)
+    assert report.runner == "none" and report.names("skipped") == NAMES
+
+
+def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
+    def dies_once(marker: str, payload: int) -> int:  # nested: shipped to the workers by value
+        if not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)  # the worker process dies: no exception, no cleanup
+        return payload * 10
+
+    got = {}
+    failed = map_ray(dies_once, str(tmp_path / "died"), [1, 2], lambda i, r: got.__setitem__(i, r), max_retries=2)
+    assert failed == [] and got == {0: 10, 1: 20}
+    assert (tmp_path / "died").exists()
+    failed = map_ray(dies_once, str(tmp_path / "again"), [3], lambda i, r: None, max_retries=0)
+    assert [i for i, _ in failed] == [0]
