@@ -402,7 +402,10 @@ def test_large_scene_1m_1080p_forward_agrees() -> None:
     print(f"1M@1080p: max|d image|={float(img_err.max()):.3e} mean={float(img_err.mean()):.3e} "
           f"pixels>1e-4: {frac_img:.2e}; max|d alpha|={float(alpha_err.max()):.3e} pixels>1e-4: {frac_alpha:.2e}; "
           f"n_contrib equal: {float((gpu.n_contrib.cpu() == cpu.n_contrib).float().mean()):.6f}")
-    # Threshold flips (see the module docstring) may change a handful of pixels.
-    assert frac_img <= 1e-4 and frac_alpha <= 1e-4
-    assert float(img_err.mean()) <= 1e-6 and float(alpha_err.mean()) <= 1e-6
+    # Threshold flips (see the module docstring: alpha >= 1/255, T >= 1e-4, decided on last-bit-different values)
+    # may change a few hundred of the 2M pixels. The CPU's AVX2/FMA tile kernels round differently from both
+    # the CUDA kernel and the earlier scalar CPU build: old vs new CPU build differ here by about as much as
+    # CPU vs CUDA (1.2e-4 / 1.4e-4 of the pixels by > 1e-4, mean 1.5e-6 / 1.7e-6, H100, 2026-11-24).
+    assert frac_img <= 2e-4 and frac_alpha <= 2e-4
+    assert float(img_err.mean()) <= 3e-6 and float(alpha_err.mean()) <= 3e-6
     assert math.isfinite(float(gpu.image.sum()))
