@@ -14,8 +14,8 @@ import json
 import sys
 from pathlib import Path
 
-from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, positive_int, print_json,
-                            reading)
+from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, add_resize_images_option,
+                            positive_int, print_json, reading)
 from gsw.stats import DETECTION_FPR
 
 __all__ = ["register", "cmd_fingerprint", "cmd_scan"]
@@ -32,6 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("input", help="INRIA model folder, or a .ply/.splat with --cameras")
     fp.add_argument("--cameras", help="INRIA cameras.json (with a .ply/.splat input)")
     fp.add_argument("--images", help="folder of the training images (optional, for FGD)")
+    add_resize_images_option(fp)
     fp.add_argument("--recipients", required=True, help="recipients CSV file")
     fp.add_argument("--output", required=True, help="the job's folder (new, or this scene's earlier job)")
     fp.add_argument("--registry", help=_REGISTRY_HELP)
@@ -87,7 +88,10 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     with reading(args.recipients):
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
     device = resolve_device(args.device)
-    g, cams, images, _ = _load_model(args)
+    g, cams, images = _load_model(args)
+    if cams is None:
+        raise ValueError(f"{args.input} is a bare model: gsw fingerprint needs its cameras (--cameras cameras.json, "
+                         "or an INRIA model folder)")
     report = fingerprint(g, cams, recipients, args.output, args.registry, num_bits=args.bits,
                          config=embed_config(args), images=None if images is None else list(images),
                          batch_size=args.batch, device=device, use_ray=_use_ray(args), address=args.address,
