@@ -21,10 +21,14 @@ if not os.environ.get("CI"):
     pytest.importorskip("ray")
 import ray  # noqa: E402
 
+from gsw.fingerprint.plan import Recipient  # noqa: E402
 from gsw.fingerprint.run import map_ray  # noqa: E402
 
 VIEWS = 6
 NAMES = ["r1", "r2", "r3", "r4"]
+#: Public, well-separated messages (r3 differs from r1 / r2 in 16 of 32 bits, from r4 in all 32), so the margin
+#: below does not depend on how close four secret random messages happen to fall.
+RECIPIENTS = [Recipient(n, message=m) for n, m in zip(NAMES, ["00ff00ff", "ff00ff00", "0f0f0f0f", "f0f0f0f0"])]
 #: Family-wise false-positive rate of the "no other recipient" check (the default of gsw identify).
 FPR = 1e-6
 
@@ -49,7 +53,7 @@ def _config(scene) -> EmbedConfig:
 @pytest.fixture(scope="module")
 def job(cluster, scene, tmp_path_factory):
     root = tmp_path_factory.mktemp("fpray")
-    report = gsw.fingerprint(scene.gaussians, scene.cameras, NAMES, root / "out", root / "marks.sqlite",
+    report = gsw.fingerprint(scene.gaussians, scene.cameras, RECIPIENTS, root / "out", root / "marks.sqlite",
                              config=_config(scene), batch_size=2, device="cpu", use_ray=True, progress=False)
     return root, report
 
@@ -77,7 +81,7 @@ def test_four_recipients_on_two_workers(job, scene) -> None:
 
 def test_rerun_resumes(job, scene) -> None:
     root, _ = job
-    report = gsw.fingerprint(scene.gaussians, scene.cameras, NAMES, root / "out", root / "marks.sqlite",
+    report = gsw.fingerprint(scene.gaussians, scene.cameras, RECIPIENTS, root / "out", root / "marks.sqlite",
                              config=_config(scene), batch_size=2, device="cpu", use_ray=True, progress=False)
     assert report.runner == "none" and report.names("skipped") == NAMES
 
