@@ -19,6 +19,9 @@ if TYPE_CHECKING:
 
 #: Message length when neither ``--bits``, a hex message nor a model's ``watermark.json`` says otherwise.
 DEFAULT_BITS = 32
+#: Help text of every ``--registry`` option.
+REGISTRY_HELP = ("registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw/registry.sqlite, "
+                 "i.e. ~/.local/share/gsw/registry.sqlite)")
 #: Backgrounds of ``--white`` / ``--black``.
 BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
 

@@ -19,15 +19,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gsw.cli.common import positive_int
+
 __all__ = ["register", "run_export", "run_train"]
-
-
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
 
 
 def _add_options(group: argparse._ArgumentGroup, defaults: Any, specs: list[tuple[str, Any, str]]) -> None:
@@ -46,17 +40,17 @@ def _add_options(group: argparse._ArgumentGroup, defaults: Any, specs: list[tupl
 def _add_train_model_options(p: argparse.ArgumentParser, d: Any) -> None:
     """Options of the networks and of the joint training (defaults from ``d``, a ``PretrainOptions``)."""
     _add_options(p.add_argument_group("networks"), d, [
-        ("--channels", _positive_int, "network width (64 ships; small widths for tests)"),
-        ("--enc-blocks", _positive_int, "encoder Conv-BN blocks"),
-        ("--dec-blocks", _positive_int, "decoder Conv-BN blocks"),
+        ("--channels", positive_int, "network width (64 ships; small widths for tests)"),
+        ("--enc-blocks", positive_int, "encoder Conv-BN blocks"),
+        ("--dec-blocks", positive_int, "decoder Conv-BN blocks"),
         ("--dec-norm", ("none", "center", "standardize"), "decoder input normalisation"),
-        ("--enc-down", _positive_int, "encoder resolution divisor (training aid)"),
+        ("--enc-down", positive_int, "encoder resolution divisor (training aid)"),
         ("--templates", int, "> 0: on/off template encoder aid of this side"),
         ("--template-mlp", int, "> 0: nonlinear message -> template branch of this width"),
         ("--template-refine", int, "> 0: image-adaptive refiner of the template of this width")])
     _add_options(p.add_argument_group("joint training"), d, [
-        ("--batch", _positive_int, "crops per step and bit length"),
-        ("--crop", _positive_int, "crop side"),
+        ("--batch", positive_int, "crops per step and bit length"),
+        ("--crop", positive_int, "crop side"),
         ("--lr", float, "AdamW learning rate (warmup + cosine)"),
         ("--psnr", float, "PSNR of the watermark at the end of the curriculum"),
         ("--psnr-start", float, "PSNR of the watermark while learning the code"),
@@ -65,12 +59,12 @@ def _add_train_model_options(p: argparse.ArgumentParser, d: Any) -> None:
         ("--clean-chunk", bool, "half of every batch is never attacked"),
         ("--view-warp", bool, "every sample also goes through a random view warp"),
         ("--balance", float, "weight of the unmarked-balance loss"),
-        ("--balance-batch", _positive_int, "unmarked crops per step for that loss"),
+        ("--balance-batch", positive_int, "unmarked crops per step for that loss"),
         ("--freeze-bn", bool, "decoder BatchNorm in eval mode (fine-tuning)"),
         ("--amp", ("auto", "on", "off"), "bf16 autocast (auto: on CUDA)"),
         ("--init", str, "continue from this earlier run folder (with --steps 0: no further training)"),
         ("--init-encoder", ("encoder", "encoder_ft"), "which encoder of --init to start from"),
-        ("--log-every", _positive_int, "steps between log lines"),
+        ("--log-every", positive_int, "steps between log lines"),
         ("--val-every-s", float, "seconds between validations")])
 
 
@@ -90,10 +84,10 @@ def _add_train_eval_options(p: argparse.ArgumentParser, d: Any) -> None:
         ("--ft-clean-chunk", bool, "half of every batch is never attacked")])
     g = p.add_argument_group("evaluation (DATA/val photos at full size)")
     _add_options(g, d, [
-        ("--eval-images", _positive_int, "photos in the attack evaluation"),
-        ("--msgs-per-image", _positive_int, "messages per photo there"),
-        ("--num-messages", _positive_int, "random messages against the unmarked photos"),
-        ("--limit-images", _positive_int, "read only the first N train and val photos"),
+        ("--eval-images", positive_int, "photos in the attack evaluation"),
+        ("--msgs-per-image", positive_int, "messages per photo there"),
+        ("--num-messages", positive_int, "random messages against the unmarked photos"),
+        ("--limit-images", positive_int, "read only the first N train and val photos"),
         ("--skip-init-eval", bool, "skip the evaluation before the fine-tune (chained fine-tunes)")])
     g.add_argument("--refine-steps", type=int, nargs="*", default=[],
                    help="also evaluate the last encoders with their residual refined this many Adam steps against "
@@ -103,7 +97,7 @@ def _add_train_eval_options(p: argparse.ArgumentParser, d: Any) -> None:
         ("--refine-schedule", ("cosine", "constant"), "its schedule"),
         ("--refine-margin", float, "its logit margin"),
         ("--refine-eot", bool, "refine through the training noise layers too (in turn)"),
-        ("--refine-eot-every", _positive_int, "with --refine-eot, attack every n-th step only"),
+        ("--refine-eot-every", positive_int, "with --refine-eot, attack every n-th step only"),
         ("--refine-fp32", bool, "refine in float32 (default on CUDA: bf16)")])
     _add_options(p.add_argument_group("output"), d, [
         ("--half", bool, "float16 encoders in the run files (only the last one kept)"),
@@ -124,7 +118,7 @@ def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", required=True, help="photo folder with train/ and val/ (e.g. ../shared/data/bsds500)")
     p.add_argument("--output", required=True, help="the run folder to write (a new or empty folder)")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty run folder")
-    p.add_argument("--bits", type=_positive_int, nargs="+", default=list(d.bits), help="bit lengths (default 32 48 64)")
+    p.add_argument("--bits", type=positive_int, nargs="+", default=list(d.bits), help="bit lengths (default 32 48 64)")
     p.add_argument("--steps", type=int, default=d.steps, help="training steps (default %(default)s)")
     p.add_argument("--time-budget-s", type=float, default=None,
                    help="training wall time for all bit lengths instead of --steps")
@@ -153,13 +147,13 @@ def _add_export_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--previous-report", default=None,
                    help="earlier report JSON: its other bit lengths (run) or its training records (--shipped) are "
                         "kept (default: REPORT.json when it exists)")
-    p.add_argument("--bits", type=_positive_int, nargs="+", default=[32, 48, 64], help="bit lengths (default 32 48 64)")
+    p.add_argument("--bits", type=positive_int, nargs="+", default=[32, 48, 64], help="bit lengths (default 32 48 64)")
     p.add_argument("--force", action="store_true", help="replace existing weights, manifest or report")
     p.add_argument("--refit-whitening", action="store_true", help="refit the whitening here on the CPU (run only)")
     p.add_argument("--whiten-crops", type=int, default=1600, help="random crops in that refit (default %(default)s)")
     p.add_argument("--whiten-eps", type=float, default=1e-3, help="its eigenvalue floor (default %(default)s)")
     p.add_argument("--ft-runs", nargs="*", default=[], help="encoder fine-tune runs of these decoders to merge in")
-    p.add_argument("--recheck-bits", type=_positive_int, nargs="*", default=[],
+    p.add_argument("--recheck-bits", type=positive_int, nargs="*", default=[],
                    help="re-measure a fine-tuned pair on the CPU for these bit lengths (95 %% photo bootstrap)")
     p.add_argument("--recheck-run", default=None, help="the run whose encoder_ft is re-checked (default: last --ft-runs)")
     p.set_defaults(func=run_export)

@@ -15,12 +15,11 @@ import sys
 from pathlib import Path
 
 from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, add_resize_images_option,
-                            positive_int, print_json, reading)
+                            REGISTRY_HELP, positive_int, print_json, reading)
 from gsw.stats import DETECTION_FPR
 
 __all__ = ["register", "cmd_fingerprint", "cmd_scan"]
 
-_REGISTRY_HELP = "registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw/registry.sqlite)"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_resize_images_option(fp)
     fp.add_argument("--recipients", required=True, help="recipients CSV file")
     fp.add_argument("--output", required=True, help="the job's folder (new, or this scene's earlier job)")
-    fp.add_argument("--registry", help=_REGISTRY_HELP)
+    fp.add_argument("--registry", help=REGISTRY_HELP)
     add_bits_option(fp, 32, "message length (default: %(default)s)")
     fp.add_argument("--batch", type=positive_int, default=4, help="recipients fine-tuned together (default %(default)s)")
     fp.add_argument("--epochs", type=positive_int, default=8)
@@ -59,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                "registered mark (gsw identify); a report of detections with calibrated p-values.")
     sc.add_argument("inputs", nargs="+", metavar="DIR|GLOB|FILE", help="folders (recursive), glob patterns, image or "
                     "video files")
-    sc.add_argument("--registry", help=_REGISTRY_HELP)
+    sc.add_argument("--registry", help=REGISTRY_HELP)
     sc.add_argument("--output", help="report file: .csv or .json (default: a table on stdout)")
     sc.add_argument("--fpr", type=float, default=DETECTION_FPR, help="family-wise false-positive rate per source")
     sc.add_argument("--frames", type=positive_int, default=16, help="frames read per video (default %(default)s)")

@@ -13,20 +13,11 @@ import json
 import sys
 from typing import Any
 
+from gsw.cli.common import REGISTRY_HELP, positive_int
 from gsw.stats import DETECTION_FPR
 
 __all__ = ["register", "cmd_keys_list", "cmd_keys_show", "cmd_identify", "add_record_options", "check_record",
            "record_issued", "issued_summary"]
-
-_REGISTRY_HELP = ("registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw/registry.sqlite, "
-                  "i.e. ~/.local/share/gsw/registry.sqlite)")
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
 
 
 def _open(args: argparse.Namespace):
@@ -65,7 +56,7 @@ def add_record_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--label", metavar="NAME",
                        help="record the mark under this recipient label in the registry (the message is then kept "
                             "there and not printed)")
-    group.add_argument("--registry", metavar="FILE", help=_REGISTRY_HELP + "; needs --label")
+    group.add_argument("--registry", metavar="FILE", help=REGISTRY_HELP + "; needs --label")
 
 
 def check_record(args: argparse.Namespace, message, num_bits: int) -> None:
@@ -223,7 +214,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     show.add_argument("mark", help="the mark's id or recipient label")
     show.set_defaults(func=cmd_keys_show)
     for p in (lst, show):
-        p.add_argument("--registry", help=_REGISTRY_HELP)
+        p.add_argument("--registry", help=REGISTRY_HELP)
         p.add_argument("--json", action="store_true", help="print JSON only")
         p.add_argument("--show-secret", action="store_true", help="also print the secret messages")
 
@@ -234,10 +225,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                 "all registered marks is at most --fpr.")
     idf.add_argument("inputs", nargs="+", metavar="IMAGE|VIDEO", help="image files and/or video files "
                      "(.mp4, .mkv, .webm, .mov, ...; videos need PyAV), taken together as one source")
-    idf.add_argument("--registry", help=_REGISTRY_HELP)
-    idf.add_argument("--frames", type=_positive_int, default=16,
+    idf.add_argument("--registry", help=REGISTRY_HELP)
+    idf.add_argument("--frames", type=positive_int, default=16,
                      help="frames read per video, spread evenly (default %(default)s)")
-    idf.add_argument("--every", type=_positive_int, default=None,
+    idf.add_argument("--every", type=positive_int, default=None,
                      help="read every K-th frame of a video instead of --frames")
     idf.add_argument("--fpr", type=float, default=DETECTION_FPR,
                      help="family-wise false-positive rate over all registered marks (default %(default)g)")
