@@ -2,9 +2,9 @@
 
 Both runs start from the same random initialisation (``gsw.train.init.random_init``: ``--init-points`` uniform points
 in the cameras' box, seed 0), train on NeRF-synthetic lego at 200x200 (white background) for the same number of
-steps with the same schedule knobs (densify every 20 steps from step 100 to ``iterations / 2``, SH degree +1 every 250
-steps, opacity reset period 1000) and are scored by the same function (``gsw.train.evaluate``) on the held-out views
-(every 8th view).
+steps with the same schedule knobs (densify every 20 steps from step 100 to ``iterations / 2``, opacity reset period
+1000, the same SH schedule: ``--sh-schedule``) and are scored by the same function (``gsw.train.evaluate``) on the
+held-out views (every 8th view).
 
 * ``gsplat``: a gsplat ``simple_trainer``-style loop: one ``torch.optim.Adam`` per parameter (eps 1e-15; lrs of
   simple_trainer: means 1.6e-4 x scene scale with an exponential decay to 1 %, scales 5e-3, quats 1e-3, opacities
@@ -16,11 +16,21 @@ steps, opacity reset period 1000) and are scored by the same function (``gsw.tra
   runs the strategy as shipped (recorded as ``gsplat_as_shipped``).
 * ``gsw``: ``gsw.train.train`` (the INRIA recipe) with the same schedule.
 
+SH schedule (``--sh-schedule``, both loops): ``ramp`` (default; gsplat's ``simple_trainer`` and INRIA both ramp):
+degree 0 -> 3, +1 every 250 steps; the gsw trainer gets the init truncated to degree 0 (its higher bands are zeros),
+from which ``train(init=Gaussians)`` ramps. ``full``: degree 3 from the first step (``train(init=Gaussians)`` of a
+degree-3 init starts at its degree).
+
+Each run also records, per refinement, the statistics both densifications decide on (``refines``: Gaussians seen,
+quantiles of the mean NDC gradient norm, how many are above the threshold, and how many were duplicated / split /
+pruned); the gsw side reads them by wrapping ``_State.densify_and_prune`` for the run.
+
 gsplat is only needed for its pure-Python strategy (its CUDA kernels are never called): put an installed or unpacked
-gsplat 1.5.3 on ``PYTHONPATH``. Writes ``benchmarks/results/gsplat_strategy.{json,md}``.
+gsplat 1.5.3 on ``PYTHONPATH``. Writes ``benchmarks/results/<tag>.{json,md}``.
 
 Usage:
     GOMP_SPINCOUNT=10000 python benchmarks/gsplat_strategy.py [--iterations 2000] [--which both|gsplat|gsw]
+        [--sh-schedule ramp|full] [--tag gsplat_strategy]
 
 ``--which gsplat`` and ``--which gsw`` may run as two processes at once (each merges its run into the JSON).
 """
@@ -36,14 +46,17 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import torch
 
 import gsw
+from gsw._atomic import atomic_write
 from gsw.data.loaders import load_nerf_synthetic, scene_extent
 from gsw.gaussians import Gaussians
 from gsw.metrics.image import ssim
 from gsw.train import TrainConfig, train
+from gsw.train.densify import _State
 from gsw.train.init import init_box, random_init
 from gsw.train.loop import evaluate
 
@@ -66,14 +79,46 @@ def _gsplat_params(g: Gaussians, extent: float, iterations: int) -> tuple[dict, 
     return params, optimizers, sched
 
 
+def _grad_stats(grads: torch.Tensor, count: torch.Tensor, threshold: float) -> dict[str, Any]:
+    """Summary of the mean NDC gradient norms [N] of the Gaussians seen at least once (count [N] > 0)."""
+    seen = grads[count > 0]
+    q = torch.quantile(seen.double(), torch.tensor([0.5, 0.9, 0.99], dtype=torch.float64)).tolist() if len(seen) \
+        else [0.0, 0.0, 0.0]
+    return {"seen": int((count > 0).sum()), "mean_views": float(count[count > 0].float().mean()) if len(seen) else 0.0,
+            "grad_p50": q[0], "grad_p90": q[1], "grad_p99": q[2], "above_threshold": int((grads > threshold).sum())}
+
+
+def _logged_strategy(base: type, records: list[dict[str, Any]]) -> type:
+    """``base`` (gsplat's DefaultStrategy) recording, per refinement, its gradient statistics and what it
+    duplicated / split / pruned (1-based ``iteration``, as gsw's trainer counts)."""
+
+    class Logged(base):  # type: ignore[misc, valid-type]
+        def _grow_gs(self, params, optimizers, state, step):  # noqa: ANN001, ANN202
+            grads = state["grad2d"] / state["count"].clamp_min(1)
+            rec = {"iteration": step + 1, "n_before": len(params["means"]),
+                   **_grad_stats(grads, state["count"], self.grow_grad2d)}
+            n_dupli, n_split = super()._grow_gs(params, optimizers, state, step)
+            records.append({**rec, "duplicated": int(n_dupli), "split": int(n_split)})
+            return n_dupli, n_split
+
+        def _prune_gs(self, params, optimizers, state, step):  # noqa: ANN001, ANN202
+            n_prune = super()._prune_gs(params, optimizers, state, step)
+            records[-1].update(pruned=int(n_prune), n_after=len(params["means"]))
+            return n_prune
+
+    return Logged
+
+
 def run_gsplat(train_set, test_set, g0: Gaussians, extent: float, args: argparse.Namespace) -> dict[str, Any]:
     """The simple_trainer-style loop with DefaultStrategy on gsw.rasterization (see the module docstring)."""
     from gsplat.strategy import DefaultStrategy  # noqa: PLC0415
     from gsplat.strategy.ops import reset_opa  # noqa: PLC0415
 
     params, optimizers, sched = _gsplat_params(g0, extent, args.iterations)
-    strategy = DefaultStrategy(refine_start_iter=100, refine_stop_iter=args.iterations // 2, refine_every=20,
-                               reset_every=1000, verbose=False)
+    refines: list[dict[str, Any]] = []
+    strategy = _logged_strategy(DefaultStrategy, refines)(
+        refine_start_iter=100, refine_stop_iter=args.iterations // 2, refine_every=20, reset_every=1000,
+        verbose=False)
     strategy.check_sanity(params, optimizers)
     state = strategy.initialize_state(scene_scale=extent)
     cams, images = list(train_set.cameras), train_set.images
@@ -88,7 +133,7 @@ def run_gsplat(train_set, test_set, g0: Gaussians, extent: float, args: argparse
         if not order:
             order = torch.randperm(len(cams), generator=gen).tolist()
         vi = order.pop()
-        sh_degree = min(step // 250, 3)
+        sh_degree = min(step // 250, 3) if args.sh_schedule == "ramp" else 3
         colors = torch.cat([params["sh0"], params["shN"]], dim=1)
         renders, _, info = gsw.rasterization(
             params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
@@ -120,7 +165,7 @@ def run_gsplat(train_set, test_set, g0: Gaussians, extent: float, args: argparse
                   names=test_set.names)
     return {"test_psnr": tm["psnr"], "test_ssim": tm["ssim"], "num_gaussians": final.num_gaussians,
             "train_time_s": train_time, "s_per_step": train_time / args.iterations, "history": history,
-            "per_view": tm["per_view"]}
+            "refines": refines, "per_view": tm["per_view"]}
 
 
 def run_gsw(train_set, test_set, g0: Gaussians, args: argparse.Namespace) -> dict[str, Any]:
@@ -128,11 +173,27 @@ def run_gsw(train_set, test_set, g0: Gaussians, args: argparse.Namespace) -> dic
     cfg = TrainConfig(iterations=args.iterations, densify_from_iter=100, densify_until_iter=args.iterations // 2,
                       densification_interval=20, opacity_reset_interval=1000, sh_increase_interval=250,
                       init_points=args.init_points, max_gaussians=None, seed=args.seed, log_interval=100)
-    res = train(train_set, config=cfg, init=g0, test_set=test_set, progress=False)
+    # train(init=Gaussians) starts at the init's SH degree: a degree-0 init (g0's higher bands are zeros) ramps
+    # 0 -> 3 every sh_increase_interval like the gsplat loop; a degree-3 init trains degree 3 from the first step.
+    init = g0.with_sh_degree(0) if args.sh_schedule == "ramp" else g0
+    refines: list[dict[str, Any]] = []
+    densify_and_prune = _State.densify_and_prune
+
+    def logged(self: _State, gen: torch.Generator, prune_big: bool) -> dict[str, int]:
+        grads = torch.nan_to_num(self.grad_accum / self.denom, nan=0.0, posinf=0.0)
+        rec = {"n_before": self.n, **_grad_stats(grads, self.denom, cfg.densify_grad_threshold)}
+        out = densify_and_prune(self, gen, prune_big)
+        refines.append({"iteration": len(refines) * cfg.densification_interval + cfg.densify_from_iter
+                        + cfg.densification_interval, **rec, "duplicated": out["cloned"], "split": out["split"],
+                        "pruned": out["pruned"], "n_after": self.n})
+        return out
+
+    with mock.patch.object(_State, "densify_and_prune", logged):
+        res = train(train_set, config=cfg, init=init, test_set=test_set, progress=False)
     tm = res.test_metrics or {}
     return {"test_psnr": tm["psnr"], "test_ssim": tm["ssim"], "num_gaussians": res.gaussians.num_gaussians,
             "train_time_s": res.train_time_s, "s_per_step": res.train_time_s / res.iterations,
-            "history": res.history, "per_view": tm["per_view"]}
+            "history": res.history, "refines": refines, "per_view": tm["per_view"]}
 
 
 def write_markdown(summary: dict[str, Any], path: Path) -> None:
@@ -140,16 +201,28 @@ def write_markdown(summary: dict[str, Any], path: Path) -> None:
     runs = summary["runs"]
     lines = ["# gsplat DefaultStrategy on gsw.rasterization vs gsw's trainer (lego 200x200, CPU)", "",
              f"{summary['iterations']} steps each, same random init ({summary['init_points']:,} points), "
-             f"{summary['num_test_views']} held-out views, white background.", "",
-             "| trainer | test PSNR | test SSIM | Gaussians | train time | s/step |", "|---|---|---|---|---|---|"]
+             f"{summary['num_test_views']} held-out views, white background, SH schedule "
+             f"`{summary['sh_schedule']}` in both loops.", "",
+             "| trainer | test PSNR | test SSIM | Gaussians | duplicated / split / pruned (sum) | train time | s/step |",
+             "|---|---|---|---|---|---|---|"]
     for name, r in runs.items():
+        ref = r.get("refines", [])
+        counts = " / ".join(f"{sum(x[k] for x in ref):,}" for k in ("duplicated", "split", "pruned"))
         lines.append(f"| {name} | {r['test_psnr']:.2f} dB | {r['test_ssim']:.4f} | {r['num_gaussians']:,} | "
-                     f"{r['train_time_s']:.0f} s | {r['s_per_step']:.3f} |")
+                     f"{counts} ({len(ref)} refinements) | {r['train_time_s']:.0f} s | {r['s_per_step']:.3f} |")
     if "gsplat" in runs and "gsw" in runs:
-        lines += ["", f"PSNR difference (gsplat - gsw): {summary['psnr_diff_db']:+.2f} dB."]
+        lines += ["", f"PSNR difference (gsplat - gsw): {summary['psnr_diff_db']:+.2f} dB.", "",
+                  "Per refinement (every 5th; gsplat's 0-based step + 1): Gaussians before, mean NDC gradient norm "
+                  "p50 / p90 / p99, duplicated / split / pruned.", "",
+                  "| iteration | gsplat | gsw |", "|---|---|---|"]
+        for a, b in list(zip(runs["gsplat"]["refines"], runs["gsw"]["refines"]))[::5]:
+            cells = [f"{x['n_before']:,}; {x['grad_p50']:.2e} / {x['grad_p90']:.2e} / {x['grad_p99']:.2e}; "
+                     f"{x['duplicated']:,} / {x['split']:,} / {x['pruned']:,}" for x in (a, b)]
+            lines.append(f"| {a['iteration']} / {b['iteration']} | {cells[0]} | {cells[1]} |")
     lines += ["", f"Machine: {summary['machine']}. torch {summary['torch']}, gsplat {summary['gsplat']}.",
               f"Command: `{summary['command']}`.", ""]
-    path.write_text("\n".join(lines), encoding="utf-8")
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(lines))
 
 
 def main() -> None:
@@ -161,6 +234,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--which", choices=("both", "gsplat", "gsw"), default="both")
     ap.add_argument("--tag", default="gsplat_strategy")
+    ap.add_argument("--sh-schedule", choices=("ramp", "full"), default="ramp",
+                    help="both loops: SH degree 0 -> 3 every 250 steps (ramp), or degree 3 from the first step")
     ap.add_argument("--no-opacity-resets", dest="opacity_resets", action="store_false",
                     help="run DefaultStrategy as shipped (its opacity reset never fires); recorded as gsplat_as_shipped")
     args = ap.parse_args()
@@ -173,7 +248,8 @@ def main() -> None:
     g0 = random_init(args.init_points, lo, hi, sh_degree=3, opacity=0.1, seed=args.seed)
     out = RESULTS / f"{args.tag}.json"
     summary: dict[str, Any] = {}
-    summary.update({"iterations": args.iterations, "init_points": args.init_points, "scene_extent": extent,
+    summary.update({"iterations": args.iterations, "sh_schedule": args.sh_schedule, "init_points": args.init_points,
+                    "scene_extent": extent,
                     "num_test_views": len(test_set), "torch": torch.__version__, "gsplat": gsplat.__version__,
                     "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
                                f"{torch.get_num_threads()} torch threads, load {os.getloadavg()}",
@@ -187,13 +263,15 @@ def main() -> None:
         # runs of the other trainer written meanwhile (``--which`` runs in parallel processes) are kept
         old = json.loads(out.read_text()) if out.exists() else {}
         runs = summary["runs"] = {k: v for k, v in old.get("runs", {}).items()
-                                  if old.get("iterations") == args.iterations}
+                                  if (old.get("iterations"), old.get("sh_schedule")) == (args.iterations,
+                                                                                          args.sh_schedule)}
         runs[name] = result
         print(f"[{name}] test PSNR {runs[name]['test_psnr']:.2f} dB", flush=True)
         if "gsplat" in runs and "gsw" in runs:
             summary["psnr_diff_db"] = runs["gsplat"]["test_psnr"] - runs["gsw"]["test_psnr"]
             summary["within_0_5_db"] = bool(math.fabs(summary["psnr_diff_db"]) <= 0.5)
-        out.write_text(json.dumps(summary, indent=1), encoding="utf-8")
+        with atomic_write(out, "w") as f:
+            json.dump(summary, f, indent=1)
         write_markdown(summary, RESULTS / f"{args.tag}.md")
 
 
