@@ -114,6 +114,7 @@ def run_gsplat(train_set, test_set, g0: Gaussians, extent: float, args: argparse
     from gsplat.strategy import DefaultStrategy  # noqa: PLC0415
     from gsplat.strategy.ops import reset_opa  # noqa: PLC0415
 
+    torch.manual_seed(args.seed)  # the split samples of gsplat's ops come from torch's global generator
     params, optimizers, sched = _gsplat_params(g0, extent, args.iterations)
     refines: list[dict[str, Any]] = []
     strategy = _logged_strategy(DefaultStrategy, refines)(
@@ -200,7 +201,8 @@ def write_markdown(summary: dict[str, Any], path: Path) -> None:
     """The human-readable report next to the JSON."""
     runs = summary["runs"]
     lines = ["# gsplat DefaultStrategy on gsw.rasterization vs gsw's trainer (lego 200x200, CPU)", "",
-             f"{summary['iterations']} steps each, same random init ({summary['init_points']:,} points), "
+             f"{summary['iterations']} steps each, same random init ({summary['init_points']:,} points, seed "
+             f"{summary['seed']}), "
              f"{summary['num_test_views']} held-out views, white background, SH schedule "
              f"`{summary['sh_schedule']}` in both loops.", "",
              "| trainer | test PSNR | test SSIM | Gaussians | duplicated / split / pruned (sum) | train time | s/step |",
@@ -248,7 +250,8 @@ def main() -> None:
     g0 = random_init(args.init_points, lo, hi, sh_degree=3, opacity=0.1, seed=args.seed)
     out = RESULTS / f"{args.tag}.json"
     summary: dict[str, Any] = {}
-    summary.update({"iterations": args.iterations, "sh_schedule": args.sh_schedule, "init_points": args.init_points,
+    summary.update({"iterations": args.iterations, "sh_schedule": args.sh_schedule, "seed": args.seed,
+                    "init_points": args.init_points,
                     "scene_extent": extent,
                     "num_test_views": len(test_set), "torch": torch.__version__, "gsplat": gsplat.__version__,
                     "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
@@ -263,9 +266,9 @@ def main() -> None:
         # runs of the other trainer written meanwhile (``--which`` runs in parallel processes) are kept
         old = json.loads(out.read_text()) if out.exists() else {}
         runs = summary["runs"] = {k: v for k, v in old.get("runs", {}).items()
-                                  if (old.get("iterations"), old.get("sh_schedule")) == (args.iterations,
-                                                                                          args.sh_schedule)}
-        runs[name] = result
+                                  if [old.get(k) for k in ("iterations", "sh_schedule", "seed")]
+                                  == [args.iterations, args.sh_schedule, args.seed]}
+        runs[name] = {**result, "load_avg_end": os.getloadavg()}
         print(f"[{name}] test PSNR {runs[name]['test_psnr']:.2f} dB", flush=True)
         if "gsplat" in runs and "gsw" in runs:
             summary["psnr_diff_db"] = runs["gsplat"]["test_psnr"] - runs["gsw"]["test_psnr"]
