@@ -86,7 +86,10 @@ def train(data: Dataset | tuple[Sequence[Camera], Tensor], *, config: TrainConfi
         data: training views: a :class:`~gsw.data.Dataset` or ``(cameras, images [V, 3, H, W])``.
         config: hyper-parameters (default: INRIA's 30k recipe; see :meth:`TrainConfig.scaled` for short runs).
         init: ``"random"`` (uniform in :func:`init_box`), ``"points"`` (the dataset's point cloud) or a
-            :class:`~gsw.gaussians.Gaussians` to start from.
+            :class:`~gsw.gaussians.Gaussians` to start from. Training renders SH degree 0 first and adds a
+            degree every ``config.sh_increase_interval`` iterations, except from a ``Gaussians`` init, which
+            starts at ``min(config.sh_degree, init.sh_degree)`` (resuming a trained model keeps its degree;
+            pass ``init.with_sh_degree(0)`` to ramp from degree 0).
         output_dir: write checkpoints there as an INRIA model folder
             (``point_cloud/iteration_N/point_cloud.ply`` + ``cameras.json`` + ``cfg_args``) plus
             ``train_result.json``. Files are replaced atomically.
