@@ -265,13 +265,13 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
     v_img = w_img.contiguous()
     res: dict[str, float] = {"project_fwd": cuda_time(lambda: _C.project_forward(*ins, sh_degree=3, **ca), reps, warmup)}
     for tag, rad in (("", radii), ("_3sigma", wide)):
-        bins = _C.bin_gaussians(m2d, rad, depths, W, H)
+        bins = _C.bin_gaussians(m2d, conics, opac, rad, depths, W, H)
         res["M" + tag] = float(bins.num_intersections)
         image, alpha, depth, final_T, n_contrib = _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
                                                                         bins=bins, width=W, height=H)
         bwd = lambda: _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins,  # noqa: E731
                                             width=W, height=H, final_T=final_T, n_contrib=n_contrib, v_image=v_img)
-        res["bin" + tag] = cuda_time(lambda: _C.bin_gaussians(m2d, rad, depths, W, H), reps, warmup)
+        res["bin" + tag] = cuda_time(lambda: _C.bin_gaussians(m2d, conics, opac, rad, depths, W, H), reps, warmup)
         res["blend_fwd" + tag] = cuda_time(lambda: _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
                                                                          bins=bins, width=W, height=H), reps, warmup)
         res["blend_bwd" + tag] = cuda_time(bwd, reps, warmup)
@@ -285,7 +285,7 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
                 v_opacities=grads[3]), reps, warmup)
         else:
             res["image_max_abs_diff_3sigma"] = float((image - _C.rasterize_forward(
-                m2d, conics, colors, opac, depths, bg, bins=_C.bin_gaussians(m2d, radii, depths, W, H),
+                m2d, conics, colors, opac, depths, bg, bins=_C.bin_gaussians(m2d, conics, opac, radii, depths, W, H),
                 width=W, height=H)[0]).abs().max())
     return res
 

@@ -1,5 +1,6 @@
 // CPU tile binning: each tile's Gaussians, front to back (depth, then index).
 //
+// Each Gaussian's tiles are those of its tile_footprint (core/tiles.h), enumerated row-major.
 // Instead of sorting (tile, depth) keys of all M intersections, the visible Gaussians are
 // sorted once by depth (LSD radix sort on the float bits for float32, a stable sort for
 // float64) and then scattered into their tiles in that order (a counting sort by tile), which
@@ -8,6 +9,7 @@
 #include <cstring>
 #include <vector>
 
+#include "core/tiles.h"
 #include "cpu/backend_cpu.h"
 #include "cpu/parallel.h"
 
@@ -46,32 +48,38 @@ void sort_by_depth(const double* depths, std::vector<int32_t>& ids) {
 }  // namespace
 
 template <typename T>
-void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
-                 int32_t* tiles_touched) {
-  parallel_items(N, [&](int64_t i) {
-    int x0, y0, x1, y1;
-    tiles_touched[i] = radii[i] > 0
-                           ? tile_rect(Vec2<T>{means2d[2 * i], means2d[2 * i + 1]}, radii[i],
-                                       tiles_x, tiles_y, x0, y0, x1, y1)
-                           : 0;
-  });
+GSW_CPU_INLINE TileFootprint<T> footprint_of(const BinParams<T>& p, int64_t g) {
+  return tile_footprint(Vec2<T>{p.means2d[2 * g], p.means2d[2 * g + 1]},
+                        Sym2<T>{p.conics[3 * g], p.conics[3 * g + 1], p.conics[3 * g + 2]},
+                        p.opacities[g], p.radii[g], p.tiles_x, p.tiles_y);
 }
 
 template <typename T>
-void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, int32_t* tile_offsets,
-               int32_t* gauss_ids, const int32_t* entry_offsets, int32_t* entry_slots,
-               int tiles_x, int tiles_y) {
-  const int num_tiles = tiles_x * tiles_y;
-  std::vector<int32_t> order;
-  order.reserve(N);
-  for (int i = 0; i < N; ++i)
-    if (entry_offsets[i + 1] > entry_offsets[i]) order.push_back(i);
-  sort_by_depth(depths, order);
+void count_tiles(const BinParams<T>& p, int32_t* tiles_touched) {
+  parallel_items(p.N, [&](int64_t i) { tiles_touched[i] = footprint_tiles(footprint_of(p, i)); });
+}
 
-  auto rect_of = [&](int32_t g, int& x0, int& y0, int& x1, int& y1) {
-    tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1,
-              y1);
-  };
+// Calls fn(tile) for every tile of Gaussian g's footprint, row-major (the entry order).
+template <typename T, typename F>
+GSW_CPU_INLINE void for_each_tile(const BinParams<T>& p, int32_t g, F&& fn) {
+  const TileFootprint<T> f = footprint_of(p, g);
+  for (int ty = f.y0; ty < f.y1; ++ty) {
+    int xa, xb;
+    footprint_row(f, ty, xa, xb);
+    for (int tx = xa; tx < xb; ++tx) fn(ty * p.tiles_x + tx);
+  }
+}
+
+template <typename T>
+void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
+               const int32_t* entry_offsets, int32_t* entry_slots) {
+  const int num_tiles = p.tiles_x * p.tiles_y;
+  std::vector<int32_t> order;
+  order.reserve(p.N);
+  for (int i = 0; i < p.N; ++i)
+    if (entry_offsets[i + 1] > entry_offsets[i]) order.push_back(i);
+  sort_by_depth(p.depths, order);
+
   // Counting sort by tile in depth order, parallel over contiguous chunks of the depth order:
   // chunk c writes tile t's entries after those of chunks < c, so the result equals the
   // sequential scatter for any number of chunks.
@@ -87,12 +95,7 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, i
       int64_t lo, hi;
       chunk_range(c, lo, hi);
       int32_t* cnt = counts.data() + size_t(c) * num_tiles;
-      for (int64_t k = lo; k < hi; ++k) {
-        int x0, y0, x1, y1;
-        rect_of(order[k], x0, y0, x1, y1);
-        for (int ty = y0; ty < y1; ++ty)
-          for (int tx = x0; tx < x1; ++tx) ++cnt[ty * tiles_x + tx];
-      }
+      for (int64_t k = lo; k < hi; ++k) for_each_tile(p, order[k], [&](int t) { ++cnt[t]; });
     }
   });
   // tile_offsets, and each chunk's starting cursor per tile (counts become cursors).
@@ -113,25 +116,20 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, i
       int32_t* cursor = counts.data() + size_t(c) * num_tiles;
       for (int64_t k = lo; k < hi; ++k) {
         const int32_t g = order[k];
-        int x0, y0, x1, y1;
-        rect_of(g, x0, y0, x1, y1);
         int32_t e = entry_offsets[g];
-        for (int ty = y0; ty < y1; ++ty)
-          for (int tx = x0; tx < x1; ++tx) {
-            const int32_t slot = cursor[ty * tiles_x + tx]++;
-            gauss_ids[slot] = g;
-            entry_slots[e++] = slot;
-          }
+        for_each_tile(p, g, [&](int t) {
+          const int32_t slot = cursor[t]++;
+          gauss_ids[slot] = g;
+          entry_slots[e++] = slot;
+        });
       }
     }
   });
 }
 
-template void count_tiles<float>(int, const float*, const int32_t*, int, int, int32_t*);
-template void count_tiles<double>(int, const double*, const int32_t*, int, int, int32_t*);
-template void fill_bins<float>(int, const float*, const int32_t*, const float*, int32_t*, int32_t*,
-                               const int32_t*, int32_t*, int, int);
-template void fill_bins<double>(int, const double*, const int32_t*, const double*, int32_t*,
-                                int32_t*, const int32_t*, int32_t*, int, int);
+template void count_tiles<float>(const BinParams<float>&, int32_t*);
+template void count_tiles<double>(const BinParams<double>&, int32_t*);
+template void fill_bins<float>(const BinParams<float>&, int32_t*, int32_t*, const int32_t*, int32_t*);
+template void fill_bins<double>(const BinParams<double>&, int32_t*, int32_t*, const int32_t*, int32_t*);
 
 }  // namespace gsw::cpu

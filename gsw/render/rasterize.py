@@ -106,7 +106,8 @@ def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
     The returned bins' `nonfinite` holds the host copy of `proj.nonfinite` (0 without flags), read
     with the intersection count in the binning's one host synchronisation.
     """
-    return _ops.bins(proj.means2d, proj.radii, proj.depths, width, height, proj.nonfinite)
+    return _ops.bins(proj.means2d, proj.conics, proj.opacities, proj.radii, proj.depths, width, height,
+                     proj.nonfinite)
 
 
 def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, exc: _ops.NonFiniteInputError) -> None:

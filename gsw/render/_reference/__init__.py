@@ -52,12 +52,14 @@ from gsw.render._reference.blend import (ReferenceRender, reference_contribution
                                          reference_rasterize_projected)
 from gsw.render._reference.project import (ReferenceProjection, reference_project, reference_sh_basis,
                                            reference_tile_rects)
+from gsw.render._reference.tiles import reference_tile_spans
 
 __all__ = [
     "ReferenceProjection",
     "ReferenceRender",
     "reference_sh_basis",
     "reference_tile_rects",
+    "reference_tile_spans",
     "reference_project",
     "reference_rasterize_projected",
     "reference_rasterize",
