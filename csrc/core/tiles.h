@@ -63,7 +63,7 @@ struct TileFootprint {
   int x0, y0, x1, y1;  // tile rectangle [x0, x1) x [y0, y1); empty: no tile
   bool ellipse;        // rows cut to the ellipse (else every row spans [x0, x1))
   T mx, my;            // centre (pixels)
-  T a, b;              // conic entries a, b
+  T inv_a, b;          // 1 / a and b of the conic
   T r2a, det;          // a R2 and the determinant's lower bound: chord half-width sqrt(r2a - det v^2) / a
   T ex, ey;            // half extents of the ellipse's bounding box
   T vstar;             // row offset v (pixel-centre height - my) of the leftmost point (rightmost: -vstar)
@@ -104,8 +104,9 @@ GSW_HD TileFootprint<T> tile_footprint(const Vec2<T>& mean2d, const Sym2<T>& con
   const T tol = rn_mul(rn_mul(T(8) * eps, spread), rn_mul(reach, reach));
   const T r2 = rn_mul(rn_add(T(-2) * skip, tol), T(1) + T(16) * eps);
   if (!(a > T(0)) || !(c > T(0)) || !(det > T(0))) return f;  // the whole rectangle
-  const T ex = rn_sqrt(rn_div(rn_mul(r2, c), det));
-  const T ey = rn_sqrt(rn_div(rn_mul(r2, a), det));
+  const T r2_det = rn_div(r2, det);
+  const T ex = rn_sqrt(rn_mul(r2_det, c));
+  const T ey = rn_sqrt(rn_mul(r2_det, a));
   if (!(ex <= T(MAX_RADIUS)) || !(ey <= T(MAX_RADIUS))) return f;
   const T mx = mean2d.x, my = mean2d.y;
   const T extent = rn_add(rn_add(abs_value(mx), abs_value(my)), rn_add(ex, ey));
@@ -124,7 +125,7 @@ GSW_HD TileFootprint<T> tile_footprint(const Vec2<T>& mean2d, const Sym2<T>& con
   f.ellipse = true;
   f.mx = mx;
   f.my = my;
-  f.a = a;
+  f.inv_a = rn_div(T(1), a);
   f.b = b;
   f.r2a = rn_mul(a, r2);
   f.det = det;
@@ -141,8 +142,8 @@ GSW_HD void footprint_chord(const TileFootprint<T>& f, T v, T& lo, T& hi) {
   const T disc = rn_sub(f.r2a, rn_mul(f.det, rn_mul(v, v)));
   const T s = rn_sqrt(disc > T(0) ? disc : T(0));
   const T bv = rn_mul(f.b, v);
-  lo = rn_sub(f.mx, rn_div(rn_add(bv, s), f.a));
-  hi = rn_sub(f.mx, rn_div(rn_sub(bv, s), f.a));
+  lo = rn_sub(f.mx, rn_mul(rn_add(bv, s), f.inv_a));
+  hi = rn_sub(f.mx, rn_mul(rn_sub(bv, s), f.inv_a));
 }
 
 // Tile columns [xa, xb) of tile row ty (within [f.y0, f.y1)) that the splat is binned to.

@@ -330,7 +330,8 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& conics, const Tensor& op
 #ifdef GSW_WITH_CUDA
     if (on_cuda) cuda::count_tiles(p, touched.data_ptr<int32_t>());
 #endif
-    if (!on_cuda) cpu::count_tiles(p, touched.data_ptr<int32_t>());
+    cpu::TileLists lists;
+    if (!on_cuda) cpu::count_tiles(p, touched.data_ptr<int32_t>(), lists);
     // entry_offsets = exclusive prefix sum (int64 to detect overflow of the int32 index space).
     Tensor cum = torch::cumsum(touched, 0, torch::kInt64);
     int64_t M;
@@ -349,7 +350,7 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& conics, const Tensor& op
 #ifdef GSW_WITH_CUDA
     if (on_cuda) cuda::fill_bins(p, tile_offsets, gauss_ids, entry_offsets, entry_slots, M);
 #endif
-    if (!on_cuda) cpu::fill_bins(p, tile_offsets, gauss_ids, entry_offsets, entry_slots);
+    if (!on_cuda) cpu::fill_bins(p, lists, tile_offsets, gauss_ids, entry_offsets, entry_slots);
   });
   return b;
 }

@@ -42,18 +42,18 @@ def _centre_tile_span(lo: torch.Tensor, hi: torch.Tensor, t0: torch.Tensor,
     return a, b
 
 
-def _chord(v: torch.Tensor, mx: torch.Tensor, a: torch.Tensor, b: torch.Tensor, r2a: torch.Tensor,
+def _chord(v: torch.Tensor, mx: torch.Tensor, inv_a: torch.Tensor, b: torch.Tensor, r2a: torch.Tensor,
            det: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``footprint_chord``: the x interval of the ellipse at row offset ``v``."""
     disc = r2a - det * (v * v)
     s = torch.sqrt(torch.where(disc > 0, disc, torch.zeros_like(disc)))
     bv = b * v
-    return mx - (bv + s) / a, mx - (bv - s) / a
+    return mx - (bv + s) * inv_a, mx - (bv - s) * inv_a
 
 
 def _ellipse(m: torch.Tensor, con: torch.Tensor, skip: torch.Tensor,
              radii: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """``tile_footprint``'s ellipse: (ok [N], a, b, r2a, det, ex, ey, margin), each [N] in ``m``'s dtype."""
+    """``tile_footprint``'s ellipse: (ok, 1 / a, b, a R2, det, ex, ey, margin, vstar, slack), each [N] in ``m``'s dtype."""
     eps = _c(torch.finfo(m.dtype).eps, m)
     a, b, c = con[:, 0], con[:, 1], con[:, 2]
     ac, bb = a * c, b * b
@@ -63,13 +63,14 @@ def _ellipse(m: torch.Tensor, con: torch.Tensor, skip: torch.Tensor,
     tol = ((_c(8.0, m) * eps) * spread) * (reach * reach)
     one_plus = _c(1.0 + 16.0 * float(torch.finfo(m.dtype).eps), m)
     r2 = (_c(-2.0, m) * skip + tol) * one_plus
-    ex = torch.sqrt((r2 * c) / det)
-    ey = torch.sqrt((r2 * a) / det)
+    r2_det = r2 / det
+    ex = torch.sqrt(r2_det * c)
+    ey = torch.sqrt(r2_det * a)
     big = _c(float(MAX_RADIUS), m)
     ok = (a > 0) & (c > 0) & (det > 0) & (ex <= big) & (ey <= big)
     extent = (torch.abs(m[:, 0]) + torch.abs(m[:, 1])) + (ex + ey)
     margin = _c(BIN_MARGIN, m) + (_c(8.0, m) * eps) * extent
-    return ok, a, b, a * r2, det, ex, ey, margin, (b * ex) / c, _c(1e-3, m) * (ey + _c(1.0, m))
+    return ok, _c(1.0, m) / a, b, a * r2, det, ex, ey, margin, (b * ex) / c, _c(1e-3, m) * (ey + _c(1.0, m))
 
 
 @torch.no_grad()
@@ -94,7 +95,7 @@ def reference_tile_spans(means2d: torch.Tensor, conics: torch.Tensor, opacities:
     x0, y0, x1, y1 = rects.unbind(-1)
     skip = torch.log(_c(K.ALPHA_MIN, m) / op) - _c(K.SKIP_LOG_MARGIN, m)
     some = (radii > 0) & ((x1 - x0) * (y1 - y0) > 0) & ~(skip >= 0)
-    ok, a, b, r2a, det, ex, ey, margin, vstar, slack = _ellipse(m, con, skip, radii)
+    ok, inv_a, b, r2a, det, ex, ey, margin, vstar, slack = _ellipse(m, con, skip, radii)
     mx, my = m[:, 0], m[:, 1]
     ey0, ey1 = _centre_tile_span((my - ey) - margin, (my + ey) + margin, y0, y1)
     ex0, ex1 = _centre_tile_span((mx - ex) - margin, (mx + ex) + margin, x0, x1)
@@ -103,15 +104,15 @@ def reference_tile_spans(means2d: torch.Tensor, conics: torch.Tensor, opacities:
     some = some & (x0 < x1) & (y0 < y1)
     # Rows: [N, tiles_y] (column vectors broadcast over the rows).
     ty = torch.arange(tiles_y, device=m.device, dtype=m.dtype)[None, :]
-    col = [t[:, None] for t in (mx, my, a, b, r2a, det, ex, ey, margin, vstar, slack, x0, x1)]
-    mx_, my_, a_, b_, r2a_, det_, ex_, ey_, margin_, vstar_, slack_, x0_, x1_ = col
+    col = [t[:, None] for t in (mx, my, inv_a, b, r2a, det, ex, ey, margin, vstar, slack, x0, x1)]
+    mx_, my_, inv_a_, b_, r2a_, det_, ex_, ey_, margin_, vstar_, slack_, x0_, x1_ = col
     top = ty * _c(float(K.TILE_SIZE), m) + _c(0.5, m)
     bottom = ty * _c(float(K.TILE_SIZE), m) + _c(K.TILE_SIZE - 0.5, m)
     d_top, d_bottom = top - my_, bottom - my_
     vlo = torch.where(d_top < -ey_, -ey_, torch.where(d_top > ey_, ey_, d_top))
     vhi = torch.where(d_bottom < -ey_, -ey_, torch.where(d_bottom > ey_, ey_, d_bottom))
-    l0, h0 = _chord(vlo, mx_, a_, b_, r2a_, det_)
-    l1, h1 = _chord(vhi, mx_, a_, b_, r2a_, det_)
+    l0, h0 = _chord(vlo, mx_, inv_a_, b_, r2a_, det_)
+    l1, h1 = _chord(vhi, mx_, inv_a_, b_, r2a_, det_)
     lo, hi = _where_lt(l0, l1), _where_gt(h0, h1)
     band_lo, band_hi = vlo - slack_, vhi + slack_
     lo = torch.where((vstar_ >= band_lo) & (vstar_ <= band_hi), mx_ - ex_, lo)
