@@ -155,6 +155,9 @@ GSW_HD void footprint_row(const TileFootprint<T>& f, int ty, int& xa, int& xb) {
   const T top = T(ty * TILE_SIZE) + T(0.5), bottom = T(ty * TILE_SIZE) + T(TILE_SIZE - 0.5);
   const T d_top = rn_sub(top, f.my), d_bottom = rn_sub(bottom, f.my);
   const T ney = -f.ey;
+  // A band holding the whole ellipse spans [mx - ex, mx + ex] (|vstar| <= ey): the rectangle's
+  // columns, which the steps below would find too.
+  if (d_top <= ney && d_bottom >= f.ey) return;
   const T vlo = d_top < ney ? ney : (d_top > f.ey ? f.ey : d_top);
   const T vhi = d_bottom < ney ? ney : (d_bottom > f.ey ? f.ey : d_bottom);
   T l0, h0, l1, h1;

@@ -6,9 +6,11 @@ lives in ``csrc/core/math.h`` (thresholds in ``csrc/core/constants.h``, data lay
 about 1e-5 in float32 and gradients obtained by ``torch.autograd`` through this package are the
 ground truth for the hand-written backward passes.
 
-Two stages, one module each:
+Two stages, one module each, and the tile assignment:
   * :mod:`~gsw.render._reference.project`: 3-D Gaussians -> 2-D splats (:func:`reference_project`,
     the SH basis, tile rectangles);
+  * :mod:`~gsw.render._reference.tiles`: the tiles each splat is binned to (:func:`reference_tile_spans`,
+    ``csrc/core/tiles.h``), which define each tile's list (and so ``n_contrib``);
   * :mod:`~gsw.render._reference.blend`: 2-D splats -> image (:func:`reference_rasterize_projected`,
     :func:`reference_contribution`) and both stages together (:func:`reference_rasterize`).
 
