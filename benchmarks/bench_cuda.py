@@ -24,8 +24,9 @@ mode of that measurement. gsplat gets pre-activated scales/opacities (its API ta
 not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak memory is
 `torch.cuda.max_memory_allocated()` during one run minus what was allocated before it.
 
-`--breakdown` also times each gsw op alone, with the opacity-aware footprints and with INRIA's 3-sigma
-footprints (the same splats, the radii of fully opaque ones), which is the before/after of that change.
+`--breakdown` also times each gsw op alone, with the ellipse tile assignment (csrc/core/tiles.h) and with every
+tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
+that change.
 
     python benchmarks/bench_cuda.py --out benchmarks/results/cuda.json --md benchmarks/results/cuda.md
 """
@@ -250,7 +251,7 @@ def bench_case(family: str, n: int, width: int, height: int, args: argparse.Name
 
 
 def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int) -> dict[str, float]:
-    """Median ms of each gsw op alone; binning and blending with opacity-aware and with 3-sigma radii."""
+    """Median ms of each gsw op alone; binning and blending with the ellipse tiles and with the radius rectangles."""
     from gsw import _C
     from gsw.render.rasterize import _camera_args
 
@@ -258,20 +259,23 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
     W, H = cam.width, cam.height
     ins = (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)
     radii, m2d, conics, depths, colors, opac = _C.project_forward(*ins, sh_degree=3, **ca)
-    # INRIA's footprints: the radii of the same splats at full opacity (the blended opacities stay the real ones).
-    wide = _C.project_forward(g.means, g.quats, g.log_scales, torch.full_like(g.opacity_logits, 20.0), g.sh,
-                              sh_degree=3, **ca)[0]
+    # The tile rule before the ellipse test: every tile of the radius rectangle (zero conics in the binning only
+    # make tile_footprint fall back to the rectangle; the blending gets the real conics).
+    rect_conics = torch.zeros_like(conics)
     bg = torch.zeros(3, device=g.means.device)
     v_img = w_img.contiguous()
     res: dict[str, float] = {"project_fwd": cuda_time(lambda: _C.project_forward(*ins, sh_degree=3, **ca), reps, warmup)}
-    for tag, rad in (("", radii), ("_3sigma", wide)):
-        bins = _C.bin_gaussians(m2d, rad, depths, W, H)
+    images = {}
+    for tag, bin_conics in (("", conics), ("_rect", rect_conics)):
+        bins = _C.bin_gaussians(m2d, bin_conics, opac, radii, depths, W, H)
         res["M" + tag] = float(bins.num_intersections)
         image, alpha, depth, final_T, n_contrib = _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
                                                                         bins=bins, width=W, height=H)
+        images[tag] = image
         bwd = lambda: _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins,  # noqa: E731
                                             width=W, height=H, final_T=final_T, n_contrib=n_contrib, v_image=v_img)
-        res["bin" + tag] = cuda_time(lambda: _C.bin_gaussians(m2d, rad, depths, W, H), reps, warmup)
+        res["bin" + tag] = cuda_time(lambda: _C.bin_gaussians(m2d, bin_conics, opac, radii, depths, W, H), reps,
+                                     warmup)
         res["blend_fwd" + tag] = cuda_time(lambda: _C.rasterize_forward(m2d, conics, colors, opac, depths, bg,
                                                                          bins=bins, width=W, height=H), reps, warmup)
         res["blend_bwd" + tag] = cuda_time(bwd, reps, warmup)
@@ -283,10 +287,7 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
                 *ins, sh_degree=3, **ca, radii=radii, conics=conics, colors=colors, opacities=opac,
                 v_means2d=grads[0], v_conics=grads[1], v_depths=grads[4], v_colors=grads[2],
                 v_opacities=grads[3]), reps, warmup)
-        else:
-            res["image_max_abs_diff_3sigma"] = float((image - _C.rasterize_forward(
-                m2d, conics, colors, opac, depths, bg, bins=_C.bin_gaussians(m2d, radii, depths, W, H),
-                width=W, height=H)[0]).abs().max())
+    res["image_max_abs_diff_rect"] = float((images[""] - images["_rect"]).abs().max())
     return res
 
 
@@ -327,8 +328,8 @@ def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int
     bd = [r for r in rows if "gsw_breakdown_ms" in r]
     if bd:
         keys = list(bd[0]["gsw_breakdown_ms"])
-        lines += ["", "gsw ops alone (ms; M = intersections; `_3sigma`: the same splats binned with INRIA's "
-                  "3-sigma radii, i.e. before the opacity-aware footprints):", "",
+        lines += ["", "gsw ops alone (ms; M = intersections; `_rect`: the same splats binned to every tile of their "
+                  "radius rectangles, i.e. before the ellipse tile assignment):", "",
                   "| scene | N | size | " + " | ".join(keys) + " |", "|---|---|---|" + "---|" * len(keys)]
         for r in bd:
             vals = [f"{v:,.0f}" if k.startswith("M") else (f"{v:.1e}" if k.startswith("image") else f"{v:.3f}")
@@ -352,7 +353,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--no-gsplat", action="store_true")
-    ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (3-sigma vs opacity-aware)")
+    ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (ellipse tiles vs radius rectangles)")
     ap.add_argument("--commit", default="", help="gsw commit to record")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")

@@ -31,6 +31,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   c["ALPHA_MIN"] = gsw::ALPHA_MIN;
   c["T_MIN"] = gsw::T_MIN;
   c["SKIP_LOG_MARGIN"] = gsw::SKIP_LOG_MARGIN;
+  c["BIN_MARGIN"] = gsw::BIN_MARGIN;
+  c["MAX_RADIUS"] = gsw::MAX_RADIUS;
   c["MAX_SH_DEGREE"] = gsw::MAX_SH_DEGREE;
   c["SH_COLOR_OFFSET"] = gsw::SH_COLOR_OFFSET;
   c["SH_C0"] = gsw::SH_C0;

@@ -284,6 +284,35 @@ def test_empty_scene_backward() -> None:
     assert g.means.grad.shape == (0, 3)
 
 
+# ----------------------------------------------------------------------------------------- ellipse tile assignment
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_ellipse_bins_match_cpu_on_the_same_splats(dtype: torch.dtype) -> None:
+    """The tile assignment (csrc/core/tiles.h) on identical projected splats: the same bins on both devices
+    (float64 exactly; float32 up to the opacity's log, which CUDA's fast math rounds differently)."""
+    from test_render_rasterize import _thin_faint_scene
+
+    from gsw.render import _ops
+    from gsw.render.rasterize import project
+
+    cam = make_camera(83, 61, distance=2.5)
+    g = _thin_faint_scene(600, cam, dtype, seed=7)
+    p = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 1)
+    splats = [t.detach() for t in (p.means2d, p.conics, p.opacities, p.radii, p.depths)]
+    cpu = _ops.bins(*splats, cam.width, cam.height)
+    gpu = _ops.bins(*(t.cuda() for t in splats), cam.width, cam.height)
+    if dtype == torch.float64:
+        for field in ("tile_offsets", "gauss_ids", "entry_offsets", "entry_slots"):
+            assert torch.equal(getattr(gpu, field).cpu(), getattr(cpu, field)), field
+    else:
+        assert abs(gpu.num_intersections - cpu.num_intersections) <= max(2, cpu.num_intersections // 1000)
+    # entry_slots point back at each Gaussian's own entries
+    ids, slots, offs = (getattr(gpu, f).cpu().long() for f in ("gauss_ids", "entry_slots", "entry_offsets"))
+    owner = torch.repeat_interleave(torch.arange(offs.numel() - 1), offs[1:] - offs[:-1])
+    assert torch.equal(ids[slots], owner)
+
+
 # ----------------------------------------------------------------------------------------- contribution
 
 

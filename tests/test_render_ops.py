@@ -45,7 +45,7 @@ def test_ops_pass_opcheck() -> None:
                                                     final_T, n_contrib, *bin_tensors, torch.rand_like(image), None,
                                                     torch.rand_like(depth)), test_utils=OPCHECKS)
     # the restored bins are the binning's
-    fresh = _ops.bins(m2d, radii, depths, cam.width, cam.height)
+    fresh = _ops.bins(m2d, conics, opac, radii, depths, cam.width, cam.height)
     restored = _ops.restore_bins(m2d, cam.width, cam.height, *bin_tensors)
     for name in _ops.BIN_FIELDS:
         assert torch.equal(getattr(restored, name), getattr(fresh, name)), name

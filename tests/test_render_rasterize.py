@@ -469,8 +469,110 @@ def test_opacity_aware_footprints_change_no_pixel_and_no_gradient(dtype: torch.d
     weights = torch.rand(3, cam.height, cam.width, generator=torch.Generator().manual_seed(0), dtype=dtype)
     outs_t, grads_t, bins_t = _blend_with_radii(tight, tight.radii, cam, weights)
     outs_w, grads_w, bins_w = _blend_with_radii(tight, wide.radii, cam, weights)
-    assert bins_t.num_intersections < bins_w.num_intersections
+    assert bins_t.num_intersections <= bins_w.num_intersections
     for a, b in zip(outs_t, outs_w):
         assert torch.equal(a, b)
     for k in grads_t:
         torch.testing.assert_close(grads_t[k], grads_w[k], rtol=0, atol=1e-12 if dtype == torch.float64 else 1e-7)
+
+
+# ----------------------------------------------------------------------------------------- ellipse tile assignment
+
+
+def _blend_with_bins(proj: Projection, bins, cam: Camera, seed: int = 0):
+    """Blends `proj` on given bins with the kernels: (image, alpha, depth, final_T, n_contrib) and the five
+    cotangents (v_means2d, v_conics, v_colors, v_opacities, v_depths) of random output weights."""
+    from gsw._ext import _C
+
+    dt = proj.means2d.dtype
+    gen = torch.Generator().manual_seed(seed)
+    w = [torch.rand(k, cam.height, cam.width, generator=gen, dtype=torch.float64).to(dt) for k in (3, 1, 1)]
+    s = [getattr(proj, k).detach().contiguous() for k in ("means2d", "conics", "colors", "opacities", "depths")]
+    bg = torch.zeros(3, dtype=dt)
+    out = _C.rasterize_forward(*s, bg, bins=bins, width=cam.width, height=cam.height)
+    grads = _C.rasterize_backward(*s, bg, bins=bins, width=cam.width, height=cam.height, final_T=out[3],
+                                  n_contrib=out[4], v_image=w[0], v_alpha=w[1], v_depth=w[2])
+    return list(out[:4]), list(grads)
+
+
+def _thin_faint_scene(n: int, cam: Camera, dtype: torch.dtype, seed: int) -> Gaussians:
+    """Random splats, many of them needle-thin, rotated and faint: the hard cases of the ellipse test."""
+    gen = torch.Generator().manual_seed(seed)
+    g = random_gaussians(n, sh_degree=1, seed=seed, extent=0.8, dtype=dtype)
+    ls = torch.empty(n, 3, dtype=torch.float64).uniform_(-5.0, -1.0, generator=gen)
+    ls[: n // 2, 0] = -7.0  # needles
+    g.log_scales = ls.to(dtype)
+    g.quats = torch.randn(n, 4, generator=gen, dtype=torch.float64).to(dtype)
+    g.opacity_logits = torch.logit(torch.empty(n, dtype=torch.float64).uniform_(0.0035, 0.999, generator=gen)).to(dtype)
+    return g
+
+
+def _tile_membership(bins, n: int) -> torch.Tensor:
+    """[N, tiles] bool: Gaussian g is in tile t's list."""
+    m = torch.zeros(n, bins.tiles_x * bins.tiles_y, dtype=torch.bool)
+    counts = (bins.tile_offsets[1:] - bins.tile_offsets[:-1]).long()
+    tiles = torch.repeat_interleave(torch.arange(counts.numel()), counts)
+    m[bins.gauss_ids.long(), tiles] = True
+    return m
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+def test_ellipse_tiles_hold_every_visible_pixel_and_match_the_reference(dtype: torch.dtype) -> None:
+    from gsw import constants as K
+    from gsw.render import _ops
+    from gsw.render._reference import reference_tile_rects, reference_tile_spans
+
+    cam = make_camera(83, 61, dtype=dtype, distance=2.5)
+    g = _thin_faint_scene(600, cam, dtype, seed=7)
+    p = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, 1)
+    n, W, H = g.means.shape[0], cam.width, cam.height
+    bins = bin_gaussians(p, W, H)
+    rect_bins = _ops.bins(p.means2d, torch.zeros_like(p.conics), p.opacities, p.radii, p.depths, W, H)
+    binned, in_rect = _tile_membership(bins, n), _tile_membership(rect_bins, n)
+    # the reference's spans are the kernels' bins
+    spans = reference_tile_spans(p.means2d, p.conics, p.opacities, p.radii, W, H)
+    tx = torch.arange(bins.tiles_x)
+    ref = ((spans[:, :, 0:1] <= tx) & (tx < spans[:, :, 1:2])).reshape(n, -1)
+    assert torch.equal(ref, binned)
+    # within the radius rectangles, and strictly fewer tiles
+    rects = reference_tile_rects(p.means2d, p.radii, W, H)
+    assert torch.equal(in_rect.sum(1), ((rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1])).long())
+    assert not (binned & ~in_rect).any() and bins.num_intersections < 0.8 * rect_bins.num_intersections
+    # every pixel of the rectangle where alpha (as the kernels compute it) reaches ALPHA_MIN has the splat
+    jj, ii = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    px, py = ii.flatten().to(dtype) + 0.5, jj.flatten().to(dtype) + 0.5
+    tile = (jj.flatten() // K.TILE_SIZE) * bins.tiles_x + ii.flatten() // K.TILE_SIZE
+    m2, con = p.means2d.detach(), p.conics.detach()
+    dx, dy = m2[:, 0:1] - px, m2[:, 1:2] - py
+    power = -0.5 * (con[:, 0:1] * dx * dx + con[:, 2:3] * dy * dy) - con[:, 1:2] * dx * dy
+    alpha = p.opacities.detach()[:, None] * torch.exp(power.clamp(max=0))
+    needed = (alpha >= K.ALPHA_MIN) & (power <= 0) & in_rect[:, tile]
+    assert int(needed.sum()) > 1000
+    assert bool(binned[:, tile][needed].all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["f32", "f64"])
+@pytest.mark.parametrize("family", ["heavy", "thin_faint", "ply"])
+def test_ellipse_binning_changes_no_pixel_and_no_gradient(family: str, dtype: torch.dtype) -> None:
+    from gsw.render import _ops
+
+    if family == "ply":
+        g = gsw.load_ply(require(FIXTURE, "shared data")).to(dtype=dtype)
+        center = g.means.median(dim=0).values
+        cam = gsw.orbit_cameras(center.tolist(), 3.0, 3, width=128, height=96)[1]
+    elif family == "heavy":
+        cam = Camera.from_fov(math.radians(60), 96, 64)
+        g = heavy_scene(3000, cam, seed=2, log_scale_mean=-2.5, dtype=dtype)
+    else:
+        cam = make_camera(96, 64, dtype=dtype, distance=2.5)
+        g = _thin_faint_scene(800, cam, dtype, seed=3)
+    p = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, g.sh_degree)
+    W, H = cam.width, cam.height
+    ellipse = bin_gaussians(p, W, H)
+    rect = _ops.bins(p.means2d, torch.zeros_like(p.conics), p.opacities, p.radii, p.depths, W, H)
+    assert ellipse.num_intersections < rect.num_intersections
+    outs_e, grads_e = _blend_with_bins(p, ellipse, cam)
+    outs_r, grads_r = _blend_with_bins(p, rect, cam)
+    assert float(outs_e[1].max()) > 0.5
+    for a, b in zip(outs_e + grads_e, outs_r + grads_r):
+        assert torch.equal(a, b)

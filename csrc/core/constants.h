@@ -30,6 +30,9 @@ constexpr double T_MIN = 1e-4;
 // exp(), or left out of a tile by the opacity-aware footprint, only when its exponent is below
 // log(ALPHA_MIN / opacity) by more than this, so neither shortcut changes a result.
 constexpr double SKIP_LOG_MARGIN = 1e-3;
+// Implementation margin (pixels, not a rendering threshold) of the tile assignment's coordinates
+// (tile_footprint in tiles.h), on top of its bounds of the rounding.
+constexpr double BIN_MARGIN = 1e-2;
 // Largest supported spherical-harmonics degree.
 constexpr int MAX_SH_DEGREE = 3;
 

@@ -52,6 +52,18 @@ struct ProjectGradParams {
   T* v_sh = nullptr;               // [N, K, 3] or [N, 3]
 };
 
+// Tile binning inputs: the projected splats (tile_footprint in core/tiles.h decides their tiles).
+template <typename T>
+struct BinParams {
+  int N = 0;
+  int tiles_x = 0, tiles_y = 0;
+  const T* means2d = nullptr;       // [N, 2]
+  const T* conics = nullptr;        // [N, 3]
+  const T* opacities = nullptr;     // [N]
+  const int32_t* radii = nullptr;   // [N], 0 = culled
+  const T* depths = nullptr;        // [N], the sort key
+};
+
 // Tile binning result: Gaussians of tile t are gauss_ids[tile_offsets[t] .. tile_offsets[t+1])
 // front to back. Intersection e of Gaussian g (e in [entry_offsets[g], entry_offsets[g+1]))
 // sits at sorted position entry_slots[e]; this lets per-intersection results be reduced per

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
 #include "core/params.h"
 
@@ -14,16 +15,21 @@ void project_forward(const ProjectParams<T>& p);
 template <typename T>
 void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g);
 
-// Number of tiles each Gaussian touches (0 when culled).
+// The tiles of every Gaussian's tile_footprint (core/tiles.h), kept from count_tiles for
+// fill_bins (each footprint is evaluated once): the Gaussians' tile ids row-major, in Gaussian
+// order (that is, in entry order), split into the chunks the counting pass ran in.
+struct TileLists {
+  std::vector<std::vector<int32_t>> chunks;
+};
+
+// Number of tiles each Gaussian's tile_footprint holds (0 when culled), and their tile ids.
 template <typename T>
-void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
-                 int32_t* tiles_touched);
-// Fill the bins (pointers of `bins` are written through const_cast by the backend).
-// `entry_offsets` must already hold the exclusive prefix sum of tiles_touched.
+void count_tiles(const BinParams<T>& p, int32_t* tiles_touched, TileLists& lists);
+// Fill the bins from count_tiles' lists (consumed). `entry_offsets` must already hold the
+// exclusive prefix sum of tiles_touched.
 template <typename T>
-void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, int32_t* tile_offsets,
-               int32_t* gauss_ids, const int32_t* entry_offsets, int32_t* entry_slots,
-               int tiles_x, int tiles_y);
+void fill_bins(const BinParams<T>& p, TileLists& lists, int32_t* tile_offsets, int32_t* gauss_ids,
+               const int32_t* entry_offsets, int32_t* entry_slots);
 
 template <typename T>
 void rasterize_forward(const RasterParams<T>& p);

@@ -1,5 +1,7 @@
 // CPU tile binning: each tile's Gaussians, front to back (depth, then index).
 //
+// Each Gaussian's tiles are those of its tile_footprint (core/tiles.h), enumerated row-major
+// once, by count_tiles.
 // Instead of sorting (tile, depth) keys of all M intersections, the visible Gaussians are
 // sorted once by depth (LSD radix sort on the float bits for float32, a stable sort for
 // float64) and then scattered into their tiles in that order (a counting sort by tile), which
@@ -8,6 +10,7 @@
 #include <cstring>
 #include <vector>
 
+#include "core/tiles.h"
 #include "cpu/backend_cpu.h"
 #include "cpu/parallel.h"
 
@@ -43,35 +46,57 @@ void sort_by_depth(const double* depths, std::vector<int32_t>& ids) {
                    [depths](int32_t a, int32_t b) { return depths[a] < depths[b]; });
 }
 
+// Static chunks of the Gaussians for the counting pass: [N c / n, N (c + 1) / n).
+int64_t count_chunks(int64_t N) {
+  return std::max<int64_t>(1, std::min<int64_t>(4 * at::get_num_threads(), N / 2048));
+}
+
 }  // namespace
 
 template <typename T>
-void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
-                 int32_t* tiles_touched) {
-  parallel_items(N, [&](int64_t i) {
-    int x0, y0, x1, y1;
-    tiles_touched[i] = radii[i] > 0
-                           ? tile_rect(Vec2<T>{means2d[2 * i], means2d[2 * i + 1]}, radii[i],
-                                       tiles_x, tiles_y, x0, y0, x1, y1)
-                           : 0;
+void count_tiles(const BinParams<T>& p, int32_t* tiles_touched, TileLists& lists) {
+  const int64_t n = count_chunks(p.N);
+  lists.chunks.assign(size_t(n), {});
+  at::parallel_for(0, n, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      std::vector<int32_t>& out = lists.chunks[size_t(c)];
+      for (int64_t g = p.N * c / n; g < p.N * (c + 1) / n; ++g) {
+        const TileFootprint<T> f = tile_footprint(
+            Vec2<T>{p.means2d[2 * g], p.means2d[2 * g + 1]},
+            Sym2<T>{p.conics[3 * g], p.conics[3 * g + 1], p.conics[3 * g + 2]}, p.opacities[g],
+            p.radii[g], p.tiles_x, p.tiles_y);
+        const size_t before = out.size();
+        for (int ty = f.y0; ty < f.y1; ++ty) {
+          int xa, xb;
+          footprint_row(f, ty, xa, xb);
+          for (int tx = xa; tx < xb; ++tx) out.push_back(ty * p.tiles_x + tx);
+        }
+        tiles_touched[g] = static_cast<int32_t>(out.size() - before);
+      }
+    }
   });
 }
 
 template <typename T>
-void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, int32_t* tile_offsets,
-               int32_t* gauss_ids, const int32_t* entry_offsets, int32_t* entry_slots,
-               int tiles_x, int tiles_y) {
-  const int num_tiles = tiles_x * tiles_y;
+void fill_bins(const BinParams<T>& p, TileLists& lists, int32_t* tile_offsets, int32_t* gauss_ids,
+               const int32_t* entry_offsets, int32_t* entry_slots) {
+  const int num_tiles = p.tiles_x * p.tiles_y;
+  // entry_slots[e] holds the tile of entry e until the scatter below replaces it by its slot.
+  const int64_t n = static_cast<int64_t>(lists.chunks.size());
+  at::parallel_for(0, n, 1, [&](int64_t cb, int64_t ce) {
+    for (int64_t c = cb; c < ce; ++c) {
+      const std::vector<int32_t>& tiles = lists.chunks[size_t(c)];
+      if (!tiles.empty())
+        std::memcpy(entry_slots + entry_offsets[p.N * c / n], tiles.data(), tiles.size() * sizeof(int32_t));
+    }
+  });
+  lists.chunks.clear();
   std::vector<int32_t> order;
-  order.reserve(N);
-  for (int i = 0; i < N; ++i)
+  order.reserve(p.N);
+  for (int i = 0; i < p.N; ++i)
     if (entry_offsets[i + 1] > entry_offsets[i]) order.push_back(i);
-  sort_by_depth(depths, order);
+  sort_by_depth(p.depths, order);
 
-  auto rect_of = [&](int32_t g, int& x0, int& y0, int& x1, int& y1) {
-    tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1,
-              y1);
-  };
   // Counting sort by tile in depth order, parallel over contiguous chunks of the depth order:
   // chunk c writes tile t's entries after those of chunks < c, so the result equals the
   // sequential scatter for any number of chunks.
@@ -88,10 +113,8 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, i
       chunk_range(c, lo, hi);
       int32_t* cnt = counts.data() + size_t(c) * num_tiles;
       for (int64_t k = lo; k < hi; ++k) {
-        int x0, y0, x1, y1;
-        rect_of(order[k], x0, y0, x1, y1);
-        for (int ty = y0; ty < y1; ++ty)
-          for (int tx = x0; tx < x1; ++tx) ++cnt[ty * tiles_x + tx];
+        const int32_t g = order[k];
+        for (int32_t e = entry_offsets[g]; e < entry_offsets[g + 1]; ++e) ++cnt[entry_slots[e]];
       }
     }
   });
@@ -100,9 +123,9 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, i
   for (int t = 0; t < num_tiles; ++t) {
     int32_t run = tile_offsets[t];
     for (int64_t c = 0; c < chunks; ++c) {
-      const int32_t n = counts[size_t(c) * num_tiles + t];
+      const int32_t cn = counts[size_t(c) * num_tiles + t];
       counts[size_t(c) * num_tiles + t] = run;
-      run += n;
+      run += cn;
     }
     tile_offsets[t + 1] = run;
   }
@@ -113,25 +136,20 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths, i
       int32_t* cursor = counts.data() + size_t(c) * num_tiles;
       for (int64_t k = lo; k < hi; ++k) {
         const int32_t g = order[k];
-        int x0, y0, x1, y1;
-        rect_of(g, x0, y0, x1, y1);
-        int32_t e = entry_offsets[g];
-        for (int ty = y0; ty < y1; ++ty)
-          for (int tx = x0; tx < x1; ++tx) {
-            const int32_t slot = cursor[ty * tiles_x + tx]++;
-            gauss_ids[slot] = g;
-            entry_slots[e++] = slot;
-          }
+        for (int32_t e = entry_offsets[g]; e < entry_offsets[g + 1]; ++e) {
+          const int32_t slot = cursor[entry_slots[e]]++;
+          gauss_ids[slot] = g;
+          entry_slots[e] = slot;
+        }
       }
     }
   });
 }
 
-template void count_tiles<float>(int, const float*, const int32_t*, int, int, int32_t*);
-template void count_tiles<double>(int, const double*, const int32_t*, int, int, int32_t*);
-template void fill_bins<float>(int, const float*, const int32_t*, const float*, int32_t*, int32_t*,
-                               const int32_t*, int32_t*, int, int);
-template void fill_bins<double>(int, const double*, const int32_t*, const double*, int32_t*,
-                                int32_t*, const int32_t*, int32_t*, int, int);
+template void count_tiles<float>(const BinParams<float>&, int32_t*, TileLists&);
+template void count_tiles<double>(const BinParams<double>&, int32_t*, TileLists&);
+template void fill_bins<float>(const BinParams<float>&, TileLists&, int32_t*, int32_t*, const int32_t*, int32_t*);
+template void fill_bins<double>(const BinParams<double>&, TileLists&, int32_t*, int32_t*, const int32_t*,
+                                int32_t*);
 
 }  // namespace gsw::cpu

@@ -29,16 +29,14 @@ void project_forward(const ProjectParams<T>& p);
 template <typename T>
 void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g);
 
-// Number of tiles each Gaussian touches (0 when culled).
+// Number of tiles each Gaussian's tile_footprint (core/tiles.h) holds (0 when culled).
 template <typename T>
-void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
-                 int32_t* tiles_touched);
+void count_tiles(const BinParams<T>& p, int32_t* tiles_touched);
 // Fill the bins; `entry_offsets` must already hold the exclusive prefix sum of tiles_touched
 // (on the device) and M = entry_offsets[N] (on the host).
 template <typename T>
-void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths,
-               int32_t* tile_offsets, int32_t* gauss_ids, const int32_t* entry_offsets,
-               int32_t* entry_slots, int tiles_x, int tiles_y, int64_t M);
+void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
+               const int32_t* entry_offsets, int32_t* entry_slots, int64_t M);
 
 template <typename T>
 void rasterize_forward(const RasterParams<T>& p);

@@ -3,7 +3,8 @@
 // Two stable cub radix sorts, as the CPU's depth sort + counting sort by tile: the Gaussians are
 // sorted once by depth (N keys: the float bit pattern, which orders like the value since depths
 // are > NEAR_PLANE > 0 or exactly 0 for culled ones; 64-bit patterns for float64), their
-// intersections are emitted in that order, and the M (tile id, Gaussian id) pairs are sorted by
+// intersections (the tiles of tile_footprint, core/tiles.h) are emitted in that order, and the M
+// (tile id, entry index) pairs are sorted by
 // the tile id alone (log2(tiles) bits: 2 passes of 32-bit keys at 1080p, instead of 6 passes of
 // 64-bit (tile << 32 | depth) keys). Both sorts are stable, so each tile's list is in depth
 // order and equal depths keep the index order: the same bins as the CPU, bit for bit.
@@ -12,6 +13,7 @@
 #include <algorithm>
 #include <type_traits>
 
+#include "core/tiles.h"
 #include "cuda/common.cuh"
 
 namespace gsw::cuda {
@@ -21,15 +23,17 @@ namespace {
 constexpr int kThreads = 256;
 
 template <typename T>
-__global__ void count_tiles_kernel(int N, const T* __restrict__ means2d,
-                                   const int32_t* __restrict__ radii, int tiles_x, int tiles_y,
-                                   int32_t* __restrict__ touched) {
+__device__ __forceinline__ TileFootprint<T> footprint_of(const BinParams<T>& p, int g) {
+  return tile_footprint(Vec2<T>{p.means2d[2 * g], p.means2d[2 * g + 1]},
+                        Sym2<T>{p.conics[3 * g], p.conics[3 * g + 1], p.conics[3 * g + 2]},
+                        p.opacities[g], p.radii[g], p.tiles_x, p.tiles_y);
+}
+
+template <typename T>
+__global__ void count_tiles_kernel(BinParams<T> p, int32_t* __restrict__ touched) {
   const int i = blockIdx.x * blockDim.x + threadIdx.x;
-  if (i >= N) return;
-  int x0, y0, x1, y1;
-  touched[i] = radii[i] > 0 ? tile_rect(Vec2<T>{means2d[2 * i], means2d[2 * i + 1]}, radii[i],
-                                        tiles_x, tiles_y, x0, y0, x1, y1)
-                            : 0;
+  if (i >= p.N) return;
+  touched[i] = footprint_tiles(footprint_of(p, i));
 }
 
 // Depth sort keys: the bit pattern (non-negative values order like their patterns).
@@ -55,25 +59,32 @@ __global__ void counts_in_order_kernel(int N, const int32_t* __restrict__ order,
   counts[j] = entry_offsets[g + 1] - entry_offsets[g];
 }
 
-// Thread j emits the intersections of the j-th Gaussian in depth order: its tile ids (row-major
-// over its tile rectangle) at emit_offsets[j].
+// Thread j emits the intersections of the j-th Gaussian g in depth order, at emit_offsets[j]: its
+// tile ids (row-major over its footprint, the CPU's entry order) as keys and its entry indices e
+// as values; entry_slots[e] temporarily holds g (see slots_kernel).
 template <typename T>
-__global__ void emit_keys_kernel(int N, const int32_t* __restrict__ order, const int32_t* __restrict__ emit_offsets,
-                                 const T* __restrict__ means2d, const int32_t* __restrict__ radii, int tiles_x,
-                                 int tiles_y, uint32_t* __restrict__ keys, int32_t* __restrict__ vals) {
+__global__ void emit_keys_kernel(BinParams<T> p, const int32_t* __restrict__ order,
+                                 const int32_t* __restrict__ emit_offsets,
+                                 const int32_t* __restrict__ entry_offsets, uint32_t* __restrict__ keys,
+                                 int32_t* __restrict__ vals, int32_t* __restrict__ entry_slots) {
   const int j = blockIdx.x * blockDim.x + threadIdx.x;
-  if (j >= N) return;
+  if (j >= p.N) return;
   const int g = order[j];
-  if (radii[g] <= 0) return;
-  int x0, y0, x1, y1;
-  if (tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1, y1) == 0) return;
-  int32_t e = emit_offsets[j];
-  for (int ty = y0; ty < y1; ++ty)
-    for (int tx = x0; tx < x1; ++tx) {
-      keys[e] = static_cast<uint32_t>(ty * tiles_x + tx);
-      vals[e] = g;
+  const int32_t e0 = entry_offsets[g];
+  if (entry_offsets[g + 1] == e0) return;
+  const TileFootprint<T> f = footprint_of(p, g);
+  int32_t k = emit_offsets[j], e = e0;
+  for (int ty = f.y0; ty < f.y1; ++ty) {
+    int xa, xb;
+    footprint_row(f, ty, xa, xb);
+    for (int tx = xa; tx < xb; ++tx) {
+      keys[k] = static_cast<uint32_t>(ty * p.tiles_x + tx);
+      vals[k] = e;
+      entry_slots[e] = g;
+      ++k;
       ++e;
     }
+  }
 }
 
 // tile_offsets[t] = first sorted position of tile t (M for empty trailing tiles).
@@ -88,24 +99,17 @@ __global__ void tile_offsets_kernel(int64_t M, int num_tiles, const uint32_t* __
     for (int k = t + 1; k <= num_tiles; ++k) tile_offsets[k] = static_cast<int32_t>(M);
 }
 
-// entry_slots[e] = sorted position of intersection e (e enumerates a Gaussian's tiles
-// row-major), as on the CPU.
-template <typename T>
-__global__ void entry_slots_kernel(int64_t M, const T* __restrict__ means2d,
-                                   const int32_t* __restrict__ radii,
-                                   const int32_t* __restrict__ entry_offsets,
-                                   const uint32_t* __restrict__ keys,
-                                   const int32_t* __restrict__ gauss_ids, int tiles_x,
-                                   int tiles_y, int32_t* __restrict__ entry_slots) {
+// Sorted position i holds entry e = sorted_entries[i] of Gaussian g = entry_slots[e] (written by
+// emit_keys_kernel): gauss_ids[i] = g and entry_slots[e] = i, as on the CPU. Each thread reads and
+// writes only its own i and e (sorted_entries may alias gauss_ids).
+__global__ void slots_kernel(int64_t M, const int32_t* sorted_entries, int32_t* gauss_ids,
+                             int32_t* __restrict__ entry_slots) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= M) return;
-  const int g = gauss_ids[i];
-  const int t = static_cast<int>(keys[i]);
-  int x0, y0, x1, y1;
-  tile_rect(Vec2<T>{means2d[2 * g], means2d[2 * g + 1]}, radii[g], tiles_x, tiles_y, x0, y0, x1,
-            y1);
-  const int tx = t % tiles_x, ty = t / tiles_x;
-  entry_slots[entry_offsets[g] + (ty - y0) * (x1 - x0) + (tx - x0)] = static_cast<int32_t>(i);
+  const int32_t e = sorted_entries[i];
+  const int32_t g = entry_slots[e];
+  gauss_ids[i] = g;
+  entry_slots[e] = static_cast<int32_t>(i);
 }
 
 int bits_for(int64_t n) {  // number of bits to represent values in [0, n]
@@ -132,20 +136,18 @@ int radix_sort_pairs(K* keys0, K* keys1, V* vals0, V* vals1, int64_t n, int begi
 }  // namespace
 
 template <typename T>
-void count_tiles(int N, const T* means2d, const int32_t* radii, int tiles_x, int tiles_y,
-                 int32_t* tiles_touched) {
-  if (N <= 0) return;
-  count_tiles_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, current_stream()>>>(
-      N, means2d, radii, tiles_x, tiles_y, tiles_touched);
+void count_tiles(const BinParams<T>& p, int32_t* tiles_touched) {
+  if (p.N <= 0) return;
+  count_tiles_kernel<T><<<blocks_for(p.N, kThreads), kThreads, 0, current_stream()>>>(p, tiles_touched);
   GSW_KERNEL_CHECK();
 }
 
 template <typename T>
-void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths,
-               int32_t* tile_offsets, int32_t* gauss_ids, const int32_t* entry_offsets,
-               int32_t* entry_slots, int tiles_x, int tiles_y, int64_t M) {
+void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
+               const int32_t* entry_offsets, int32_t* entry_slots, int64_t M) {
   cudaStream_t stream = current_stream();
-  const int num_tiles = tiles_x * tiles_y;
+  const int N = p.N;
+  const int num_tiles = p.tiles_x * p.tiles_y;
   if (M <= 0 || N <= 0) {
     GSW_CUDA_CHECK(
         cudaMemsetAsync(tile_offsets, 0, sizeof(int32_t) * (num_tiles + 1), stream));
@@ -156,7 +158,7 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths,
   DeviceBuffer dkeys(sizeof(DepthKey) * 2 * N), ids(sizeof(int32_t) * 2 * N);
   DepthKey* dk = dkeys.as<DepthKey>();
   int32_t* id = ids.as<int32_t>();
-  depth_keys_kernel<T, DepthKey><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, depths, dk, id);
+  depth_keys_kernel<T, DepthKey><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, p.depths, dk, id);
   GSW_KERNEL_CHECK();
   const int sel = radix_sort_pairs(dk, dk + N, id, id + N, N, 0, int(8 * sizeof(DepthKey)), stream);
   const int32_t* order = sel ? id + N : id;
@@ -172,29 +174,26 @@ void fill_bins(int N, const T* means2d, const int32_t* radii, const T* depths,
     DeviceBuffer temp(scan_bytes);
     GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, counts, emit_offsets, N, stream));
   }
-  // 3. (tile, Gaussian) pairs in depth order, then a stable sort by tile.
+  // 3. (tile, entry) pairs in depth order, then a stable sort by tile.
   DeviceBuffer keys(sizeof(uint32_t) * 2 * M), vals_alt(sizeof(int32_t) * M);
   uint32_t* k0 = keys.as<uint32_t>();
   int32_t* v1 = vals_alt.as<int32_t>();
-  emit_keys_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, emit_offsets, means2d, radii,
-                                                                         tiles_x, tiles_y, k0, gauss_ids);
+  emit_keys_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(p, order, emit_offsets, entry_offsets,
+                                                                         k0, gauss_ids, entry_slots);
   GSW_KERNEL_CHECK();
   const int tile_sel = radix_sort_pairs(k0, k0 + M, gauss_ids, v1, M, 0, std::max(1, bits_for(num_tiles - 1)), stream);
-  if (tile_sel)
-    GSW_CUDA_CHECK(cudaMemcpyAsync(gauss_ids, v1, sizeof(int32_t) * M, cudaMemcpyDeviceToDevice, stream));
   const uint32_t* sorted_keys = tile_sel ? k0 + M : k0;
   tile_offsets_kernel<<<blocks_for(M, kThreads), kThreads, 0, stream>>>(M, num_tiles, sorted_keys, tile_offsets);
   GSW_KERNEL_CHECK();
-  entry_slots_kernel<T><<<blocks_for(M, kThreads), kThreads, 0, stream>>>(
-      M, means2d, radii, entry_offsets, sorted_keys, gauss_ids, tiles_x, tiles_y, entry_slots);
+  // 4. gauss_ids and entry_slots from the sorted entries.
+  slots_kernel<<<blocks_for(M, kThreads), kThreads, 0, stream>>>(M, tile_sel ? v1 : gauss_ids, gauss_ids,
+                                                                 entry_slots);
   GSW_KERNEL_CHECK();
 }
 
-template void count_tiles<float>(int, const float*, const int32_t*, int, int, int32_t*);
-template void count_tiles<double>(int, const double*, const int32_t*, int, int, int32_t*);
-template void fill_bins<float>(int, const float*, const int32_t*, const float*, int32_t*,
-                               int32_t*, const int32_t*, int32_t*, int, int, int64_t);
-template void fill_bins<double>(int, const double*, const int32_t*, const double*, int32_t*,
-                                int32_t*, const int32_t*, int32_t*, int, int, int64_t);
+template void count_tiles<float>(const BinParams<float>&, int32_t*);
+template void count_tiles<double>(const BinParams<double>&, int32_t*);
+template void fill_bins<float>(const BinParams<float>&, int32_t*, int32_t*, const int32_t*, int32_t*, int64_t);
+template void fill_bins<double>(const BinParams<double>&, int32_t*, int32_t*, const int32_t*, int32_t*, int64_t);
 
 }  // namespace gsw::cuda

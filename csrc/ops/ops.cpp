@@ -292,11 +292,14 @@ std::pair<int64_t, int32_t> read_count_and_flags(const Tensor& cum, const c10::o
 #endif
 }
 
-Bins bin_gaussians(const Tensor& means2d, const Tensor& radii, const Tensor& depths, int width,
-                   int height, const c10::optional<Tensor>& nonfinite) {
+Bins bin_gaussians(const Tensor& means2d, const Tensor& conics, const Tensor& opacities,
+                   const Tensor& radii, const Tensor& depths, int width, int height,
+                   const c10::optional<Tensor>& nonfinite) {
   check_float(means2d, "means2d");
   const int64_t N = means2d.size(0);
   check_tensor(means2d, "means2d", means2d, {N, 2});
+  check_tensor(conics, "conics", means2d, {N, 3});
+  check_tensor(opacities, "opacities", means2d, {N});
   check_int_tensor(radii, "radii", means2d, N);
   check_tensor(depths, "depths", means2d, {N});
   if (nonfinite) check_int_tensor(*nonfinite, "nonfinite", means2d, 1);
@@ -307,52 +310,47 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& radii, const Tensor& dep
   const int64_t num_tiles = int64_t(b.tiles_x) * b.tiles_y;
   auto iopts = means2d.options().dtype(torch::kInt32);
   Tensor touched = torch::empty({N}, iopts);
+  const bool on_cuda = means2d.is_cuda();
+#ifdef GSW_WITH_CUDA
+  c10::cuda::OptionalCUDAGuard guard;
+  if (on_cuda) guard.set_device(means2d.device());
+#else
+  if (on_cuda) no_cuda();
+#endif
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "gsw_count_tiles", [&] {
-    if (means2d.is_cuda()) {
+    BinParams<scalar_t> p;
+    p.N = static_cast<int>(N);
+    p.tiles_x = b.tiles_x;
+    p.tiles_y = b.tiles_y;
+    p.means2d = means2d.data_ptr<scalar_t>();
+    p.conics = conics.data_ptr<scalar_t>();
+    p.opacities = opacities.data_ptr<scalar_t>();
+    p.radii = radii.data_ptr<int32_t>();
+    p.depths = depths.data_ptr<scalar_t>();
 #ifdef GSW_WITH_CUDA
-      const c10::cuda::CUDAGuard guard(means2d.device());
-      cuda::count_tiles(static_cast<int>(N), means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                        b.tiles_x, b.tiles_y, touched.data_ptr<int32_t>());
-#else
-      no_cuda();
+    if (on_cuda) cuda::count_tiles(p, touched.data_ptr<int32_t>());
 #endif
-    } else {
-      cpu::count_tiles(static_cast<int>(N), means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                       b.tiles_x, b.tiles_y, touched.data_ptr<int32_t>());
-    }
-  });
-  // entry_offsets = exclusive prefix sum (int64 to detect overflow of the int32 index space).
-  Tensor cum = torch::cumsum(touched, 0, torch::kInt64);
-  int64_t M;
-  std::tie(M, b.nonfinite) = read_count_and_flags(cum, nonfinite);
-  TORCH_CHECK(M < (int64_t(1) << 31), "gsw: too many tile intersections (", M,
-              ") for int32 indices; render at a lower resolution or with fewer Gaussians");
-  b.entry_offsets = torch::zeros({N + 1}, iopts);
-  if (N > 0) b.entry_offsets.slice(0, 1).copy_(cum);
-  b.tile_offsets = torch::empty({num_tiles + 1}, iopts);
-  b.gauss_ids = torch::empty({M}, iopts);
-  b.entry_slots = torch::empty({M}, iopts);
-  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "gsw_fill_bins", [&] {
-    auto fill = [&](auto fn) {
-      fn(static_cast<int>(N), means2d.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-         depths.data_ptr<scalar_t>(), b.tile_offsets.data_ptr<int32_t>(),
-         b.gauss_ids.data_ptr<int32_t>(), b.entry_offsets.data_ptr<int32_t>(),
-         b.entry_slots.data_ptr<int32_t>(), b.tiles_x, b.tiles_y);
-    };
-    if (means2d.is_cuda()) {
+    cpu::TileLists lists;
+    if (!on_cuda) cpu::count_tiles(p, touched.data_ptr<int32_t>(), lists);
+    // entry_offsets = exclusive prefix sum (int64 to detect overflow of the int32 index space).
+    Tensor cum = torch::cumsum(touched, 0, torch::kInt64);
+    int64_t M;
+    std::tie(M, b.nonfinite) = read_count_and_flags(cum, nonfinite);
+    TORCH_CHECK(M < (int64_t(1) << 31), "gsw: too many tile intersections (", M,
+                ") for int32 indices; render at a lower resolution or with fewer Gaussians");
+    b.entry_offsets = torch::zeros({N + 1}, iopts);
+    if (N > 0) b.entry_offsets.slice(0, 1).copy_(cum);
+    b.tile_offsets = torch::empty({num_tiles + 1}, iopts);
+    b.gauss_ids = torch::empty({M}, iopts);
+    b.entry_slots = torch::empty({M}, iopts);
+    int32_t* tile_offsets = b.tile_offsets.data_ptr<int32_t>();
+    int32_t* gauss_ids = b.gauss_ids.data_ptr<int32_t>();
+    const int32_t* entry_offsets = b.entry_offsets.data_ptr<int32_t>();
+    int32_t* entry_slots = b.entry_slots.data_ptr<int32_t>();
 #ifdef GSW_WITH_CUDA
-      const c10::cuda::CUDAGuard guard(means2d.device());
-      cuda::fill_bins<scalar_t>(static_cast<int>(N), means2d.data_ptr<scalar_t>(),
-                                radii.data_ptr<int32_t>(), depths.data_ptr<scalar_t>(),
-                                b.tile_offsets.data_ptr<int32_t>(), b.gauss_ids.data_ptr<int32_t>(),
-                                b.entry_offsets.data_ptr<int32_t>(),
-                                b.entry_slots.data_ptr<int32_t>(), b.tiles_x, b.tiles_y, M);
-#else
-      no_cuda();
+    if (on_cuda) cuda::fill_bins(p, tile_offsets, gauss_ids, entry_offsets, entry_slots, M);
 #endif
-    } else {
-      fill(cpu::fill_bins<scalar_t>);
-    }
+    if (!on_cuda) cpu::fill_bins(p, lists, tile_offsets, gauss_ids, entry_offsets, entry_slots);
   });
   return b;
 }
@@ -540,9 +538,11 @@ void register_ops(py::module_& m) {
         py::arg("colors"), py::arg("opacities"), py::arg("v_means2d"), py::arg("v_conics"),
         py::arg("v_depths"), py::arg("v_colors"), py::arg("v_opacities"),
         "VJP of project_forward: -> (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh)");
-  m.def("bin_gaussians", &bin_gaussians, py::arg("means2d"), py::arg("radii"), py::arg("depths"),
-        py::arg("width"), py::arg("height"), py::arg("nonfinite") = py::none(),
-        "Sort projected Gaussians into 16x16 tiles; the projection's `nonfinite` flags are read back with the "
+  m.def("bin_gaussians", &bin_gaussians, py::arg("means2d"), py::arg("conics"), py::arg("opacities"),
+        py::arg("radii"), py::arg("depths"), py::arg("width"), py::arg("height"),
+        py::arg("nonfinite") = py::none(),
+        "Sort projected Gaussians into 16x16 tiles (each one into the tiles of its opacity-aware ellipse "
+        "within its radius rectangle); the projection's `nonfinite` flags are read back with the "
         "intersection count (TileBins.nonfinite)");
   py::tuple fields(kNumNonFiniteFields);
   for (int k = 0; k < kNumNonFiniteFields; ++k) fields[k] = kNonFiniteFields[k];

@@ -38,11 +38,12 @@ class NonFiniteInputError(ValueError):
         super().__init__("non-finite Gaussian parameters: " + ", ".join(self.names))
 
 
-def bins(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int,
-         nonfinite: Tensor | None = None) -> Any:
-    """The tile binning (``_C.TileBins``) of projected Gaussians (not differentiable)."""
-    return _C.bin_gaussians(means2d.detach().contiguous(), radii.contiguous(), depths.detach().contiguous(),
-                            int(width), int(height), nonfinite=nonfinite)
+def bins(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, depths: Tensor, width: int,
+         height: int, nonfinite: Tensor | None = None) -> Any:
+    """The tile binning (``_C.TileBins``) of projected Gaussians (not differentiable): each one goes to the tiles
+    of its radius rectangle that its opacity-aware ellipse reaches (``csrc/core/tiles.h``)."""
+    return _C.bin_gaussians(_c(means2d), _c(conics), _c(opacities), radii.contiguous(), _c(depths), int(width),
+                            int(height), nonfinite=nonfinite)
 
 
 def _c(t: Tensor) -> Tensor:
@@ -135,8 +136,9 @@ def restore_bins(means2d: Tensor, width: int, height: int, tile_offsets: Tensor,
     no host synchronisation) and its tensors are pointed at the given ones (``Tensor.set_`` on the tensors the
     binding exposes, which share their implementation with the C++ struct).
     """
-    b = _C.bin_gaussians(means2d.new_zeros((0, 2)), torch.zeros(0, dtype=torch.int32, device=means2d.device),
-                         means2d.new_zeros((0,)), int(width), int(height))
+    b = _C.bin_gaussians(means2d.new_zeros((0, 2)), means2d.new_zeros((0, 3)), means2d.new_zeros((0,)),
+                         torch.zeros(0, dtype=torch.int32, device=means2d.device), means2d.new_zeros((0,)),
+                         int(width), int(height))
     for name, t in zip(BIN_FIELDS, (tile_offsets, gauss_ids, entry_offsets, entry_slots)):
         getattr(b, name).set_(t.contiguous())
     return b
@@ -150,7 +152,7 @@ def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor
     n_contrib [H,W] int32, then the bins: tile_offsets [tiles+1], gauss_ids [M], entry_offsets [N+1],
     entry_slots [M], all int32, M the data-dependent number of tile intersections). Raises
     :class:`NonFiniteInputError` when ``nonfinite`` (the projection's flags) is set."""
-    b = bins(means2d, radii, depths, width, height, nonfinite)
+    b = bins(means2d, conics, opacities, radii, depths, width, height, nonfinite)
     _raise_if_flagged(b)
     out = _C.rasterize_forward(_c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths), _c(background),
                                bins=b, width=width, height=height)
@@ -220,7 +222,7 @@ rasterize.register_autograd(_rasterize_backward, setup_context=_rasterize_setup)
 def contribution(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor, weights: Tensor,
                  width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
     """Binning + per-Gaussian weighted blending weights: (values [N, C], hits [N] int32, max_weight [N])."""
-    b = bins(means2d, radii, depths, width, height)
+    b = bins(means2d, conics, opacities, radii, depths, width, height)
     return tuple(_C.contribution(_c(means2d), _c(conics), _c(opacities), bins=b, width=width, height=height,
                                  weights=_c(weights)))
 

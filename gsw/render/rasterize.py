@@ -103,10 +103,14 @@ def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Te
 def bin_gaussians(proj: Projection, width: int, height: int) -> TileBins:
     """Sorts projected Gaussians into 16x16 tiles, front to back (not differentiable).
 
+    A Gaussian goes to the tiles of its radius rectangle that hold a pixel centre its opacity-aware
+    ellipse reaches (where its alpha can reach ALPHA_MIN; `csrc/core/tiles.h`).
+
     The returned bins' `nonfinite` holds the host copy of `proj.nonfinite` (0 without flags), read
     with the intersection count in the binning's one host synchronisation.
     """
-    return _ops.bins(proj.means2d, proj.radii, proj.depths, width, height, proj.nonfinite)
+    return _ops.bins(proj.means2d, proj.conics, proj.opacities, proj.radii, proj.depths, width, height,
+                     proj.nonfinite)
 
 
 def _raise_nonfinite(gaussians: Gaussians, colors: Tensor | None, exc: _ops.NonFiniteInputError) -> None:

@@ -6,9 +6,11 @@ lives in ``csrc/core/math.h`` (thresholds in ``csrc/core/constants.h``, data lay
 about 1e-5 in float32 and gradients obtained by ``torch.autograd`` through this package are the
 ground truth for the hand-written backward passes.
 
-Two stages, one module each:
+Two stages, one module each, and the tile assignment:
   * :mod:`~gsw.render._reference.project`: 3-D Gaussians -> 2-D splats (:func:`reference_project`,
     the SH basis, tile rectangles);
+  * :mod:`~gsw.render._reference.tiles`: the tiles each splat is binned to (:func:`reference_tile_spans`,
+    ``csrc/core/tiles.h``), which define each tile's list (and so ``n_contrib``);
   * :mod:`~gsw.render._reference.blend`: 2-D splats -> image (:func:`reference_rasterize_projected`,
     :func:`reference_contribution`) and both stages together (:func:`reference_rasterize`).
 
@@ -52,12 +54,14 @@ from gsw.render._reference.blend import (ReferenceRender, reference_contribution
                                          reference_rasterize_projected)
 from gsw.render._reference.project import (ReferenceProjection, reference_project, reference_sh_basis,
                                            reference_tile_rects)
+from gsw.render._reference.tiles import reference_tile_spans
 
 __all__ = [
     "ReferenceProjection",
     "ReferenceRender",
     "reference_sh_basis",
     "reference_tile_rects",
+    "reference_tile_spans",
     "reference_project",
     "reference_rasterize_projected",
     "reference_rasterize",

@@ -10,7 +10,8 @@ from typing import NamedTuple
 import torch
 
 from gsw import constants as K
-from gsw.render._reference.project import ReferenceProjection, _c, reference_project, reference_tile_rects
+from gsw.render._reference.project import ReferenceProjection, _c, reference_project
+from gsw.render._reference.tiles import reference_tile_spans
 
 __all__ = ["ReferenceRender", "reference_rasterize_projected", "reference_rasterize", "reference_contribution"]
 
@@ -25,8 +26,8 @@ class ReferenceRender(NamedTuple):
         final_T: [H, W] transmittance left after the last blended splat.
         n_blended: [H, W] int32 number of splats blended into each pixel.
         n_contrib: [H, W] int32 ``1 + index`` of the last blended splat in the pixel's tile
-            list (the depth-sorted list of Gaussians whose tile rectangle contains the pixel's
-            tile), 0 if none; same meaning as ``RasterParams::n_contrib``.
+            list (the depth-sorted list of Gaussians binned to the pixel's tile, see
+            :func:`reference_tile_spans`), 0 if none; same meaning as ``RasterParams::n_contrib``.
         weights: [N, H, W] blending weight ``w_i(p) = alpha_i(p) T_i(p)`` of every Gaussian at
             every pixel (0 where not blended), in the original Gaussian order.
         projection: the :class:`ReferenceProjection` when produced by
@@ -46,18 +47,18 @@ class ReferenceRender(NamedTuple):
 # ------------------------------------------------------------------ stage 2: blending
 
 
-def _depth_order(means2d: torch.Tensor, depths: torch.Tensor, radii: torch.Tensor, width: int,
-                 height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Gaussians that take part, by ascending depth (ties by Gaussian index), and every tile rectangle.
+def _depth_order(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, depths: torch.Tensor,
+                 radii: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Gaussians that take part (binned to a tile), by ascending depth (ties by Gaussian index), and their tiles.
 
     Returns:
-        (order [n] int64 indices, rects [N, 4] int32).
+        (order [n] int64 indices, spans [N, tiles_y, 2] int32 from :func:`reference_tile_spans`).
     """
-    rects = reference_tile_rects(means2d, radii, width, height)
-    active = (radii > 0) & ((rects[:, 2] - rects[:, 0]) * (rects[:, 3] - rects[:, 1]) > 0)
+    spans = reference_tile_spans(means2d, conics, opacities, radii, width, height)
+    active = (spans[:, :, 1] - spans[:, :, 0]).sum(dim=1) > 0
     idx = torch.nonzero(active).flatten()
     # stable sort of an index-ordered subset
-    return idx[torch.sort(depths.detach()[idx], stable=True).indices], rects
+    return idx[torch.sort(depths.detach()[idx], stable=True).indices], spans
 
 
 def _pixel_grid(width: int, height: int, like: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -70,28 +71,28 @@ def _pixel_grid(width: int, height: int, like: torch.Tensor) -> tuple[torch.Tens
     return ii.to(like.dtype) + half, jj.to(like.dtype) + half, ii // K.TILE_SIZE, jj // K.TILE_SIZE
 
 
-def _chunk_alphas(order: torch.Tensor, rects: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor,
+def _chunk_alphas(order: torch.Tensor, spans: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor,
                   opacities: torch.Tensor, pixels: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
     """Alpha of every splat at every pixel of a chunk, with the masks of the blending rules.
 
     Args:
         order: [n] depth-sorted indices of the taking-part Gaussians.
-        rects: [N, 4] tile rectangles.
+        spans: [N, tiles_y, 2] tile column ranges per tile row (the binning).
         means2d: [N, 2] projected centres.
         conics: [N, 3] inverse 2-D covariances.
         opacities: [N] opacities.
         pixels: (px, py, tx, ty) of the chunk's pixels, each [Pc].
 
     Returns:
-        (sub [m] Gaussians whose rectangle holds a tile of the chunk, in depth order; part [m, Pc] the
-        rectangle holds the pixel's tile; alpha [m, Pc] (0 where not valid); valid [m, Pc] power <= 0 and
-        alpha >= ALPHA_MIN inside the rectangle).
+        (sub [m] Gaussians binned to a tile of the chunk, in depth order; part [m, Pc] the Gaussian is
+        binned to the pixel's tile; alpha [m, Pc] (0 where not valid); valid [m, Pc] power <= 0 and
+        alpha >= ALPHA_MIN in a binned tile).
     """
     px, py, tx, ty = pixels
     zero = torch.zeros((), dtype=means2d.dtype, device=means2d.device)
     alpha_max, alpha_min = _c(K.ALPHA_MAX, means2d), _c(K.ALPHA_MIN, means2d)
-    r = rects[order]
-    part = (r[:, 0:1] <= tx) & (tx < r[:, 2:3]) & (r[:, 1:2] <= ty) & (ty < r[:, 3:4])  # [n, Pc]
+    s = spans[order][:, ty]  # [n, Pc, 2]: the span of each pixel's tile row
+    part = (s[..., 0] <= tx) & (tx < s[..., 1])  # [n, Pc]
     keep = part.any(dim=1)
     sub, part = order[keep], part[keep]
     m2, con, op = means2d[sub], conics[sub], opacities[sub]
@@ -170,13 +171,13 @@ def _blend(
         P = H * W in row-major pixel order.
     """
     P = width * height
-    order, rects = _depth_order(means2d, depths, radii, width, height)
+    order, spans = _depth_order(means2d, conics, opacities, depths, radii, width, height)
     grid = _pixel_grid(width, height, means2d)
     chunk = P if pixel_chunk is None else max(1, int(pixel_chunk))
     outs = []
     for start in range(0, max(P, 1), chunk):
         pixels = tuple(v[start : min(P, start + chunk)] for v in grid)
-        sub, part, alpha, valid = _chunk_alphas(order, rects, means2d, conics, opacities, pixels)
+        sub, part, alpha, valid = _chunk_alphas(order, spans, means2d, conics, opacities, pixels)
         outs.append(_composite(sub, part, alpha, valid, colors, depths))
     C, D, T, n_bl, n_co, W = zip(*outs)
     return (
@@ -204,9 +205,9 @@ def reference_rasterize_projected(
 ) -> ReferenceRender:
     """Alpha-blend projected 2-D Gaussians (the semantics of the rasterization kernel).
 
-    A Gaussian takes part at pixel (i, j) iff ``radii > 0``, its tile rectangle (recomputed
-    from ``means2d`` and ``radii`` as ``tile_rect``) is non-empty and contains the pixel's tile
-    (i // TILE_SIZE, j // TILE_SIZE). Splats are visited by ascending depth (ties: lower
+    A Gaussian takes part at pixel (i, j) iff it is binned to the pixel's tile (i // TILE_SIZE,
+    j // TILE_SIZE): ``radii > 0``, the tile lies in its rectangle (``tile_rect``) and holds a pixel
+    centre its opacity-aware ellipse reaches (:func:`reference_tile_spans`). Splats are visited by ascending depth (ties: lower
     index first); a splat with power > 0 or alpha < ALPHA_MIN is skipped (no effect on T);
     a pixel stops before the first splat that would bring T below T_MIN.
 
