@@ -6,12 +6,14 @@ what it measured):
 1. train 3DGS on NeRF-synthetic lego (every 8th view held out; INRIA recipe compressed to
    ``--iterations``, stopped at ``--train-seconds``), white background, ``--size`` pixels;
 2. control: the UNMARKED model's held-out renders at 1x against the message (known size and search);
-3. embed a ``--bits`` message with :class:`gsw.mark.embed.EmbedConfig`'s defaults (8 epochs, FGD, exp mask;
-   ``--lpips`` picks another LPIPS network, ``--epochs`` fewer epochs);
+3. embed a message of each ``--bits`` length (fixed seed; steps 2-5 per length) with
+   :class:`gsw.mark.embed.EmbedConfig`'s defaults (8 epochs, FGD, exp mask; ``--lpips`` picks another LPIPS
+   network, ``--epochs`` fewer epochs);
 4. held-out views: the 13 held-out lego cameras and ``--orbit`` orbit cameras (elevations 20/35/50 deg,
    azimuths between the training views') -- none of them used for embedding; rendered at each of
-   ``--scales`` times the embedding size (intrinsics scaled), the scales in order while the time budget
-   ``--max-seconds`` allows (a scale is skipped when the previous one's time says it would not fit);
+   ``--scales`` times the embedding size (intrinsics scaled; 1x first), the scales in order while the time
+   budget ``--max-seconds`` allows (a scale is skipped when the previous one's time says it would not fit,
+   a later bit length when its embedding would not);
 5. per view, the evidence of :func:`gsw.verify` (:func:`gsw.mark.evidence.score_messages`, decoded on the
    GPU) with the embedding size known (one reading at that size) and unknown (the scale search,
    weighted Bonferroni over the readings), and for comparison the search with equal weights (plain
@@ -206,13 +208,15 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--size", type=int, default=800, help="embedding render size (lego: 800 = native)")
     ap.add_argument("--iterations", type=int, default=12000)
     ap.add_argument("--train-seconds", type=float, default=75.0)
-    ap.add_argument("--bits", type=int, default=32)
+    ap.add_argument("--bits", type=int, nargs="+", default=[32, 48],
+                    help="message lengths, one embedding each, in order (later ones skipped when out of time)")
     ap.add_argument("--epochs", type=int, default=None, help="default: EmbedConfig's")
     ap.add_argument("--lpips", default="vgg", choices=["alex", "vgg", "none"])
     ap.add_argument("--orbit", type=int, default=24, help="extra held-out orbit views (multiple of 3)")
     ap.add_argument("--scales", type=float, nargs="+", default=list(SCALES))
-    ap.add_argument("--max-seconds", type=float, default=370.0,
-                    help="time budget of the whole run: later scales are skipped when they would not fit")
+    ap.add_argument("--max-seconds", type=float, default=330.0,
+                    help="time budget of the whole run: later scales / bit lengths are skipped when they would not "
+                         "fit (the first scale of each embedded length is always measured)")
     ap.add_argument("--device", default="auto")
     return ap.parse_args()
 
@@ -222,68 +226,85 @@ def main() -> None:
     if args.pack_webp is not None:
         pack_webp(args.data, args.pack_webp)
         return
-    from gsw.decoder.zoo import load_decoder
     from gsw.device import resolve_device
-    from gsw.mark import EmbedConfig, embed
-    from gsw.mark.evidence import CONFIDENT_SHARE, shipped_null_model
-    from gsw.mark.loss import lpips_weights
-    from gsw.mark.message import random_message
+    from gsw.mark.evidence import CONFIDENT_SHARE
 
     t0 = time.perf_counter()
     dev = resolve_device(args.device)
     out: dict = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor(),
                  "torch": torch.__version__, "python": platform.python_version(),
                  "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
-                 "fpr": FPR, "confident_share": CONFIDENT_SHARE, "scales": {}, "skipped_scales": []}
+                 "fpr": FPR, "confident_share": CONFIDENT_SHARE, "runs": {}, "skipped_bits": []}
     g, train_set, test_set, out["train"] = train_lego(args, png_dataset(args.data, args.work), dev)
-    bg = (1.0, 1.0, 1.0)
-    message = random_message(args.bits, seed=2222)  # fixed: the run is reproducible
-    m = message.numpy().astype(np.int8)
-    decoder = load_decoder(args.bits, device=dev)
-    null = shipped_null_model(args.bits)
-    null.check_decoder(decoder)
     cams = held_out_cameras(test_set.cameras, args.orbit)
-    size = (cams[0].height, cams[0].width)
-    out |= {"held_out_views": len(cams), "embed_size": list(size)}
-    out["unmarked_control_1x"] = evaluate(render(g, cams, bg), decoder, null, m, size)
-    print("unmarked control 1x:", summary(out["unmarked_control_1x"]), flush=True)
+    out |= {"held_out_views": len(cams), "embed_size": [cams[0].height, cams[0].width]}
     write(out, args.out)
+    embed_s = 0.0
+    for i, bits in enumerate(args.bits):
+        if i > 0 and time.perf_counter() - t0 + 1.5 * embed_s > args.max_seconds:
+            out["skipped_bits"].append(bits)
+            print(f"{bits} bits skipped (time budget)", flush=True)
+            continue
+        out["runs"][f"k{bits}"] = run = {}
+        embed_s = run_bits(args, bits, g, train_set, cams, dev, run, lambda: write(out, args.out), t0)
+    out["seconds"] = time.perf_counter() - t0
+    write(out, args.out)
+    print(f"done in {out['seconds']:.0f} s; wrote {args.out}")
 
+
+def run_bits(args, bits: int, g, train_set, cams, dev, run: dict, save, t0: float) -> float:
+    """Control, embedding and every scale for one bit length; fills ``run`` (saved after each step).
+    Returns the embedding's seconds."""
+    from gsw.decoder.zoo import load_decoder
+    from gsw.mark import EmbedConfig, embed
+    from gsw.mark.evidence import shipped_null_model
+    from gsw.mark.loss import lpips_weights
+    from gsw.mark.message import random_message
+
+    bg = (1.0, 1.0, 1.0)
+    message = random_message(bits, seed=2222)  # fixed: the run is reproducible
+    m = message.numpy().astype(np.int8)
+    decoder = load_decoder(bits, device=dev)
+    null = shipped_null_model(bits)
+    null.check_decoder(decoder)
+    size = (cams[0].height, cams[0].width)
+    run["unmarked_control_1x"] = evaluate(render(g, cams, bg), decoder, null, m, size)
+    print(f"k={bits} unmarked control 1x:", summary(run["unmarked_control_1x"]), flush=True)
+    save()
     lp = None if args.lpips == "none" else args.lpips
     cfg = EmbedConfig(background=bg, lpips_net=lp, weights=lpips_weights(lp))
     if args.epochs is not None:
         cfg.epochs = args.epochs
     t1 = time.perf_counter()
-    res = embed(g, train_set.cameras, message=message, num_bits=args.bits,
+    res = embed(g, train_set.cameras, message=message, num_bits=bits,
                 images=[im.to(dev) for im in train_set.images], config=cfg, progress=False)
-    out["embed"] = {"seconds": time.perf_counter() - t1, "gaussians": len(res.gaussians),
+    run["embed"] = {"seconds": time.perf_counter() - t1, "gaussians": len(res.gaussians),
                     "config": {"epochs": cfg.epochs, "lpips": lp, "fgd": cfg.fgd, "mask": cfg.mask},
                     "train_bit_accuracy": sum(res.bit_accuracy) / len(res.bit_accuracy),
                     "train_psnr": sum(res.psnr) / len(res.psnr)}
-    print(f"embedded in {out['embed']['seconds']:.1f} s, train-view bit accuracy "
-          f"{out['embed']['train_bit_accuracy']:.4f}", flush=True)
-    write(out, args.out)
-
+    print(f"k={bits} embedded in {run['embed']['seconds']:.1f} s, train-view bit accuracy "
+          f"{run['embed']['train_bit_accuracy']:.4f}", flush=True)
+    run |= {"scales": {}, "skipped_scales": []}
+    save()
     last: tuple[float, float] | None = None  # (scale, seconds) of the previous scale
     for s in args.scales:
         elapsed = time.perf_counter() - t0
-        if elapsed > args.max_seconds or (last is not None
-                                          and elapsed + last[1] * max(1.0, (s / last[0]) ** 2) > args.max_seconds):
-            out["skipped_scales"].append(s)
-            print(f"{s:g}x skipped (time budget: {elapsed:.0f} s spent of {args.max_seconds:.0f})", flush=True)
+        # the first scale is always measured (the JSON is saved after it); later ones only while they fit
+        if last is not None and (elapsed > args.max_seconds
+                                 or elapsed + last[1] * max(1.0, (s / last[0]) ** 2) > args.max_seconds):
+            run["skipped_scales"].append(s)
+            print(f"k={bits} {s:g}x skipped (time budget: {elapsed:.0f} s spent of {args.max_seconds:.0f})",
+                  flush=True)
             continue
         t2 = time.perf_counter()
         imgs = render(res.gaussians, [c.scaled(s) for c in cams], bg)
-        out["scales"][f"{s:g}x"] = evaluate(imgs, decoder, null, m, size)
+        run["scales"][f"{s:g}x"] = evaluate(imgs, decoder, null, m, size)
         del imgs
         last = (s, time.perf_counter() - t2)
-        out["scales"][f"{s:g}x"]["seconds"] = last[1]
-        print(f"{s:g}x ({last[1]:.1f} s):", summary(out["scales"][f"{s:g}x"]), flush=True)
-        out["seconds"] = time.perf_counter() - t0
-        write(out, args.out)
-    out["seconds"] = time.perf_counter() - t0
-    write(out, args.out)
-    print(f"done in {out['seconds']:.0f} s; wrote {args.out}")
+        run["scales"][f"{s:g}x"]["seconds"] = last[1]
+        print(f"k={bits} {s:g}x ({last[1]:.1f} s):", summary(run["scales"][f"{s:g}x"]), flush=True)
+        save()
+    return run["embed"]["seconds"]
 
 
 if __name__ == "__main__":
