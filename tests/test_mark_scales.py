@@ -183,3 +183,13 @@ def test_a_set_of_frames_read_enlarged_is_detected_with_the_scale_search():
     assert sc.p_values[:, 0] == pytest.approx([perfect / weight] * 10)
     assert sc.combined[0] == pytest.approx(harmonic * perfect / weight)
     assert sc.combined[0] <= DETECTION_FPR and all(p <= DETECTION_FPR for p in sc.p_values[:, 0])
+
+
+def test_reading_weights():
+    w = reading_weights(torch.tensor([0.2, 0.9, 0.9, 0.1]))  # the first of the most confident gets the share
+    assert w.sum() == pytest.approx(1.0) and w.argmax() == 1
+    assert w[1] == pytest.approx(CONFIDENT_SHARE + (1 - CONFIDENT_SHARE) / 4) and w[2] == pytest.approx(w[0])
+    assert reading_weights(np.array([3.0])).tolist() == [1.0]  # one reading (known size): no factor
+    for bad in (np.zeros(0), np.zeros((2, 2))):
+        with pytest.raises(ValueError, match="shape"):
+            reading_weights(bad)

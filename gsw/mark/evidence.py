@@ -125,8 +125,9 @@ def reading_weights(confidence: Tensor | np.ndarray) -> np.ndarray:
         [S] float64 weights summing to 1: ``(1 - CONFIDENT_SHARE) / S`` each, plus :data:`CONFIDENT_SHARE`
         on the most confident reading (the first among ties); ``[1.0]`` for one reading.
     """
-    c = confidence.detach().cpu().double().numpy() if isinstance(confidence, Tensor) else np.asarray(confidence,
-                                                                                                         np.float64)
+    if isinstance(confidence, Tensor):
+        confidence = confidence.detach().cpu().double().numpy()
+    c = np.asarray(confidence, dtype=np.float64)
     if c.ndim != 1 or c.shape[0] == 0:
         raise ValueError(f"confidence must have shape [S] with S >= 1, got {list(c.shape)}")
     w = np.full(c.shape[0], (1.0 - CONFIDENT_SHARE) / c.shape[0])
