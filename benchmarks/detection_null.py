@@ -12,8 +12,9 @@ HOLD-OUT data only (never used by ``benchmarks/calibrate_null.py``):
 
 Each image (set) is decoded once and tested against a pool of random messages (the same pool for every
 image), so one run holds tens of thousands of (image set, message) pairs.  Old: binomial(k, 1/2) p-value
-at the image as given, Fisher over frames.  New: :mod:`gsw.mark.evidence` (null model, scale search
-unless the size is known, Hommel over frames), computed from the same decoded bits.
+at the image as given, Fisher over frames.  New: :func:`gsw.mark.evidence.score_messages` -- the scoring
+rule of ``gsw.verify`` itself (null model with the reading direction of each reading, the scale search as
+a weighted Bonferroni unless the size is known, Hommel over frames) -- on the same readings.
 
 Power: the built-in scene watermarked with the ``gsw demo`` defaults (256 px, 24 views, 8 epochs, 32 bits,
 AlexNet LPIPS, seed 0; cached in ``--cache``), 24 held-out views rendered at 0.5x-3x the size (intrinsics
@@ -40,9 +41,9 @@ from gsw._atomic import atomic_write
 from gsw.decoder.null import load_null_model
 from gsw.decoder.pretrain.evaluation import max_dev_p_value
 from gsw.decoder.zoo import load_decoder
-from gsw.mark.scales import SEARCH_FACTORS, read_images
-from gsw.stats import (binomial_p_value, bonferroni_p_value, clopper_pearson, fisher_combined_p_value,
-                       hommel_combined_p_value)
+from gsw.mark.evidence import score_messages
+from gsw.mark.scales import SEARCH_FACTORS, Reading, read_images
+from gsw.stats import binomial_p_value, clopper_pearson, fisher_combined_p_value
 
 LEVELS = (1e-2, 1e-3, 1e-6)
 POWER_SCALES = (0.5, 1.0, 1.5, 2.0, 3.0)
@@ -123,10 +124,19 @@ def photo_sets(photos, n_sets: int, frames: int, long_side: int = 240) -> list[l
 
 
 # ------------------------------------------------------------------------------------------- p-values
-def readings_bits(images, decoder, *, embed_size=None, factors=SEARCH_FACTORS) -> list[np.ndarray]:
-    """[S_i, k] bits of every reading of each image."""
-    return [r.bits.numpy().astype(np.int8)
-            for r in read_images(images, decoder, embed_size=embed_size, factors=factors)]
+def readings_of(images, decoder, *, embed_size=None, factors=SEARCH_FACTORS) -> list[Reading]:
+    """Every reading of each image (reading 0: the image as given, or at its known size)."""
+    return read_images(images, decoder, embed_size=embed_size, factors=factors)
+
+
+def first_bits(readings: list[Reading]) -> np.ndarray:
+    """[N, k] bits of each image's first reading."""
+    return np.stack([r.bits[0].numpy().astype(np.int8) for r in readings])
+
+
+def as_given(r: Reading) -> Reading:
+    """The first reading alone (the image as given / at its known size: no search)."""
+    return Reading(r.factors[:1], r.sizes[:1], r.logits[:1])
 
 
 def match_counts(bits: np.ndarray, msgs: np.ndarray) -> np.ndarray:
@@ -139,13 +149,6 @@ def match_counts(bits: np.ndarray, msgs: np.ndarray) -> np.ndarray:
 def old_p(matches: np.ndarray, k: int) -> np.ndarray:
     table = np.array([binomial_p_value(x, k) for x in range(k + 1)])
     return table[matches]
-
-
-def new_p(matches: np.ndarray, tables: np.ndarray) -> np.ndarray:
-    """matches [..., S, M] (S readings) -> Bonferroni over readings -> [..., M]."""
-    p = np.take_along_axis(np.broadcast_to(tables, matches.shape[:-1] + tables.shape),
-                           matches[..., None], axis=-1)[..., 0]
-    return bonferroni_p_value(p, axis=-2)
 
 
 def fisher_sets(p: np.ndarray) -> np.ndarray:
@@ -163,25 +166,24 @@ def rates(p: np.ndarray) -> dict:
     return out
 
 
-def set_results(set_bits: list[np.ndarray], msgs: np.ndarray, tables: np.ndarray, k: int, size: int) -> dict:
-    """set_bits: per set [F, S, k] (reading 0 = the image as given). Sets of ``size`` frames: the disjoint
-    consecutive groups of each set."""
+def set_results(sets: list[list[Reading]], msgs: np.ndarray, null, k: int, size: int) -> dict:
+    """sets: per set, its frames' readings. Sets of ``size`` frames: the disjoint consecutive groups of each
+    set."""
     old, new = [], []
-    for bits in set_bits:
-        for start in range(0, bits.shape[0] - size + 1, size):
-            mt = match_counts(bits[start : start + size], msgs)  # [F, S, M]
-            old.append(fisher_sets(old_p(mt[:, 0], k)))
-            new.append(hommel_combined_p_value(new_p(mt, tables), axis=0))
+    for frames in sets:
+        for start in range(0, len(frames) - size + 1, size):
+            group = frames[start : start + size]
+            old.append(fisher_sets(old_p(match_counts(first_bits(group), msgs), k)))
+            new.append(score_messages(group, msgs, null).combined)
     return {"sets": len(old), "old": rates(np.concatenate(old)), "new": rates(np.concatenate(new))}
 
 
-def singles(bits: list[np.ndarray], msgs: np.ndarray, tables: np.ndarray, k: int) -> dict:
-    """bits: per image [S_i, k] (reading 0 = the image as given; renders: their known size)."""
-    mts = [match_counts(b, msgs) for b in bits]  # [S_i, M] each
-    out = {"images": len(bits), "old": rates(np.stack([old_p(mt[0], k) for mt in mts])),
-           "new_known_size": rates(np.stack([new_p(mt[:1], tables) for mt in mts]))}
-    if max(b.shape[0] for b in bits) > 1:
-        out["new_search"] = rates(np.stack([new_p(mt, tables) for mt in mts]))
+def singles(readings: list[Reading], msgs: np.ndarray, null, k: int) -> dict:
+    """readings: per image (reading 0 = the image as given; renders: their known size)."""
+    out = {"images": len(readings), "old": rates(old_p(match_counts(first_bits(readings), msgs), k)),
+           "new_known_size": rates(score_messages([as_given(r) for r in readings], msgs, null).p_values)}
+    if max(len(r.factors) for r in readings) > 1:
+        out["new_search"] = rates(score_messages(readings, msgs, null).p_values)
     return out
 
 
@@ -213,14 +215,13 @@ def aligned_messages(p1: np.ndarray, count: int, gen: np.random.Generator) -> np
     return out
 
 
-def aligned_singles(bits: list[np.ndarray], kinds: list[str], null, gen, k: int) -> dict:
+def aligned_singles(readings: list[Reading], kinds: list[str], null, gen, k: int) -> dict:
     """False positives of messages aligned with the biases of each held-out kind's calibration stratum."""
     out = {}
     for kind in sorted(set(kinds)):
         stratum = next(s for s in null.strata if s.name == f"{kind}/down")
         msgs = aligned_messages(stratum.p1, 100, gen)
-        tables = np.stack([null.tail_table(m) for m in msgs])
-        out[kind] = singles([b for b, kd in zip(bits, kinds) if kd == kind], msgs, tables, k)
+        out[kind] = singles([r for r, kd in zip(readings, kinds) if kd == kind], msgs, null, k)
     return out
 
 
@@ -250,29 +251,28 @@ def marked_demo(cache: Path):
 
 def power(decoder, null, cache: Path) -> dict:
     from gsw.scenes import default_cameras
+    from gsw.stats import hommel_combined_p_value
 
     g, msg, bg = marked_demo(cache)
     m = msg.numpy().astype(np.int8)
-    table = null.tail_table(m)[None]  # [1, k + 2]
     cams = default_cameras(24, 256, 256, azimuth_offset_deg=180.0 / 24)  # the demo's held-out views
     out = {}
     for s in POWER_SCALES:
         imgs = render_all(g, [c.scaled(s) for c in cams], bg)
         rs = read_images(imgs, decoder)
-        search = [r.bits.numpy().astype(np.int8) for r in rs]
-        known = readings_bits(imgs, decoder, embed_size=(256, 256))
-        mt_s = np.stack([match_counts(b, m[None]) for b in search])[..., 0]  # [V, S]
-        mt_k = np.stack([match_counts(b, m[None]) for b in known])[..., 0]  # [V, 1]
+        known = readings_of(imgs, decoder, embed_size=(256, 256))
+        mt_s = np.stack([match_counts(r.bits.numpy().astype(np.int8), m[None])[:, 0] for r in rs])  # [V, S]
         p_old = old_p(mt_s[:, 0], 32)
-        p_known = new_p(mt_k[..., None], table)[:, 0]
-        p_search = new_p(mt_s[..., None], table)[:, 0]
+        sc_known, sc_search = score_messages(known, m[None], null), score_messages(rs, m[None], null)
+        p_known, p_search = sc_known.p_values[:, 0], sc_search.p_values[:, 0]
         conf = [int(r.confidence.argmax()) for r in rs]
         best = [int(np.argmax(mt)) for mt in mt_s]
         sets = [[(i + j) % 24 for j in range(10)] for i in range(24)]  # 24 sets of 10 held-out views
         det = lambda p: float(np.mean(np.asarray(p) <= 1e-6))  # noqa: E731
         out[f"{s:g}x"] = {
             "size": list(imgs[0].shape[-2:]), "views": len(imgs),
-            "bit_acc_as_given": float(mt_s[:, 0].mean() / 32), "bit_acc_known_size": float(mt_k[:, 0].mean() / 32),
+            "bit_acc_as_given": float(mt_s[:, 0].mean() / 32),
+            "bit_acc_known_size": float(sc_known.matches[:, 0].mean() / 32),
             "bit_acc_search_best": float(mt_s.max(1).mean() / 32),
             "single": {"old": det(p_old), "new_known_size": det(p_known), "new_search": det(p_search)},
             "sets_of_10": {"old": det([fisher_combined_p_value(p_old[st]) for st in sets]),
@@ -281,7 +281,7 @@ def power(decoder, null, cache: Path) -> dict:
             "median_p": {"old": float(np.median(p_old)), "new_known_size": float(np.median(p_known)),
                          "new_search": float(np.median(p_search))},
             "factor_most_matches": {f"{rs[0].factors[i]:.3g}": best.count(i) for i in sorted(set(best))},
-            "most_confident_is_most_matches": float(np.mean([c == b for c, b in zip(conf, best)])),
+            "most_confident_is_most_matches": float(np.mean([mt[c] == mt.max() for c, mt in zip(conf, mt_s)])),
         }
         print(f"power {s}x: {out[f'{s:g}x']['single']} sets {out[f'{s:g}x']['sets_of_10']}", flush=True)
     return out
@@ -316,27 +316,26 @@ def main() -> None:
         t1 = time.perf_counter()
         decoder, null = load_decoder(k), load_null_model(k)
         msgs = gen.integers(0, 2, (args.messages, k)).astype(np.int8)
-        tables = np.stack([null.tail_table(m) for m in msgs])
         # 32 bits: the full scale search; other lengths: the images as given (known size), to save CPU time
-        pb = readings_bits([im for _, _, im in photos], decoder, factors=SEARCH_FACTORS if k == 32 else (1.0,))
+        pb = readings_of([im for _, _, im in photos], decoder, factors=SEARCH_FACTORS if k == 32 else (1.0,))
         kinds = [kd for _, kd, _ in photos]
-        r = {"photos": singles(pb, msgs, tables, k),
+        r = {"photos": singles(pb, msgs, null, k),
              "photos_aligned_messages": aligned_singles(pb, kinds, null, gen, k)}
         for kind in sorted(set(kinds)):
             stratum = next(s for s in null.strata if s.name == f"{kind}/down")
-            r[f"bias_{kind}"] = bias_test(np.stack([b[0] for b, kd in zip(pb, kinds) if kd == kind]), stratum)
+            r[f"bias_{kind}"] = bias_test(first_bits([rd for rd, kd in zip(pb, kinds) if kd == kind]), stratum)
         if k == 32:
-            rb = readings_bits(holdout_renders(args.data), decoder)
-            r["renders"] = singles(rb, msgs, tables, k)
+            rb = readings_of(holdout_renders(args.data), decoder)
+            r["renders"] = singles(rb, msgs, null, k)
             r["renders_aligned_messages"] = aligned_singles(rb, ["render"] * len(rb), null, gen, k)["render"]
-            r["bias_render"] = bias_test(np.stack([b[0] for b in rb]),
+            r["bias_render"] = bias_test(first_bits(rb),
                                          next(s for s in null.strata if s.name == "render/down"))
-            rsets = [np.stack(readings_bits(fr, decoder, embed_size=(256, 256)))
+            rsets = [readings_of(fr, decoder, embed_size=(256, 256))
                      for fr in render_sets(args.data, args.render_sets, 40)]
-            psets = [np.stack(readings_bits(fr, decoder)) for fr in photo_sets(photos, args.photo_sets, 40)]
+            psets = [readings_of(fr, decoder) for fr in photo_sets(photos, args.photo_sets, 40)]
             for size in (10, 40):
-                r[f"render_sets_{size}"] = set_results(rsets, msgs, tables, k, size)
-                r[f"photo_sets_{size}"] = set_results(psets, msgs, tables, k, size)
+                r[f"render_sets_{size}"] = set_results(rsets, msgs, null, k, size)
+                r[f"photo_sets_{size}"] = set_results(psets, msgs, null, k, size)
             if not args.no_power:
                 r["power"] = power(decoder, null, args.cache)
         r["seconds"] = round(time.perf_counter() - t1, 1)

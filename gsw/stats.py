@@ -135,14 +135,21 @@ def poisson_binomial_sf(q: ArrayLike, x: ArrayLike) -> np.ndarray:
 # ------------------------------------------------------------------------- combining dependent tests
 
 
-def bonferroni_p_value(p_values: ArrayLike, axis: int = -1) -> np.ndarray:
-    """``min(1, m * min_i p_i)`` over ``m`` p-values: valid under any dependence between them.
+def bonferroni_p_value(p_values: ArrayLike, axis: int = -1, weights: ArrayLike | None = None) -> np.ndarray:
+    """``min(1, min_i p_i / w_i)`` over ``m`` p-values (weighted Bonferroni): valid under any dependence
+    between them when the weights are non-negative, sum to at most 1 and are fixed -- or chosen from data
+    under which each p-value stays valid (``P(p_i <= t) <= t`` given the weights): then
+    ``P(min_i p_i / w_i <= a) <= sum_i w_i a <= a``.  Equal weights ``1 / m`` (the default) give
+    ``min(1, m * min_i p_i)``.
 
-    Used for the best of ``m`` readings of one image (:mod:`gsw.mark.scales`): the selection of the
-    smallest p-value is paid for by the factor ``m``.
+    Used for the best of ``m`` readings of one image (:mod:`gsw.mark.evidence`): the selection of the
+    smallest p-value is paid for by the weights.
 
     Args:
         p_values: [..., m, ...] p-values; ``axis`` is the one combined.
+        axis: the axis combined.
+        weights: [..., m, ...] broadcastable to ``p_values`` (the combined axis at the same place), summing
+            to at most 1 along ``axis``; None: ``1 / m`` each.
 
     Returns:
         the combined p-values, ``axis`` removed.
@@ -150,7 +157,14 @@ def bonferroni_p_value(p_values: ArrayLike, axis: int = -1) -> np.ndarray:
     p = np.asarray(p_values, dtype=np.float64)
     if p.ndim == 0 or p.shape[axis] == 0:
         raise ValueError("no p-values to combine")
-    return np.minimum(1.0, p.shape[axis] * p.min(axis=axis))
+    if weights is None:
+        return np.minimum(1.0, p.shape[axis] * p.min(axis=axis))
+    w = np.broadcast_to(np.asarray(weights, dtype=np.float64), p.shape)
+    if w.min() < 0.0 or np.any(w.sum(axis=axis) > 1.0 + 1e-9):
+        raise ValueError("Bonferroni weights must be >= 0 and sum to at most 1")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scaled = np.where(w > 0.0, p / np.where(w > 0.0, w, 1.0), np.inf)
+    return np.minimum(1.0, scaled.min(axis=axis))
 
 
 def hommel_combined_p_value(p_values: ArrayLike, axis: int = -1) -> np.ndarray:

@@ -9,26 +9,30 @@ import pytest
 import torch
 
 from gsw.decoder.null import NullModel, NullModelError
-from gsw.mark.evidence import assess
+from gsw.mark.evidence import CONFIDENT_SHARE, assess, reading_weights
 from gsw.mark.scales import MAX_READ_SIDE, MIN_READ_SIDE, SEARCH_FACTORS, read_images, read_plan
 from gsw.stats import binomial_p_value, hommel_combined_p_value
 
 
 class ScaleToy(torch.nn.Module):
     """A decoder that reads ``message`` only from images of height ``target`` and its complement from any
-    other height (a watermark that only the right scale reveals)."""
+    other height (a watermark that only the right scale reveals); ``confident``: the logits at ``target`` are
+    twice as large (the decoder's confidence peaks at the embedding scale), else all readings are equally
+    confident."""
 
-    def __init__(self, message: torch.Tensor, target: int) -> None:
+    def __init__(self, message: torch.Tensor, target: int, confident: bool = False) -> None:
         super().__init__()
         self.num_bits = message.numel()
         self.register_buffer("message", message.float())
         self.target = target
+        self.confident = confident
         self.seen: list[tuple[int, ...]] = []
 
     def decode_image(self, images: torch.Tensor) -> torch.Tensor:
         self.seen.append(tuple(images.shape))
-        code = self.message if images.shape[-2] == self.target else 1 - self.message
-        return (2 * code - 1).expand(images.shape[0], -1)
+        hit = images.shape[-2] == self.target
+        code = self.message if hit else 1 - self.message
+        return ((2 * code - 1) * (2.0 if hit and self.confident else 1.0)).expand(images.shape[0], -1)
 
     def parameters(self, recurse: bool = True):  # read_images asks for the device
         yield self.message
@@ -61,12 +65,16 @@ def test_read_images_batches_same_sizes():
 
 
 def test_scale_search_picks_the_embedding_scale_and_pays_for_the_search():
-    dec, null = ScaleToy(MSG, 128), NullModel.fair(32)
     img = torch.rand(3, 256, 256)  # a render at 2x the embedding resolution
-    ev = assess([img], MSG, num_bits=32, decoder=dec, null=null)
-    (e,) = ev.images
-    assert e.factor == 0.5 and e.read_size == (128, 128) and e.matches == 32 and e.readings == len(SEARCH_FACTORS)
-    assert e.p_value == pytest.approx(len(SEARCH_FACTORS) * 2.0**-32)
+    s = len(SEARCH_FACTORS)
+    for confident, weight in ((True, CONFIDENT_SHARE + (1 - CONFIDENT_SHARE) / s), (False, (1 - CONFIDENT_SHARE) / s)):
+        # the decoder's confidence points at the right reading (weight 0.6 of 5 readings) or at another one
+        dec, null = ScaleToy(MSG, 128, confident), NullModel.fair(32)
+        ev = assess([img], MSG, num_bits=32, decoder=dec, null=null)
+        (e,) = ev.images
+        assert e.factor == 0.5 and e.read_size == (128, 128) and e.matches == 32 and e.readings == s
+        assert e.p_value == pytest.approx(2.0**-32 / weight)
+    dec, null = ScaleToy(MSG, 128), NullModel.fair(32)
     known = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(128, 128))
     assert known.images[0].readings == 1 and known.p_value == pytest.approx(2.0**-32)
     wrong = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(256, 256))
@@ -139,7 +147,49 @@ def test_score_messages_is_the_null_model_p_value_of_every_message():
     msgs = gen.integers(0, 2, (6, 32)).astype(np.int8)
     sc = score_messages(readings, msgs, null)
     for j, m in enumerate(msgs):
-        per = [null.p_values(r.bits.numpy().astype(np.int8), m, np.asarray(r.factors)) for r in readings]
-        assert sc.p_values[:, j] == pytest.approx([min(1.0, 3 * p.min()) for p in per])
+        per = [null.p_values(r.bits.numpy().astype(np.int8), m, np.asarray(r.factors)) / reading_weights(r.confidence)
+               for r in readings]
+        assert sc.p_values[:, j] == pytest.approx([min(1.0, p.min()) for p in per])
         assert sc.chosen[:, j].tolist() == [int(np.argmin(p)) for p in per]
         assert sc.combined[j] == pytest.approx(float(hommel_combined_p_value(sc.p_values[:, j])))
+
+
+def test_a_set_of_frames_read_enlarged_is_detected_with_the_scale_search():
+    """Issue #22 anomaly (lego, renders at 0.5x: 400 px of an 800-px embedding): every frame read all 32
+    bits at factor 2 and passed 1e-6 alone, yet no set of 10 did, because the search paid the 5 readings
+    per frame before Hommel's factor (2.9 for 10) on the null model's p-value of 32 matches read enlarged.
+    The decoder's confidence points at that reading; it gets most of the level."""
+    from gsw.decoder.null import load_null_model
+    from gsw.mark.evidence import score_messages
+    from gsw.mark.message import random_message
+    from gsw.mark.scales import Reading
+    from gsw.stats import DETECTION_FPR
+
+    null = load_null_model(32)
+    msg = random_message(32, seed=2222).numpy().astype(np.int8)  # the lego run's message
+    plan = read_plan(400, 400)
+    assert [f for f, _ in plan] == list(SEARCH_FACTORS) and plan[-1][1] == (800, 800)
+    gen = torch.Generator().manual_seed(0)
+    readings = []
+    for _ in range(10):
+        logits = 0.3 * torch.randn(len(plan), 32, generator=gen)  # the other scales read noise
+        logits[-1] = 3.0 * (2 * torch.from_numpy(msg).float() - 1)  # factor 2: the message, confidently
+        readings.append(Reading([f for f, _ in plan], [s for _, s in plan], logits))
+    sc = score_messages(readings, msg[None], null)
+    weight = CONFIDENT_SHARE + (1 - CONFIDENT_SHARE) / len(plan)
+    perfect = null.tail_table(msg, "up")[32]
+    harmonic = sum(1 / i for i in range(1, 11))
+    assert sc.chosen[:, 0].tolist() == [len(plan) - 1] * 10 and sc.matches[:, 0].tolist() == [32] * 10
+    assert sc.p_values[:, 0] == pytest.approx([perfect / weight] * 10)
+    assert sc.combined[0] == pytest.approx(harmonic * perfect / weight)
+    assert sc.combined[0] <= DETECTION_FPR and all(p <= DETECTION_FPR for p in sc.p_values[:, 0])
+
+
+def test_reading_weights():
+    w = reading_weights(torch.tensor([0.2, 0.9, 0.9, 0.1]))  # the first of the most confident gets the share
+    assert w.sum() == pytest.approx(1.0) and w.argmax() == 1
+    assert w[1] == pytest.approx(CONFIDENT_SHARE + (1 - CONFIDENT_SHARE) / 4) and w[2] == pytest.approx(w[0])
+    assert reading_weights(np.array([3.0])).tolist() == [1.0]  # one reading (known size): no factor
+    for bad in (np.zeros(0), np.zeros((2, 2))):
+        with pytest.raises(ValueError, match="shape"):
+            reading_weights(bad)

@@ -101,3 +101,24 @@ def test_beta_and_clopper_pearson():
     assert 1 - regularized_beta(6, 95, hi) == pytest.approx(0.025, abs=1e-9)  # P(X <= 5 | hi) = 2.5 %
     with pytest.raises(ValueError, match="successes"):
         clopper_pearson(3, 2)
+
+
+def test_weighted_bonferroni_values_and_validity():
+    assert float(bonferroni_p_value([0.01, 0.5], weights=[0.5, 0.5])) == pytest.approx(0.02)
+    assert float(bonferroni_p_value([0.01, 0.002], weights=[0.9, 0.1])) == pytest.approx(0.01 / 0.9)
+    assert float(bonferroni_p_value([0.01, 0.5, 0.2], weights=[1 / 3] * 3)) == pytest.approx(
+        float(bonferroni_p_value([0.01, 0.5, 0.2])))
+    assert float(bonferroni_p_value([1e-9, 0.5], weights=[0.0, 1.0])) == 0.5  # weight 0: never chosen
+    assert bonferroni_p_value(np.full((5, 2), 0.01), axis=0, weights=np.full((5, 1), 0.2)).shape == (2,)
+    with pytest.raises(ValueError, match="sum to at most 1"):
+        bonferroni_p_value([0.1, 0.2], weights=[0.6, 0.6])
+    with pytest.raises(ValueError, match=">= 0"):
+        bonferroni_p_value([0.1, 0.2], weights=[-0.1, 0.5])
+    # weights chosen from data independent of the p-values (like the decoder's confidence on a random key)
+    rng = np.random.default_rng(2)
+    trials, m, level = 40000, 5, 1e-2
+    p = rng.uniform(size=(trials, m))
+    w = np.full((trials, m), 0.1)
+    w[np.arange(trials), rng.integers(0, m, trials)] += 0.5
+    se = math.sqrt(level * (1 - level) / trials)
+    assert _rate(bonferroni_p_value(p, weights=w), level) <= level + 3 * se

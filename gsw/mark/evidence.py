@@ -3,10 +3,22 @@
 For each image: read it at its scales (:func:`gsw.mark.scales.read_images`), the p-value of each reading
 under the decoder's null model (:meth:`gsw.decoder.null.NullModel.p_values`: Poisson-binomial with the
 measured per-bit rates, an upper confidence bound for their estimation error, never below the fair coin),
-the reading with the smallest p-value, multiplied by the number of readings (Bonferroni over the scale
-search; 1 reading and no factor when the embedding size is known).  Over images: Simes' combination with
-Hommel's correction (:func:`gsw.stats.hommel_combined_p_value`), valid for any dependence between the
-images, e.g. near-duplicate frames of one scene.
+the smallest p-value over the readings in a weighted Bonferroni (:func:`reading_weights`: half of the
+level on the most confident reading, chosen without the message, the other half split over all readings;
+1 reading and no factor when the embedding size is known).  Over images: Simes' combination with Hommel's
+correction (:func:`gsw.stats.hommel_combined_p_value`), valid for any dependence between the images, e.g.
+near-duplicate frames of one scene.
+
+Why the weights: the decoder's confidence (mean |logit|, :attr:`gsw.mark.scales.Reading.confidence`)
+peaks at the embedding scale on marked images, so the reading it picks usually carries the mark; giving
+it half of the level costs a factor ``1 / (1/2 + 1/(2S))`` (1.7 for 5 readings) instead of ``S`` when it
+is right and ``2S`` when it is wrong.  With ``S`` equal weights (plain Bonferroni), sets of frames that
+each read every bit at an enlarged scale could fall short of 1e-6 although each frame alone passed
+(``S`` x Hommel's factor x the null model's p-value of a perfect reading).  Validity: the weights are a
+function of the logits alone, not of the message, so for a uniformly random message (a key) every
+reading's matches stay Binomial(k, 1/2) whatever the weights; for a fixed message the null model has to
+describe the reading the confidence picks -- the same empirical claim as for any reading, checked on
+hold-out data (``benchmarks/detection_null.py``, BENCHMARKS.md).
 
 Example:
     >>> import torch
@@ -28,8 +40,11 @@ from gsw.decoder.null import NullModel, NullModelError, decoder_fingerprint, loa
 from gsw.mark.scales import SEARCH_FACTORS, Reading, read_images
 from gsw.stats import DETECTION_FPR, bonferroni_p_value, hommel_combined_p_value
 
-__all__ = ["Evidence", "ImageEvidence", "Scores", "assess", "message_bits", "resolve_null_model", "score_messages",
-           "shipped_null_model"]
+__all__ = ["CONFIDENT_SHARE", "Evidence", "ImageEvidence", "Scores", "assess", "message_bits", "reading_weights",
+           "resolve_null_model", "score_messages", "shipped_null_model"]
+
+#: Share of an image's level given to its most confident reading in the scale search (:func:`reading_weights`).
+CONFIDENT_SHARE = 0.5
 
 
 @dataclass
@@ -41,7 +56,7 @@ class ImageEvidence:
         matches: number of matching bits there.
         factor: resize factor of the chosen reading (1.0: the image as given).
         read_size: (height, width) the image was read at.
-        readings: number of readings tried (the Bonferroni factor in ``p_value``).
+        readings: number of readings tried (weighted Bonferroni over them, :func:`reading_weights`).
         p_value: the image's p-value, the scale search included.
     """
 
@@ -100,15 +115,35 @@ def message_bits(message: Tensor | Sequence[int] | np.ndarray, num_bits: int) ->
     return m.astype(np.int8)
 
 
+def reading_weights(confidence: Tensor | np.ndarray) -> np.ndarray:
+    """Weighted-Bonferroni weights of one image's readings (see the module docstring).
+
+    Args:
+        confidence: [S] the readings' message-free confidence (:attr:`gsw.mark.scales.Reading.confidence`).
+
+    Returns:
+        [S] float64 weights summing to 1: ``(1 - CONFIDENT_SHARE) / S`` each, plus :data:`CONFIDENT_SHARE`
+        on the most confident reading (the first among ties); ``[1.0]`` for one reading.
+    """
+    if isinstance(confidence, Tensor):
+        confidence = confidence.detach().cpu().double().numpy()
+    c = np.asarray(confidence, dtype=np.float64)
+    if c.ndim != 1 or c.shape[0] == 0:
+        raise ValueError(f"confidence must have shape [S] with S >= 1, got {list(c.shape)}")
+    w = np.full(c.shape[0], (1.0 - CONFIDENT_SHARE) / c.shape[0])
+    w[int(np.argmax(c))] += CONFIDENT_SHARE
+    return w
+
+
 @dataclass
 class Scores:
     """Images scored against M messages at once (:func:`score_messages`).
 
     Attributes:
-        p_values: [F, M] per image and message: the smallest p-value over the image's readings times their
-            number (Bonferroni over the scale search).
+        p_values: [F, M] per image and message: the weighted Bonferroni over the image's readings
+            (``min_s p_s / w_s``, :func:`reading_weights`).
         matches: [F, M] matching bits at the chosen reading.
-        chosen: [F, M] index of the chosen reading (the first among ties: factor 1 / the embedding size).
+        chosen: [F, M] index of the chosen reading (the smallest ``p_s / w_s``, the first among ties).
         combined: [M] Hommel combination over the F images, valid under any dependence between them.
     """
 
@@ -146,8 +181,9 @@ def score_messages(readings: Sequence[Reading], messages: np.ndarray, model: Nul
             raise ValueError(f"the decoder returned {bits.shape[-1]} bits, num_bits={k}")
         matches = bits @ msgs.T.astype(np.int32) + (1 - bits) @ (1 - msgs.T.astype(np.int32))  # [S, M]
         p = np.stack([table(reading_direction(f))[cols, row] for f, row in zip(r.factors, matches)])  # [S, M]
-        best = p.argmin(axis=0)  # first among ties
-        p_rows.append(bonferroni_p_value(p, axis=0))
+        w = reading_weights(r.confidence)[:, None]  # [S, 1]
+        best = (p / w).argmin(axis=0)  # first among ties
+        p_rows.append(bonferroni_p_value(p, axis=0, weights=w))
         match_rows.append(matches[best, cols])
         chosen_rows.append(best)
     p_values = np.stack(p_rows)
@@ -222,7 +258,9 @@ def assess(images: Tensor | Sequence[Tensor], message: Tensor | Sequence[int] | 
     if shipped:
         from gsw.decoder.zoo import load_decoder
 
-        decoder = load_decoder(num_bits)
+        first = images if isinstance(images, Tensor) else next(iter(images), None)
+        # decode where the images are (a GPU render stays on the GPU)
+        decoder = load_decoder(num_bits, device=first.device if isinstance(first, Tensor) else "cpu")
     out_bits = getattr(decoder, "num_bits", num_bits)
     if out_bits != num_bits:
         raise ValueError(f"the decoder reads {out_bits} bits, num_bits={num_bits}")

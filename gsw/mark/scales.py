@@ -8,8 +8,8 @@ that band.  Two ways to read an image:
   (:func:`read_plan` with ``embed_size``) and read once -- no search, no multiple-testing penalty;
 * **unknown**: the image is read at every factor of :data:`SEARCH_FACTORS` whose read fits
   :data:`MIN_READ_SIDE` .. :data:`MAX_READ_SIDE`; :mod:`gsw.mark.evidence` keeps the reading with the
-  smallest p-value and multiplies it by the number of readings (Bonferroni,
-  :func:`gsw.stats.bonferroni_p_value`).
+  smallest weighted p-value and pays for the search in a weighted Bonferroni
+  (:func:`gsw.mark.evidence.reading_weights`, :func:`gsw.stats.bonferroni_p_value`).
 
 Resizing is :func:`gsw.data.images.resize_image` (area averaging for integer downscales, antialiased
 bilinear otherwise, bilinear when enlarging).  Images of one shape are resized and decoded as one batch.
