@@ -21,6 +21,7 @@ from torch import Tensor
 
 from gsw.camera import Camera
 from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
+from gsw.fingerprint.stopping import EarlyStop
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import EmbedConfig
 
@@ -37,7 +38,9 @@ class RecipientReport:
         folder: its model folder.
         mark_id: its registry id.
         bit_accuracy, min_bit_accuracy, psnr, min_psnr: scores on the embedding views (embedded only).
-        seconds: its share of its batch's fine-tune time (embedded only).
+        seconds: its share of its pool's fine-tune time (embedded only).
+        steps: its optimisation steps (embedded only).
+        stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
     """
 
     name: str
@@ -49,6 +52,8 @@ class RecipientReport:
     psnr: float | None = None
     min_psnr: float | None = None
     seconds: float | None = None
+    steps: int | None = None
+    stopped_early: bool | None = None
 
 
 @dataclass
@@ -136,7 +141,7 @@ class _Writer:
             self.folder.mark_done(r.name, h, mark_id)
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
-                                                   r.seconds)
+                                                   r.seconds, r.steps, r.stopped_early)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
@@ -144,7 +149,8 @@ class _Writer:
 def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | os.PathLike | Sequence[Recipient | str],
                 output_dir: str | os.PathLike, registry: Any, *, num_bits: int = 32,
                 config: EmbedConfig | None = None, images: Sequence[Tensor] | None = None,
-                decoder: torch.nn.Module | None = None, batch_size: int = 4, device: str | torch.device | None = None,
+                decoder: torch.nn.Module | None = None, batch_size: int = 4, early_stop: EarlyStop | None = None,
+                task_size: int | None = None, device: str | torch.device | None = None,
                 use_ray: bool | None = None, address: str | None = None, gpus_per_task: float = 1.0,
                 max_retries: int = 3, progress: bool = True,
                 log: Callable[[str], None] | None = None) -> FingerprintReport:
@@ -160,7 +166,12 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         config: embedding settings (default :class:`~gsw.mark.embed.EmbedConfig`).
         images: optional training images for FGD phase 1.
         decoder: a custom decoder (default: the shipped one).
-        batch_size: recipients fine-tuned together on one device.
+        batch_size: recipients fine-tuned together on one device (the slots of a pool: a finished
+            recipient's slot is refilled with the next one, :mod:`gsw.fingerprint.batched`).
+        early_stop: per-recipient early stopping (:class:`~gsw.fingerprint.stopping.EarlyStop`); None: every
+            recipient runs ``config.epochs`` passes over the views.
+        task_size: recipients per Ray task (default: ``batch_size``); in one process all recipients go
+            through one pool.
         device: where to compute (default: :func:`gsw.device.resolve_device` "auto").
         use_ray: True: Ray tasks; False: this process; None: Ray when installed and there are several
             batches (or an ``address``).
@@ -184,8 +195,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     from gsw.registry import Registry, open_registry
 
     start = time.perf_counter()
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if batch_size < 1 or (task_size is not None and task_size < 1):
+        raise ValueError(f"batch_size and task_size must be >= 1, got {batch_size}, {task_size}")
     log = log or ((lambda text: print(f"gsw fingerprint: {text}", file=sys.stderr)) if progress else (lambda _t: None))
     cfg = config or EmbedConfig()
     people = _recipients(recipients)
@@ -195,14 +206,15 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
                        num_bits=num_bits)
     reg = registry if isinstance(registry, Registry) else open_registry(registry)
     try:
-        return _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, batch_size, dev, use_ray,
+        pool = dict(slots=batch_size, stop=early_stop, task_size=task_size or batch_size)
+        return _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, pool, dev, use_ray,
                     address, gpus_per_task, max_retries, progress, log, start)
     finally:
         if reg is not registry:
             reg.close()
 
 
-def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, batch_size, dev, use_ray, address,
+def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, pool, dev, use_ray, address,
          gpus_per_task, max_retries, progress, log, start) -> FingerprintReport:
     """The body of :func:`fingerprint` once the inputs are checked."""
     from gsw.fingerprint.run import run_local, run_ray
@@ -227,7 +239,8 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, ba
     timings: dict[str, float] = {}
     runner = "none"
     if todo:
-        batches = [[(r.name, r.message) for r in todo[i:i + batch_size]] for i in range(0, len(todo), batch_size)]
+        size = pool["task_size"]
+        batches = [[(r.name, r.message) for r in todo[i:i + size]] for i in range(0, len(todo), size)]
         runner = _choose_runner(use_ray, address, len(batches), log)
         t0 = time.perf_counter()
         shared = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
@@ -245,9 +258,10 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, ba
                     bar.update(len(results) * steps)
 
                 run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
-                        max_retries=max_retries)
+                        max_retries=max_retries, slots=pool["slots"], stop=pool["stop"])
             else:
-                run_local(shared, batches, str(dev), writer, on_step=bar.update)
+                run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
+                          stop=pool["stop"])
             timings["finetune"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return FingerprintReport([reports[p.name] for p in people], runner, folder.scene_hash, timings)
