@@ -68,6 +68,9 @@ class SlotParams:
         self.exp_avg = [torch.zeros_like(p) for p, _, _ in self.groups]
         self.exp_avg_sq = [torch.zeros_like(p) for p, _, _ in self.groups]
         self.steps = [0] * k
+        self._t = torch.zeros(k, dtype=torch.float64, device=self.dc.device)  # per-slot steps, on the device
+        self._key: tuple[int, ...] | None = None
+        self._on = torch.zeros(k, dtype=torch.bool, device=self.dc.device)
 
     def gaussians(self, j: int) -> Gaussians:
         """Slot ``j``'s current model (differentiable in its parameters)."""
@@ -86,28 +89,33 @@ class SlotParams:
             m[j].zero_()
             v[j].zero_()
         self.steps[j] = 0
+        self._t[j] = 0.0
 
     @torch.no_grad()
     def step(self, slots: Sequence[int]) -> None:
-        """One masked Adam step of the ``slots`` (the others keep their parameters); clears the gradients."""
+        """One masked Adam step of the ``slots`` (the others keep their parameters); clears the gradients.
+
+        The per-slot step counts and bias corrections live on the device (no host-to-device copy per step).
+        """
         for j in slots:
             self.steps[j] += 1
-        dev = self.dc.device
+        if self._key != tuple(slots):
+            self._key = tuple(slots)
+            self._on = torch.zeros(self.k, dtype=torch.bool, device=self.dc.device)
+            self._on[list(slots)] = True
         b1, b2 = _BETAS
-        on = torch.zeros(self.k, dtype=torch.float64)
-        bc1, bc2 = torch.ones(self.k, dtype=torch.float64), torch.ones(self.k, dtype=torch.float64)
-        for j in slots:
-            on[j], bc1[j], bc2[j] = 1.0, 1 - b1 ** self.steps[j], 1 - b2 ** self.steps[j]
+        self._t += self._on
+        inv_bc1 = torch.where(self._on, 1 / (1 - b1 ** self._t), 0.0).float()
+        root2 = torch.where(self._on, (1 - b2 ** self._t).sqrt(), 1.0).float()
         for (p, lr, mask), m, v in zip(self.groups, self.exp_avg, self.exp_avg_sq):
             if p.grad is None:
                 continue
             shape = (self.k,) + (1,) * (p.dim() - 1)
-            size = (-lr * on / bc1).to(dev, torch.float32, non_blocking=True).view(shape)
-            root2 = bc2.sqrt().to(dev, torch.float32, non_blocking=True).view(shape)
+            size = (-lr * inv_bc1).view(shape)
             m.lerp_(p.grad, 1 - b1)
             v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
             scale = size if mask is None else size * mask
-            p.addcdiv_(m * scale, (v.sqrt() / root2).add_(_EPS))
+            p.addcdiv_(m * scale, (v.sqrt() / root2.view(shape)).add_(_EPS))
             p.grad = None
 
 
@@ -216,6 +224,7 @@ class _Pool:
         self.slots: list[_Slot | None] = [None] * k
         self.cap = cfg.epochs * len(scene.shared.cameras)
         self.uniform = len({(c.width, c.height) for c in scene.shared.cameras}) == 1
+        self._cache: dict = {}
 
     def fill(self, j: int, index: int) -> None:
         self.params.reset(j)
@@ -223,6 +232,16 @@ class _Pool:
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
                               start=time.perf_counter())
+
+    def _indices(self, slots: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+        """The device index tensor of ``slots`` and their recipients' messages (cached while they stay)."""
+        key = (slots, tuple(self.slots[j].index for j in slots))
+        if key not in self._cache:
+            self._cache.clear()
+            dev = self.messages.device
+            self._cache[key] = (torch.tensor(slots, device=dev),
+                                self.messages[torch.tensor(list(key[1]), device=dev)])
+        return self._cache[key]
 
     def active(self) -> list[int]:
         return [j for j, s in enumerate(self.slots) if s is not None]
@@ -251,11 +270,9 @@ class _Pool:
             r = torch.stack([renders[i] for i in g])
             t = torch.stack([targets[i] for i in g])
             d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
-            idx = torch.tensor([slots[i] for i in g], device=r.device)
-            msgs = self.messages[torch.tensor([self.slots[slots[i]].index for i in g], device=r.device)]
+            idx, msgs = self._indices(tuple(slots[i] for i in g))
             part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx])
-            self.monitor.observe([slots[i] for i in g], logits, msgs, r, t,
-                                 torch.tensor([self.params.steps[slots[i]] == 0 for i in g], device=r.device))
+            self.monitor.observe(idx, logits, msgs, r, t)
             total = total + part
         total.backward()
         self.params.step(slots)

@@ -2,10 +2,10 @@
 
 Flow: check the recipients, the output folder (:class:`~gsw.fingerprint.store.JobFolder`) and the registry
 before any work; skip finished recipients; run the once-per-scene work (FGD) once
-(:func:`~gsw.fingerprint.shared.prepare_scene`); fine-tune the others in batches
+(:func:`~gsw.fingerprint.shared.prepare_scene`); fine-tune the others in a pool of slots
 (:mod:`gsw.fingerprint.batched`) in this process or as Ray tasks (:mod:`gsw.fingerprint.run`); for every
-finished batch, in this process: write each copy's folder atomically, register the batch in one
-transaction, then write each completion marker.
+finished copy, in this process: write its folder atomically (on a writer thread while the fine-tunes go
+on), register it, then write its completion marker.
 """
 
 from __future__ import annotations
@@ -113,26 +113,52 @@ def _choose_runner(use_ray: bool | None, address: str | None, batches: int, log:
 
 
 class _Writer:
-    """The one writer: copies, registry records and completion markers, batch by batch."""
+    """The one writer: copies, registry records and completion markers.
+
+    Each copy's folder is written (atomically) on one background thread while the fine-tunes go on; once
+    written, it is registered and marked complete in the calling thread (the registry's), at the next call,
+    or at :meth:`flush`. The order per recipient stays: folder, registry record, completion marker.
+    """
 
     def __init__(self, folder, registry, shared, record: dict, reports: dict, bar) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
         self.folder, self.registry, self.shared, self.record, self.reports, self.bar = (
             folder, registry, shared, record, reports, bar)
         self.messages: dict[str, str] = {}
-        self.steps = shared.config.epochs * len(shared.cameras)
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gsw-fingerprint-writer")
+        self.pending: list = []  # (result, future of its model hash)
 
-    def __call__(self, results: list) -> None:
+    def _write(self, r) -> str:
         from gsw.cli.metadata import watermark_record
 
+        cams, cfg = self.shared.cameras, self.shared.config
+        stats = dict(self.shared.stats, mean_bit_accuracy=r.bit_accuracy, mean_psnr=r.psnr, steps=r.steps)
+        rec = watermark_record(num_bits=self.shared.num_bits, background=cfg.background, cameras=cams, config=cfg,
+                               stats=stats, decoder=self.record["decoder"])
+        return self.folder.write_copy(r.name, r.gaussians, cams, rec)
+
+    def __call__(self, results: list) -> None:
+        self.pending += [(r, self.pool.submit(self._write, r)) for r in results]
+        self._register(wait=False)
+
+    def flush(self) -> None:
+        """Waits for every copy and registers it; stops the thread."""
+        try:
+            self._register(wait=True)
+        finally:
+            self.pool.shutdown(wait=True)
+
+    def _register(self, wait: bool) -> None:
+        ready = [(r, f) for r, f in self.pending if wait or f.done()]
+        if not ready:
+            return
+        self.pending = [(r, f) for r, f in self.pending if not (wait or f.done())]
         cams, cfg, k = self.shared.cameras, self.shared.config, self.shared.num_bits
         sizes = {(c.width, c.height) for c in cams}
         width, height = next(iter(sizes)) if len(sizes) == 1 else (None, None)
-        hashes = []
-        for r in results:
-            stats = dict(self.shared.stats, mean_bit_accuracy=r.bit_accuracy, mean_psnr=r.psnr)
-            rec = watermark_record(num_bits=k, background=cfg.background, cameras=cams, config=cfg, stats=stats,
-                                   decoder=self.record["decoder"])
-            hashes.append(self.folder.write_copy(r.name, r.gaussians, cams, rec))
+        hashes = [f.result() for _, f in ready]  # re-raises a failed write
+        results = [r for r, _ in ready]
         ids = self.registry.add_many([dict(label=r.name, message=self.messages[r.name], num_bits=k,
                                            decoder_sha256=self.shared.decoder_sha256, model_hash=h, width=width,
                                            height=height, background=cfg.background)
@@ -252,16 +278,19 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
                              bar)
             writer.messages = {r.name: r.message for r in todo}
             t0 = time.perf_counter()
-            if runner == "ray":
-                def on_result(results: list) -> None:
-                    writer(results)
-                    bar.update(len(results) * steps)
+            try:
+                if runner == "ray":
+                    def on_result(results: list) -> None:
+                        writer(results)
+                        bar.update(len(results) * steps)
 
-                run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
-                        max_retries=max_retries, slots=pool["slots"], stop=pool["stop"])
-            else:
-                run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
-                          stop=pool["stop"])
+                    run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
+                            max_retries=max_retries, slots=pool["slots"], stop=pool["stop"])
+                else:
+                    run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
+                              stop=pool["stop"])
+            finally:
+                writer.flush()  # the copies finished so far are registered even when a batch failed
             timings["finetune"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return FingerprintReport([reports[p.name] for p in people], runner, folder.scene_hash, timings)

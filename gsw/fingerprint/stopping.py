@@ -17,7 +17,6 @@ The statistics stay on the device; the host reads them every ``check_every`` ste
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -99,36 +98,37 @@ class SlotMonitor:
         self.streak = torch.zeros(k, device=device)
         self.psnr = torch.zeros(k, device=device)
         self.weights = torch.full((k,), self.weight, device=device)
+        self.count = torch.zeros(k, device=device)  # steps observed per slot
         self.alpha = 2.0 / ((rule.window if rule else 16) + 1)
 
     def reset(self, j: int) -> None:
         """Slot ``j`` holds a new recipient."""
         self.streak[j] = 0.0
         self.psnr[j] = 0.0
+        self.count[j] = 0.0
         self.weights[j] = self.weight
 
     @torch.no_grad()
-    def observe(self, slots: list[int], logits: Tensor, messages: Tensor, renders: Tensor, targets: Tensor,
-                first: Tensor) -> None:
+    def observe(self, slots: Tensor, logits: Tensor, messages: Tensor, renders: Tensor, targets: Tensor) -> None:
         """Records one step of the ``slots`` (no host synchronisation).
 
         Args:
-            slots: the active slots, in the order of the batch.
+            slots: [B] the active slots (device indices), in the order of the batch.
             logits: [B, k] decoder logits of their renders.
             messages: [B, k] their bits.
             renders: [B, 3, H, W] their renders.
             targets: [B, 3, H, W] the original renders.
-            first: [B] bool, True for a recipient's first step (the running PSNR starts there).
         """
         if self.rule is None:
             return
-        idx = torch.tensor(slots, device=self.streak.device)
         signed = logits.detach() * (2 * messages - 1)
         ok = (signed >= max(self.rule.margin, 1e-12)).all(dim=1).float()
-        self.streak[idx] = (self.streak[idx] + 1) * ok
+        self.streak[slots] = (self.streak[slots] + 1) * ok
         mse = (renders.detach().clamp(0, 1) - targets.clamp(0, 1)).square().mean(dim=(1, 2, 3))
         p = -10 * torch.log10(mse.clamp_min(1e-12))
-        self.psnr[idx] = torch.where(first, p, (1 - self.alpha) * self.psnr[idx] + self.alpha * p)
+        first = self.count[slots] == 0
+        self.psnr[slots] = torch.where(first, p, (1 - self.alpha) * self.psnr[slots] + self.alpha * p)
+        self.count[slots] += 1
 
     def decide(self, steps: list[int], active: list[bool], cap: int) -> list[int]:
         """The active slots that finish now (one host synchronisation); adjusts the message weights.
@@ -163,4 +163,4 @@ class SlotMonitor:
     def state(self, j: int) -> dict[str, float]:
         """Slot ``j``'s statistics (host values, for the report)."""
         return {"streak": float(self.streak[j]), "train_psnr": float(self.psnr[j]),
-                "message_weight": float(self.weights[j]) if math.isfinite(float(self.weights[j])) else self.weight}
+                "message_weight": float(self.weights[j])}
