@@ -78,6 +78,15 @@ class SlotParams:
         return Gaussians(means, self.log_scales[j], self.quats[j], self.logits[j],
                          torch.cat([self.dc[j], self.rest[j]], dim=1))
 
+    def slot_models(self, slots: Sequence[int]) -> list[Gaussians]:
+        """The current models of ``slots``, differentiable, through one ``unbind`` per parameter tensor (its
+        backward stacks the slots' gradients once instead of one full-size gradient per indexed slot)."""
+        dc, rest, logits, scales, quats = (t.unbind(0) for t in (self.dc, self.rest, self.logits, self.log_scales,
+                                                                 self.quats))
+        means = self.means.unbind(0) if self.means.dim() == 3 else None
+        return [Gaussians(self.means if means is None else means[j], scales[j], quats[j], logits[j],
+                          torch.cat([dc[j], rest[j]], dim=1)) for j in slots]
+
     @torch.no_grad()
     def reset(self, j: int) -> None:
         """Slot ``j`` starts over: the starting parameters, zero Adam moments, step 0."""
@@ -260,8 +269,8 @@ class _Pool:
         cams, originals, bg = self.scene.shared.cameras, self.scene.originals, self.cfg.background
         slots = self.active()
         views = [self.slots[j].next_view(len(cams)) for j in slots]
-        renders = [rasterize(self.params.gaussians(j), cams[v], background=bg, validate=False).image
-                   for j, v in zip(slots, views)]
+        renders = [rasterize(g, cams[v], background=bg, validate=False).image
+                   for g, v in zip(self.params.slot_models(slots), views)]
         decoded = [self._decoder_input(self.slots[j], r) for j, r in zip(slots, renders)]
         targets = [originals[v] for v in views]
         groups = [list(range(len(slots)))] if self.uniform else [[i] for i in range(len(slots))]
