@@ -59,8 +59,9 @@ def _train_lego(args, dev):
     from gsw.data.loaders import load_nerf_synthetic
     from gsw.train import TrainConfig, train
 
-    train_set = load_nerf_synthetic(args.data, "train", background=(1.0, 1.0, 1.0))
-    test_set = load_nerf_synthetic(args.data, "test", background=(1.0, 1.0, 1.0))
+    down = 800 / args.size
+    train_set = load_nerf_synthetic(args.data, "train", downscale=down, background=(1.0, 1.0, 1.0))
+    test_set = load_nerf_synthetic(args.data, "test", downscale=down, background=(1.0, 1.0, 1.0))
     t0 = time.perf_counter()
     cfg = TrainConfig(max_train_time_s=args.train_seconds, device=str(dev), seed=0)  # INRIA recipe, cut by time
     res = train(train_set, config=cfg, progress=False, test_set=test_set, background=(1.0, 1.0, 1.0))
@@ -84,8 +85,8 @@ def _scene(args, dev):
     from gsw.data import load_inria_model, load_nerf_synthetic
 
     model = load_inria_model(args.model)
-    train = load_nerf_synthetic(args.data, "train")
-    test = load_nerf_synthetic(args.data, "test")
+    train = load_nerf_synthetic(args.data, "train", downscale=800 / args.size)
+    test = load_nerf_synthetic(args.data, "test", downscale=800 / args.size)
     return (model.gaussians.to(dev), train.cameras, test.cameras, (1.0, 1.0, 1.0),
             [im.to(dev) for im in train.images], None)
 
@@ -254,7 +255,7 @@ def main() -> int:
     ap.add_argument("--model", help="lego INRIA model folder (default: train one for --train-seconds)")
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "lego"))
     ap.add_argument("--train-seconds", type=float, default=60.0, help="lego training time without --model")
-    ap.add_argument("--size", type=int, default=256, help="builtin: render size")
+    ap.add_argument("--size", type=int, default=None, help="render size (default: builtin 256, lego 800)")
     ap.add_argument("--views", type=int, default=24, help="builtin: embedding views")
     ap.add_argument("--held-out", type=int, default=8, help="builtin: held-out views (between the embedding views)")
     ap.add_argument("--bits", type=int, default=32)
@@ -270,6 +271,7 @@ def main() -> int:
     ap.add_argument("--tag", default=None)
     ap.add_argument("--out", default=None, help="result folder (default benchmarks/results)")
     args = ap.parse_args()
+    args.size = args.size or (800 if args.scene == "lego" else 256)
     settings = [parse_setting(s) for s in (args.setting or (LEGO_SWEEP if args.scene == "lego" else BUILTIN_SWEEP))]
     dev = resolve_device(args.device)
     t_start = time.perf_counter()
