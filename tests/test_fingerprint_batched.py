@@ -131,6 +131,10 @@ def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     copy = finetune_batch(ws, ["x"], torch.ones(1, 32), stop=rule)[0]
     assert copy.steps == 6 and not copy.stopped_early  # the PSNR target is out of reach
     assert copy.message_weight == pytest.approx(cfg.weights.message / 4)  # lowered down to its bound
+    # PSNR above the target but bits that never pass: the weight goes back up, never above the configured one
+    easy = EarlyStop(min_steps=1, window=1, check_every=1, psnr_target=-100.0, adapt=2.0)
+    stuck = finetune_batch(ws, ["y"], torch.zeros(1, 32), stop=easy)[0]
+    assert stuck.steps == 6 and stuck.message_weight == pytest.approx(cfg.weights.message)
 
 
 def test_early_stop_settings() -> None:

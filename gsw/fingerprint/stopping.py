@@ -9,8 +9,9 @@ that target. A recipient that reaches the step cap (``EmbedConfig.epochs`` passe
 there, as without early stopping.
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
-by ``adapt`` while its running PSNR is below the target, multiplied by ``adapt`` while the PSNR is above it
-and its bits do not pass yet (within ``[w / max_factor, w * max_factor]`` of the configured weight ``w``).
+by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
+``w``), multiplied by ``adapt`` while the PSNR is above it and its bits do not pass yet (up to ``w``: the
+control only ever lowers the configured recipe's weight).
 
 The statistics stay on the device; the host reads them every ``check_every`` steps (one synchronisation).
 """
@@ -36,7 +37,7 @@ class EarlyStop:
         check_every: steps between decisions (host synchronisations).
         psnr_target: running training-view PSNR (dB) also required to finish; None: no PSNR condition.
         adapt: per-check factor of the message-weight control (1: off; needs ``psnr_target``).
-        max_factor: bound of the controlled weight relative to the configured one.
+        max_factor: the controlled weight stays >= the configured one / ``max_factor``.
     """
 
     min_steps: int = 100
@@ -157,10 +158,5 @@ class SlotMonitor:
         return sorted(done)
 
     def _scale(self, j: int, factor: float) -> None:
-        lo, hi = self.weight / self.rule.max_factor, self.weight * self.rule.max_factor
+        lo, hi = self.weight / self.rule.max_factor, self.weight
         self.weights[j] = float(min(hi, max(lo, float(self.weights[j]) * factor)))
-
-    def state(self, j: int) -> dict[str, float]:
-        """Slot ``j``'s statistics (host values, for the report)."""
-        return {"streak": float(self.streak[j]), "train_psnr": float(self.psnr[j]),
-                "message_weight": float(self.weights[j])}
