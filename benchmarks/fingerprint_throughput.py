@@ -42,8 +42,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: does), so settings differ in quality only through the stopping rule and the message weight.
 LEGO_SWEEP = [
     "k=8 n=12 stop=min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25",
-    "k=8 n=12 stop=min_steps=96,window=16,margin=1",
     "k=16 n=24 stop=min_steps=96,window=24,margin=2,psnr_target=37.4,adapt=1.25",
+    "k=8 n=12 stop=min_steps=96,window=16,margin=1",
     "k=8 n=12 mw=0.1 stop=min_steps=96,window=16,margin=1",
     "k=8 n=8 stop=none",
 ]
@@ -136,7 +136,8 @@ def _summary(rows: list[dict]) -> dict:
     steps = [r["steps"] for r in rows]
     return dict(recipients=len(rows), mean_bit_accuracy=sum(means) / len(means), min_recipient_bit_accuracy=min(means),
                 min_view_bit_accuracy=min(min(r["held_out_bits"]) for r in rows), mean_psnr=sum(ps) / len(ps),
-                min_recipient_psnr=min(ps), psnr_quartiles=_quartiles(ps), meeting_99_and_37=sum(m >= 0.99 and p >= 37 for m, p in zip(means, ps)),
+                min_recipient_psnr=min(ps), psnr_quartiles=_quartiles(ps),
+                meeting_99_and_37=sum(m >= 0.99 and p >= 37 for m, p in zip(means, ps)),
                 meeting_99=sum(m >= 0.99 for m in means), meeting_37=sum(p >= 37 for p in ps),
                 mean_steps=sum(steps) / len(steps), min_steps=min(steps), max_steps=max(steps),
                 stopped_early=sum(bool(r["stopped_early"]) for r in rows))
@@ -294,7 +295,13 @@ def main() -> int:
             print(f"budget reached: skipping {s['text']!r}", flush=True)
             res.setdefault("skipped", []).append(s["text"])
             continue
-        res["sweep"].append(run_setting(args, dev, g, cams, held, held_orig, bg, images, s))
+        try:
+            res["sweep"].append(run_setting(args, dev, g, cams, held, held_orig, bg, images, s))
+        except Exception as err:  # e.g. out of memory at a large K: record it, go on with the next setting
+            print(f"setting {s['text']!r} failed: {err!r}", flush=True)
+            res["sweep"].append(dict(setting=s["text"], error=repr(err)))
+            if dev.type == "cuda":
+                torch.cuda.empty_cache()
         res["elapsed_s"] = time.perf_counter() - t_start
         _write(args, dev, res)
     if args.baseline:

@@ -15,6 +15,7 @@ slot is refilled with the next recipient (a fresh copy of the starting parameter
 
 from __future__ import annotations
 
+import functools
 import random
 import time
 from dataclasses import dataclass, field
@@ -30,6 +31,11 @@ from gsw.mark.embed import EmbedConfig
 __all__ = ["SlotParams", "CopyResult", "batched_loss", "finetune_batch"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
+
+
+def _stack(t: Tensor, k: int) -> Tensor:
+    """``k`` stacked copies of ``t`` as a new leaf that requires grad: [k, *t.shape]."""
+    return t.detach().unsqueeze(0).repeat(k, *([1] * t.dim())).contiguous().requires_grad_()
 
 
 class SlotParams:
@@ -49,7 +55,7 @@ class SlotParams:
         from gsw.mark.mask import exp_mask, stega_mask
 
         self.k, self.model = k, model.detach()
-        stack = lambda t: t.detach().unsqueeze(0).repeat(k, *([1] * t.dim())).contiguous().requires_grad_()  # noqa: E731
+        stack = functools.partial(_stack, k=k)
         self.means = stack(model.means) if cfg.lr_position > 0 else self.model.means
         self.dc = stack(model.sh[:, :1])  # [K, N, 1, 3]
         self.rest = stack(model.sh[:, 1:])  # [K, N, C-1, 3]
