@@ -36,7 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--output", required=True, help="the job's folder (new, or this scene's earlier job)")
     fp.add_argument("--registry", help=REGISTRY_HELP)
     add_bits_option(fp, 32, "message length (default: %(default)s)")
-    fp.add_argument("--batch", type=positive_int, default=4, help="recipients fine-tuned together (default %(default)s)")
+    fp.add_argument("--batch", type=positive_int, default=4,
+                    help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
     fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
                          "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X' "
