@@ -41,10 +41,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The lego sweep, most informative first. A recipient's optimisation does not depend on K (only the time
 #: does), so settings differ in quality only through the stopping rule and the message weight.
 LEGO_SWEEP = [
-    "k=8 n=12 stop=min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25",
-    "k=16 n=24 stop=min_steps=96,window=24,margin=2,psnr_target=37.4,adapt=1.25",
+    "k=8 n=12 stop=min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998",
+    "k=16 n=24 stop=min_steps=96,window=24,margin=2,psnr_target=37.4,adapt=1.25,confirm=0.998",
     "k=8 n=12 stop=min_steps=96,window=16,margin=1",
-    "k=8 n=12 mw=0.1 stop=min_steps=96,window=16,margin=1",
+    "k=8 n=12 mw=0.1 stop=min_steps=96,window=16,margin=1,confirm=0.998",
     "k=8 n=8 stop=none",
 ]
 BUILTIN_SWEEP = ["k=4 n=8 stop=none", "k=4 n=8 stop=min_steps=48,window=8,margin=1"]

@@ -122,6 +122,34 @@ def test_early_stopping_finishes_and_refills() -> None:
     assert strict[0].steps == 12 and not strict[0].stopped_early
 
 
+class _RightInBatches(_Confident):
+    """Reads bit 0 as 0 (logit -4) when it decodes a single image: the training steps of two slots pass,
+    the score of a finished copy (one view at a time) has 31 of 32 bits of a message of ones."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias.data.fill_(4.0)  # other weights than _Confident's: another decoder for the worker-scene cache
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        out = super().forward(ll)
+        return out if ll.shape[0] > 1 else torch.cat([-out[:, :1], out[:, 1:]], dim=1)
+
+
+def test_confirmation_on_the_embedding_views() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_RightInBatches()), "cpu")
+    ones = torch.ones(2, 32)
+    strict = EarlyStop(min_steps=4, window=2, check_every=2, confirm=1.0)
+    assert [(c.steps, c.stopped_early) for c in finetune_batch(ws, ["a", "b"], ones, stop=strict)] == [(12, False)] * 2
+    lenient = EarlyStop(min_steps=4, window=2, check_every=2, confirm=0.95)
+    copies = finetune_batch(ws, ["a", "b"], ones, stop=lenient)
+    assert [(c.steps, c.stopped_early, c.bit_accuracy) for c in copies] == [(4, True, 31 / 32)] * 2
+    assert strict.confirmed(1.0, 20.0) and not strict.confirmed(0.99, 50.0)
+    assert not EarlyStop(psnr_target=37.0).confirmed(1.0, 36.9)
+
+
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
@@ -141,8 +169,9 @@ def test_early_stop_settings() -> None:
     rule = EarlyStop.parse("min_steps=50, window=8,margin=1.5,psnr_target=37,adapt=1.2")
     assert (rule.min_steps, rule.window, rule.margin, rule.psnr_target, rule.adapt) == (50, 8, 1.5, 37.0, 1.2)
     assert EarlyStop.parse("psnr_target=none").psnr_target is None
+    assert EarlyStop.parse("confirm=0.998").confirm == 0.998
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
-                       ("adapt=1.5", "psnr_target")]:
+                       ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
 

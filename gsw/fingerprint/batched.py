@@ -329,6 +329,8 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         occupied = [s is not None for s in pool.slots]
         for j in pool.monitor.decide(list(steps), occupied, pool.cap):
             result = _finish(pool, j, names, k)
+            if result is None:  # early, but its copy failed the confirmation on the embedding views: go on
+                continue
             results[result[0]] = result[1]
             if on_step is not None and pool.cap > result[1].steps:
                 on_step(pool.cap - result[1].steps)
@@ -340,13 +342,18 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
     return [results[i] for i in range(len(names))]
 
 
-def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult]:
-    """Slot ``j``'s copy, scored on the embedding views."""
+def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | None:
+    """Slot ``j``'s copy, scored on the embedding views; None when it stops early and the score fails the
+    rule's confirmation (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`)."""
     slot = pool.slots[j]
     steps = pool.params.steps[j]
     with torch.no_grad():
         copy = pool.params.gaussians(j).detach().clone()
     acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
+    rule = pool.monitor.rule
+    if steps < pool.cap and rule is not None and not rule.confirmed(acc, ps):
+        pool.monitor.refuse(j)
+        return None
     weight = float(pool.monitor.weights[j])
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
                                   (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight)

@@ -5,7 +5,9 @@ already decodes for the loss), never from other views: a recipient is *passing* 
 reads every bit of that step's render right with ``|logit| >= margin``; it finishes once it has passed on
 ``window`` consecutive steps (each a different shuffled embedding view), after at least ``min_steps`` steps,
 and, with a ``psnr_target``, once the running PSNR of its renders against the original renders is at least
-that target. A recipient that reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes
+that target; then its copy is scored on every embedding view (as every finished copy is) and, with
+``confirm``, kept only when that score reaches ``confirm`` bit accuracy (and the PSNR target), else the
+recipient goes on and needs twice as many consecutive passing steps for its next attempt. A recipient that reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes
 there, as without early stopping.
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
@@ -38,6 +40,9 @@ class EarlyStop:
         psnr_target: running training-view PSNR (dB) also required to finish; None: no PSNR condition.
         adapt: per-check factor of the message-weight control (1: off; needs ``psnr_target``).
         max_factor: the controlled weight stays >= the configured one / ``max_factor``.
+        confirm: before a recipient stops early, its copy is scored on every embedding view (as every finished
+            copy is); it stops only when the mean bit accuracy there is >= ``confirm`` (and the mean PSNR >=
+            ``psnr_target`` when given), else its streak starts over. 0: no condition on the bits.
     """
 
     min_steps: int = 100
@@ -47,17 +52,24 @@ class EarlyStop:
     psnr_target: float | None = None
     adapt: float = 1.0
     max_factor: float = 4.0
+    confirm: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"EarlyStop.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.confirm <= 1.0:
+            raise ValueError(f"EarlyStop.confirm is a bit accuracy in [0, 1], got {self.confirm}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
             raise ValueError(f"EarlyStop.adapt and max_factor must be >= 1, got {self.adapt}, {self.max_factor}")
         if self.adapt > 1 and self.psnr_target is None:
             raise ValueError("EarlyStop.adapt > 1 steers the message weight towards psnr_target: give one")
+
+    def confirmed(self, bit_accuracy: float, psnr: float) -> bool:
+        """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early."""
+        return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
 
     @classmethod
     def parse(cls, text: str) -> "EarlyStop":
@@ -100,6 +112,7 @@ class SlotMonitor:
         self.psnr = torch.zeros(k, device=device)
         self.weights = torch.full((k,), self.weight, device=device)
         self.count = torch.zeros(k, device=device)  # steps observed per slot
+        self.rejections = [0] * k  # early stops refused by the confirmation, per slot
         self.alpha = 2.0 / ((rule.window if rule else 16) + 1)
 
     def reset(self, j: int) -> None:
@@ -107,6 +120,7 @@ class SlotMonitor:
         self.streak[j] = 0.0
         self.psnr[j] = 0.0
         self.count[j] = 0.0
+        self.rejections[j] = 0
         self.weights[j] = self.weight
 
     @torch.no_grad()
@@ -147,7 +161,7 @@ class SlotMonitor:
         for j, (s, a) in enumerate(zip(steps, active)):
             if not a or j in done:
                 continue
-            bits_ok = streak[j] >= rule.window
+            bits_ok = streak[j] >= rule.window * 2 ** self.rejections[j]  # each refusal doubles the window
             psnr_ok = rule.psnr_target is None or psnr[j] >= rule.psnr_target
             if s >= rule.min_steps and bits_ok and psnr_ok:
                 done.append(j)
@@ -156,6 +170,12 @@ class SlotMonitor:
             elif rule.adapt > 1 and not bits_ok:
                 self._scale(j, rule.adapt)
         return sorted(done)
+
+    def refuse(self, j: int) -> None:
+        """Slot ``j``'s early stop was refused (:meth:`EarlyStop.confirmed`): its streak starts over and the
+        next attempt needs twice the window (the scores stay a bounded share of the steps)."""
+        self.streak[j] = 0.0
+        self.rejections[j] += 1
 
     def _scale(self, j: int, factor: float) -> None:
         lo, hi = self.weight / self.rule.max_factor, self.weight
