@@ -10,9 +10,12 @@ is installed.
 from __future__ import annotations
 
 import importlib.util
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import torch
+
+if TYPE_CHECKING:
+    from gsw.fingerprint.stopping import EarlyStop
 
 __all__ = ["SCALE_OUT_HINT", "BatchFailure", "connect_ray", "ray_available", "map_ray", "run_batch", "run_local", "run_ray"]
 
@@ -31,7 +34,8 @@ def ray_available() -> bool:
 
 
 def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Callable[[int], None] | None = None,
-              *, slots: int | None = None, stop=None, on_copy: Callable[[Any], None] | None = None) -> list:
+              *, slots: int | None = None, stop: EarlyStop | None = None,
+              on_copy: Callable[[Any], None] | None = None) -> list:
     """Fine-tunes recipients in a pool of ``slots`` slots on ``device`` (the body of a task).
 
     Args:
@@ -57,7 +61,7 @@ def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Ca
 
 def run_local(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
               on_result: Callable[[list], None], on_step: Callable[[int], None] | None = None, *,
-              slots: int | None = None, stop=None) -> None:
+              slots: int | None = None, stop: EarlyStop | None = None) -> None:
     """Runs every recipient of ``batches`` through one pool of ``slots`` slots in this process; each copy
     is handed to ``on_result`` (as a one-element list) as soon as it is finished."""
     recipients = [r for batch in batches for r in batch]
@@ -127,7 +131,7 @@ def connect_ray(address: str | None, **init_kwargs: Any) -> bool:
 
 def run_ray(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str, on_result: Callable[[list], None], *,
             address: str | None = None, gpus_per_task: float = 1.0, max_retries: int = 3, slots: int | None = None,
-            stop=None) -> None:
+            stop: EarlyStop | None = None) -> None:
     """Runs the batches as Ray tasks (``num_gpus=gpus_per_task`` each on a CUDA device), each a pool of
     ``slots`` slots (default: the batch's size) with the early-stopping rule ``stop``.
 
