@@ -140,7 +140,8 @@ def _summary(rows: list[dict]) -> dict:
                 meeting_99_and_37=sum(m >= 0.99 and p >= 37 for m, p in zip(means, ps)),
                 meeting_99=sum(m >= 0.99 for m in means), meeting_37=sum(p >= 37 for p in ps),
                 mean_steps=sum(steps) / len(steps), min_steps=min(steps), max_steps=max(steps),
-                stopped_early=sum(bool(r["stopped_early"]) for r in rows))
+                stopped_early=sum(bool(r["stopped_early"]) for r in rows),
+                refusals=sum(r.get("refusals") or 0 for r in rows))
 
 
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
@@ -173,7 +174,8 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     for r in report.recipients:
         copy = load_inria_model(r.folder).gaussians.to(dev)
         accs, ps = _held_out(copy, held_orig, held, bg, messages[r.name].float(), dec)
-        rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, train_bits=r.bit_accuracy,
+        rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
+                         seconds=r.seconds, train_bits=r.bit_accuracy,
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=weights.message,

@@ -142,7 +142,9 @@ def test_confirmation_on_the_embedding_views() -> None:
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_RightInBatches()), "cpu")
     ones = torch.ones(2, 32)
     strict = EarlyStop(min_steps=4, window=2, check_every=2, confirm=1.0)
-    assert [(c.steps, c.stopped_early) for c in finetune_batch(ws, ["a", "b"], ones, stop=strict)] == [(12, False)] * 2
+    refused = finetune_batch(ws, ["a", "b"], ones, stop=strict)
+    assert [(c.steps, c.stopped_early) for c in refused] == [(12, False)] * 2
+    assert all(c.refusals == 2 for c in refused)  # attempts at 4 and 8 steps (the window doubles), all refused
     lenient = EarlyStop(min_steps=4, window=2, check_every=2, confirm=0.95)
     copies = finetune_batch(ws, ["a", "b"], ones, stop=lenient)
     assert [(c.steps, c.stopped_early, c.bit_accuracy) for c in copies] == [(4, True, 31 / 32)] * 2

@@ -183,6 +183,7 @@ class CopyResult:
         steps: optimisation steps it took.
         stopped_early: whether the stopping rule finished it before the step cap.
         message_weight: its message weight at the end (differs from the configured one under control).
+        refusals: early stops refused by the confirmation before it finished.
     """
 
     name: str
@@ -195,6 +196,7 @@ class CopyResult:
     steps: int = 0
     stopped_early: bool = False
     message_weight: float | None = None
+    refusals: int = 0
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
@@ -356,7 +358,8 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
         return None
     weight = float(pool.monitor.weights[j])
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
-                                  (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight)
+                                  (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,
+                                  pool.monitor.rejections[j])
 
 
 @torch.no_grad()

@@ -41,6 +41,7 @@ class RecipientReport:
         seconds: its share of its pool's fine-tune time (embedded only).
         steps: its optimisation steps (embedded only).
         stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
+        refusals: early stops refused by the rule's confirmation (embedded only).
     """
 
     name: str
@@ -54,6 +55,7 @@ class RecipientReport:
     seconds: float | None = None
     steps: int | None = None
     stopped_early: bool | None = None
+    refusals: int | None = None
 
 
 @dataclass
@@ -167,7 +169,7 @@ class _Writer:
             self.folder.mark_done(r.name, h, mark_id)
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
-                                                   r.seconds, r.steps, r.stopped_early)
+                                                   r.seconds, r.steps, r.stopped_early, r.refusals)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
