@@ -178,6 +178,18 @@ def test_early_stop_settings() -> None:
             EarlyStop.parse(bad)
 
 
+def test_train_time_image_attacks_per_slot() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=2, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, attacks=1.0)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
+    messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
+    copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2)  # attacks of different output sizes
+    alone = embed(scene.gaussians, scene.cameras, message=messages[2], config=cfg, progress=False)
+    # the same attacks as gsw.embed (Adam with eps 1e-15 amplifies float-order differences in a few elements)
+    assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-4
+
+
 def test_model_attacks_are_refused() -> None:
     scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
     cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), model_attacks=0.5)

@@ -281,9 +281,11 @@ class _Pool:
                    for g, v in zip(self.params.slot_models(slots), views)]
         decoded = [self._decoder_input(self.slots[j], r) for j, r in zip(slots, renders)]
         targets = [originals[v] for v in views]
-        groups = [list(range(len(slots)))] if self.uniform else [[i] for i in range(len(slots))]
+        # one batched pass when every view has the same size (attacked images may not: one pass per slot)
+        batched = self.uniform and self.attacks is None
+        groups = [list(range(len(slots)))] if batched else [[i] for i in range(len(slots))]
         total = 0.0
-        for g in groups:  # one batched pass when every view has the same size
+        for g in groups:
             r = torch.stack([renders[i] for i in g])
             t = torch.stack([targets[i] for i in g])
             d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
