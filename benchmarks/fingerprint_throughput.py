@@ -1,18 +1,27 @@
-"""Per-recipient fingerprints (#26): recipients per hour, quality per recipient, `gsw scan` images/s.
+"""Per-recipient fingerprints (#26): recipients per GPU-hour and every recipient's held-out quality, as a sweep.
 
-For one scene (the built-in scene, or a lego INRIA model with the NeRF-synthetic views: every 8th view
-held out) and 32-bit messages: the once-per-scene set-up (FGD) once, then recipients fine-tuned K at a
-time (:func:`gsw.fingerprint.batched.finetune_batch`) for each K of ``--batch``; per recipient the bit
-accuracy and PSNR (against the original model's renders) on the held-out views. One-at-a-time
-``gsw.embed`` (the whole pipeline per recipient) is the baseline. Then ``gsw scan``'s in-process path
-(:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of the copies saved as PNG.
+For one scene (the built-in scene, or lego: trained here for ``--train-seconds`` or loaded from ``--model``,
+the NeRF-synthetic views with every 8th held out) and 32-bit secret messages, each *setting* of the sweep
+runs a whole :func:`gsw.fingerprint` job in this process (a fresh output folder and registry): the
+once-per-scene set-up (FGD, reported apart), then the recipients through a pool of K slots with or without
+per-recipient early stopping (:mod:`gsw.fingerprint.stopping`), each copy written atomically and registered.
+Recipients per hour = 3600 x recipients / the job's fine-tune seconds (everything after the set-up: the
+worker scene, the pool's steps, slot refills, scoring, writes and registry records). Then every copy is read
+back from its folder and measured on the held-out views (never used by the job): bit accuracy per view
+(decoded from its render) and PSNR against the original model's render. A recipient *meets* the target when
+its mean held-out bit accuracy is >= 99 % and its mean held-out PSNR >= 37 dB.
 
-Recipients per hour = 3600 x recipients / fine-tune seconds (the set-up, done once per scene, is reported
-apart). Writes ``benchmarks/results/<tag>.json`` (or ``--out``).
+A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (recipients), ``epochs`` (step
+cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none) and ``stop`` (an
+:meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``). The JSON (``--out``/``<tag>.json``)
+is rewritten after every setting; ``--budget-s`` stops starting new settings. ``--scan-only MARKS`` only
+times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of the unmarked model.
 
-Usage:
-    python benchmarks/fingerprint_throughput.py --scene builtin --size 256 --batch 1 4 --recipients 4
-    python benchmarks/fingerprint_throughput.py --scene lego --model build/train_lego/x_model --batch 1 4 8
+Usage (lego on one GPU, ~4.5 min with the training; the lego photos in ``--data``):
+    python benchmarks/fingerprint_throughput.py --scene lego --data DIR --train-seconds 60 --device cuda --out OUT
+CPU smoke test:
+    python benchmarks/fingerprint_throughput.py --scene builtin --size 64 --views 6 --held-out 2 \\
+        --setting "k=2 n=3 epochs=1 lpips=none stop=none" --setting "k=2 n=3 epochs=2 lpips=none stop=min_steps=2"
 """
 
 from __future__ import annotations
@@ -29,41 +38,86 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
+#: The lego sweep, most informative first. A recipient's optimisation does not depend on K (only the time
+#: does), so settings differ in quality only through the stopping rule and the message weight.
+LEGO_SWEEP = [
+    "k=8 n=12 stop=min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998",
+    "k=16 n=24 stop=min_steps=96,window=24,margin=2,psnr_target=37.4,adapt=1.25,confirm=0.998",
+    "k=8 n=12 stop=min_steps=96,window=16,margin=1",
+    "k=8 n=12 mw=0.1 stop=min_steps=96,window=16,margin=1,confirm=0.998",
+    "k=8 n=8 stop=none",
+]
+BUILTIN_SWEEP = ["k=4 n=8 stop=none", "k=4 n=8 stop=min_steps=48,window=8,margin=1"]
+
 
 def _sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
 
 
+def _train_lego(args, dev):
+    from gsw.data.loaders import load_nerf_synthetic
+    from gsw.train import TrainConfig, train
+
+    down = 800 / args.size
+    train_set = load_nerf_synthetic(args.data, "train", downscale=down, background=(1.0, 1.0, 1.0))
+    test_set = load_nerf_synthetic(args.data, "test", downscale=down, background=(1.0, 1.0, 1.0))
+    t0 = time.perf_counter()
+    cfg = TrainConfig(max_train_time_s=args.train_seconds, device=str(dev), seed=0)  # INRIA recipe, cut by time
+    res = train(train_set, config=cfg, progress=False, test_set=test_set, background=(1.0, 1.0, 1.0))
+    info = dict(iterations=res.iterations, seconds=time.perf_counter() - t0, gaussians=len(res.gaussians),
+                test_psnr=(res.test_metrics or {}).get("psnr"))
+    print("trained", json.dumps(info), flush=True)
+    return res.gaussians, train_set, test_set, info
+
+
 def _scene(args, dev):
-    """(model, training cameras, held-out cameras, background, images or None)."""
+    """(model, embedding cameras, held-out cameras, background, images or None, training info)."""
     from gsw.scenes import default_cameras, default_scene
 
     if args.scene == "builtin":
         sc = default_scene(width=args.size, height=args.size, n_cameras=args.views, device=dev)
-        step = 360.0 / args.views
-        held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=step / 2)
-        return sc.gaussians, sc.cameras, held, tuple(float(v) for v in sc.background), None
+        held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=180.0 / args.views)
+        return sc.gaussians, sc.cameras, held, tuple(float(v) for v in sc.background), None, None
+    if args.model is None:
+        g, train_set, test_set, info = _train_lego(args, dev)
+        return g, train_set.cameras, test_set.cameras, (1.0, 1.0, 1.0), [im.to(dev) for im in train_set.images], info
     from gsw.data import load_inria_model, load_nerf_synthetic
 
     model = load_inria_model(args.model)
-    size = args.size or model.cameras[0].width
-    train = load_nerf_synthetic(args.data, "train", downscale=800 / size)
-    test = load_nerf_synthetic(args.data, "test", downscale=800 / size)
+    train = load_nerf_synthetic(args.data, "train", downscale=800 / args.size)
+    test = load_nerf_synthetic(args.data, "test", downscale=800 / args.size)
     return (model.gaussians.to(dev), train.cameras, test.cameras, (1.0, 1.0, 1.0),
-            [im.to(dev) for im in train.images])
+            [im.to(dev) for im in train.images], None)
+
+
+def parse_setting(text: str) -> dict:
+    """A sweep setting (see the module docstring) as a dict with every key."""
+    from gsw.fingerprint.stopping import EarlyStop
+
+    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, text=text)
+    for token in text.split():
+        key, sep, value = token.partition("=")
+        if not sep or key not in out or key == "text":
+            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop)")
+        if key == "stop":
+            out[key] = None if value == "none" else EarlyStop.parse(value)
+        elif key == "lpips":
+            out[key] = value
+        else:
+            out[key] = float(value) if key == "mw" else int(value)
+    return out
 
 
 @torch.no_grad()
-def _held_out(copy, original, cams, bg, message, dec):
+def _held_out(copy, originals, cams, bg, message, dec):
     """(bit accuracy per view, PSNR per view) of one copy on the held-out views."""
     from gsw.decoder.dwt import ll_subband
     from gsw.metrics.image import psnr
     from gsw.render.rasterize import rasterize
 
     accs, psnrs = [], []
-    for cam in cams:
-        a = rasterize(original, cam, background=bg).image.clamp(0, 1)
+    for cam, a in zip(cams, originals):
         b = rasterize(copy, cam, background=bg).image.clamp(0, 1)
         bits = (dec(ll_subband(b[None]))[0] > 0).float().cpu()
         accs.append(float((bits == message).float().mean()))
@@ -71,62 +125,78 @@ def _held_out(copy, original, cams, bg, message, dec):
     return accs, psnrs
 
 
-def _summary(rows):
-    accs = [min(r["held_out_bits"]) for r in rows]
-    ps = [sum(r["held_out_psnr"]) / len(r["held_out_psnr"]) for r in rows]
+def _quartiles(values: list[float]) -> list[float]:
+    v = sorted(values)
+    return [v[round(q * (len(v) - 1))] for q in (0.0, 0.25, 0.5, 0.75, 1.0)]
+
+
+def _summary(rows: list[dict]) -> dict:
     means = [sum(r["held_out_bits"]) / len(r["held_out_bits"]) for r in rows]
+    ps = [sum(r["held_out_psnr"]) / len(r["held_out_psnr"]) for r in rows]
+    steps = [r["steps"] for r in rows]
     return dict(recipients=len(rows), mean_bit_accuracy=sum(means) / len(means), min_recipient_bit_accuracy=min(means),
-                min_view_bit_accuracy=min(accs), mean_psnr=sum(ps) / len(ps), min_recipient_psnr=min(ps),
-                recipients_ge_99_and_37=sum(m >= 0.99 and p >= 37 for m, p in zip(means, ps)))
+                min_view_bit_accuracy=min(min(r["held_out_bits"]) for r in rows), mean_psnr=sum(ps) / len(ps),
+                min_recipient_psnr=min(ps), psnr_quartiles=_quartiles(ps),
+                meeting_99_and_37=sum(m >= 0.99 and p >= 37 for m, p in zip(means, ps)),
+                meeting_99=sum(m >= 0.99 for m in means), meeting_37=sum(p >= 37 for p in ps),
+                mean_steps=sum(steps) / len(steps), min_steps=min(steps), max_steps=max(steps),
+                stopped_early=sum(bool(r["stopped_early"]) for r in rows),
+                refusals=sum(r.get("refusals") or 0 for r in rows))
 
 
-def bench_batches(args, dev, g, cams, held, bg, images, cfg):
-    from gsw.fingerprint.batched import finetune_batch
-    from gsw.fingerprint.plan import Recipient, assign_messages
-    from gsw.fingerprint.shared import prepare_scene, worker_scene
-    from gsw.mark.message import message_from_hex
+def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
+    """One fingerprinting job of the sweep and its held-out measurements."""
+    import gsw
+    from gsw.data import load_inria_model
+    from gsw.decoder.zoo import load_decoder
+    from gsw.mark.embed import EmbedConfig
+    from gsw.mark.loss import LossWeights, lpips_weights
+    from gsw.registry import open_registry
 
-    t0 = time.perf_counter()
-    shared = prepare_scene(g, cams, num_bits=args.bits, config=cfg, images=images, device=dev)
+    lp = None if setting["lpips"] == "none" else setting["lpips"]
+    weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
+    cfg = EmbedConfig(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+    tmp = Path(tempfile.mkdtemp(prefix="gsw-fp-"))
+    names = [f"r{i:03d}" for i in range(setting["n"])]
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
     _sync(dev)
-    setup_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ws = worker_scene(shared, dev)
-    _sync(dev)
-    worker_s = time.perf_counter() - t0
-    out, copies = dict(setup_s=setup_s, worker_setup_s=worker_s, stats=shared.stats, batches={}), []
-    start = time.perf_counter()
-    for k in args.batch:
-        if time.perf_counter() - start > args.budget_s:
-            print(f"budget reached before K={k}", flush=True)
-            break
-        people = assign_messages([Recipient(f"k{k}_{i}") for i in range(max(k, args.recipients))], args.bits)
-        rows, fine = [], 0.0
-        for i in range(0, len(people), k):
-            chunk = people[i:i + k]
-            msgs = torch.stack([message_from_hex(p.message, args.bits) for p in chunk])
-            _sync(dev)
-            t0 = time.perf_counter()
-            res = finetune_batch(ws, [p.name for p in chunk], msgs)
-            _sync(dev)
-            fine += time.perf_counter() - t0
-            for r, m in zip(res, msgs):
-                accs, ps = _held_out(r.gaussians.to(dev), g, held, bg, m, ws.loss.decoder)
-                rows.append(dict(name=r.name, train_bits=r.bit_accuracy, train_psnr=r.psnr, held_out_bits=accs,
-                                 held_out_psnr=ps))
-                copies.append((r.gaussians, m))
-        out["batches"][k] = dict(finetune_s=fine, recipients_per_hour=3600 * len(rows) / fine,
-                                 peak_gib=(torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None),
-                                 summary=_summary(rows), rows=rows)
-        print(json.dumps({k: {x: y for x, y in out["batches"][k].items() if x != "rows"}}, indent=1), flush=True)
-    return out, copies
+    with open_registry(tmp / "marks.sqlite") as reg:
+        report = gsw.fingerprint(g, cams, names, tmp / "copies", reg, num_bits=args.bits, config=cfg, images=images,
+                                 batch_size=setting["k"], early_stop=setting["stop"], device=dev, use_ray=False,
+                                 progress=False)
+        _sync(dev)
+        wall = time.perf_counter() - t0
+        messages = {m.label: m.message for m in reg.list()}
+    dec = load_decoder(args.bits).to(dev)
+    rows = []
+    for r in report.recipients:
+        copy = load_inria_model(r.folder).gaussians.to(dev)
+        accs, ps = _held_out(copy, held_orig, held, bg, messages[r.name].float(), dec)
+        rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
+                         seconds=r.seconds, train_bits=r.bit_accuracy,
+                         train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
+    fine = report.timings["finetune"]
+    out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=weights.message,
+               lpips=setting["lpips"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
+               setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
+               recipients_per_hour=3600 * len(rows) / fine,
+               ms_per_recipient_step=1000 * fine / max(1, sum(r["steps"] or 0 for r in rows)),
+               peak_gib=torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None,
+               summary=_summary(rows), rows=rows)
+    print(json.dumps({x: y for x, y in out.items() if x != "rows"}), flush=True)
+    return out
 
 
-def bench_baseline(args, dev, g, cams, held, bg, images, cfg):
-    """One-at-a-time gsw.embed (set-up included, as a separate `gsw embed` per recipient)."""
-    from gsw.mark.embed import embed
+def bench_baseline(args, dev, g, cams, held, held_orig, bg, images) -> dict:
+    """One-at-a-time ``gsw.embed`` (set-up included, as a separate ``gsw embed`` per recipient)."""
+    from gsw.decoder.zoo import load_decoder
+    from gsw.mark.embed import EmbedConfig, embed
+    from gsw.mark.loss import lpips_weights
     from gsw.mark.message import random_message
 
+    cfg = EmbedConfig(background=bg, lpips_net="alex", weights=lpips_weights("alex"))
     rows, total = [], 0.0
     for i in range(args.baseline):
         m = random_message(args.bits, seed=1000 + i)
@@ -135,10 +205,9 @@ def bench_baseline(args, dev, g, cams, held, bg, images, cfg):
         res = embed(g, cams, message=m, num_bits=args.bits, images=images, config=cfg, progress=False)
         _sync(dev)
         total += time.perf_counter() - t0
-        from gsw.decoder.zoo import load_decoder
-
-        accs, ps = _held_out(res.gaussians, g, held, bg, m, load_decoder(args.bits).to(dev))
-        rows.append(dict(held_out_bits=accs, held_out_psnr=ps, timings=res.timings))
+        accs, ps = _held_out(res.gaussians, held_orig, held, bg, m, load_decoder(args.bits).to(dev))
+        rows.append(dict(steps=cfg.epochs * len(cams), stopped_early=False, held_out_bits=accs, held_out_psnr=ps,
+                         timings=res.timings))
     return dict(seconds=total, recipients_per_hour=3600 * len(rows) / total, summary=_summary(rows), rows=rows)
 
 
@@ -179,68 +248,87 @@ def bench_scan(args, dev, copies, held, bg):
     return out
 
 
+
 def main() -> int:
-    import gsw
     from gsw.device import resolve_device
-    from gsw.mark.embed import EmbedConfig
-    from gsw.mark.loss import lpips_weights
+    from gsw.render.rasterize import rasterize
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", choices=["builtin", "lego"], default="builtin")
-    ap.add_argument("--model", help="lego INRIA model folder (benchmarks/train_lego.py)")
+    ap.add_argument("--model", help="lego INRIA model folder (default: train one for --train-seconds)")
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "lego"))
-    ap.add_argument("--size", type=int, default=None, help="builtin: render size (default 256); lego: default 800")
-    ap.add_argument("--views", type=int, default=24, help="builtin: training views")
-    ap.add_argument("--held-out", type=int, default=8, help="builtin: held-out views (between the training views)")
+    ap.add_argument("--train-seconds", type=float, default=60.0, help="lego training time without --model")
+    ap.add_argument("--size", type=int, default=None, help="render size (default: builtin 256, lego 800)")
+    ap.add_argument("--views", type=int, default=24, help="builtin: embedding views")
+    ap.add_argument("--held-out", type=int, default=8, help="builtin: held-out views (between the embedding views)")
     ap.add_argument("--bits", type=int, default=32)
-    ap.add_argument("--epochs", type=int, default=8)
-    ap.add_argument("--lpips", choices=["alex", "vgg", "none"], default="alex")
-    ap.add_argument("--batch", type=int, nargs="+", default=[1, 4])
-    ap.add_argument("--recipients", type=int, default=4, help="recipients per batch size (at least K)")
-    ap.add_argument("--baseline", type=int, default=1, help="one-at-a-time gsw.embed runs")
-    ap.add_argument("--scan-images", type=int, default=64)
-    ap.add_argument("--scan-cpu-images", type=int, default=32)
+    ap.add_argument("--setting", action="append", default=None,
+                    help="a sweep setting (repeatable; default: the scene's sweep, see LEGO_SWEEP / BUILTIN_SWEEP)")
+    ap.add_argument("--baseline", type=int, default=0, help="one-at-a-time gsw.embed runs (after the sweep)")
     ap.add_argument("--scan-only", type=int, default=0, metavar="MARKS",
                     help="only time `gsw scan` over renders of the unmarked model against MARKS random marks")
-    ap.add_argument("--budget-s", type=float, default=1e9, help="no new batch size after this many seconds")
+    ap.add_argument("--scan-images", type=int, default=64)
+    ap.add_argument("--scan-cpu-images", type=int, default=32)
+    ap.add_argument("--budget-s", type=float, default=100.0, help="no new setting after this many seconds of sweep")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--tag", default=None)
     ap.add_argument("--out", default=None, help="result folder (default benchmarks/results)")
     args = ap.parse_args()
-    if args.scene == "builtin":
-        args.size = args.size or 256
+    args.size = args.size or (800 if args.scene == "lego" else 256)
+    settings = [parse_setting(s) for s in (args.setting or (LEGO_SWEEP if args.scene == "lego" else BUILTIN_SWEEP))]
     dev = resolve_device(args.device)
-    lp = None if args.lpips == "none" else args.lpips
-    g, cams, held, bg, images = _scene(args, dev)
-    cfg = EmbedConfig(epochs=args.epochs, background=bg, lpips_net=lp, weights=lpips_weights(lp))
+    t_start = time.perf_counter()
+    g, cams, held, bg, images, train_info = _scene(args, dev)
+    with torch.no_grad():
+        held_orig = [rasterize(g, cam, background=bg).image.clamp(0, 1) for cam in held]
     res = dict(scene=args.scene, gaussians=len(g), size=f"{cams[0].width}x{cams[0].height}", views=len(cams),
-               held_out_views=len(held), settings=vars(args))
+               held_out_views=len(held), training=train_info, settings=vars(args), machine=_machine(dev),
+               sweep=[], baseline=None)
     if args.scan_only:
         from gsw.mark.message import random_message
 
-        copies = [(g, random_message(args.bits, seed=i)) for i in range(args.scan_only)]
-        res["scan"] = bench_scan(args, dev, copies, held, bg)
-        return _write(args, dev, res)
-    res["baseline"] = bench_baseline(args, dev, g, cams, held, bg, images, cfg) if args.baseline else None
-    if res["baseline"]:
+        res["scan"] = bench_scan(args, dev, [(g, random_message(args.bits, seed=i)) for i in range(args.scan_only)],
+                                 held, bg)
+        _write(args, dev, res)
+        return 0
+    start = time.perf_counter()
+    for s in settings:
+        if time.perf_counter() - start > args.budget_s:
+            print(f"budget reached: skipping {s['text']!r}", flush=True)
+            res.setdefault("skipped", []).append(s["text"])
+            continue
+        try:
+            res["sweep"].append(run_setting(args, dev, g, cams, held, held_orig, bg, images, s))
+        except Exception as err:  # e.g. out of memory at a large K: record it, go on with the next setting
+            print(f"setting {s['text']!r} failed: {err!r}", flush=True)
+            res["sweep"].append(dict(setting=s["text"], error=repr(err)))
+            if dev.type == "cuda":
+                torch.cuda.empty_cache()
+        res["elapsed_s"] = time.perf_counter() - t_start
+        _write(args, dev, res)
+    if args.baseline:
+        res["baseline"] = bench_baseline(args, dev, g, cams, held, held_orig, bg, images)
         print(json.dumps({"baseline": {x: y for x, y in res["baseline"].items() if x != "rows"}}), flush=True)
-    res["fingerprint"], copies = bench_batches(args, dev, g, cams, held, bg, images, cfg)
-    res["scan"] = bench_scan(args, dev, copies, held, bg) if args.scan_images else None
-    return _write(args, dev, res)
+    res["elapsed_s"] = time.perf_counter() - t_start
+    _write(args, dev, res)
+    return 0
 
 
-def _write(args, dev, res) -> int:
+def _machine(dev: torch.device) -> dict:
     import gsw
 
-    res["machine"] = dict(device=str(dev), gpu=torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
-                          cpu=platform.processor(), threads=torch.get_num_threads(), torch=torch.__version__,
-                          python=platform.python_version(), gsw=gsw.__version__,
-                          date=time.strftime("%Y-%m-%d %H:%M:%S"))
+    return dict(device=str(dev), gpu=torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
+                cpu=platform.processor(), threads=torch.get_num_threads(), torch=torch.__version__,
+                python=platform.python_version(), gsw=gsw.__version__, date=time.strftime("%Y-%m-%d %H:%M:%S"))
+
+
+def _write(args, dev, res) -> None:
     tag = args.tag or f"fingerprint_{args.scene}_{dev.type}"
     out = Path(args.out) if args.out else ROOT / "benchmarks" / "results"
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{tag}.json").write_text(json.dumps(res, indent=1) + "\n")
-    return 0
+    tmp = out / f".{tag}.json.tmp"
+    tmp.write_text(json.dumps(res, indent=1) + "\n")
+    tmp.replace(out / f"{tag}.json")
 
 
 if __name__ == "__main__":

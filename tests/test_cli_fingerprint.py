@@ -38,9 +38,17 @@ def test_fingerprint_writes_registers_and_resumes(model_dir, tmp_path, capsys) -
     with open_registry(tmp_path / "marks.sqlite") as reg:
         secrets = [m.message_hex for m in reg.list()]
     assert len(secrets) == 2 and not any(s in json.dumps(report) for s in secrets)
-    assert _fingerprint(model_dir, tmp_path, "recipient,key\nalice,\nbob,bobs-key\ncarol,\n") == 0
+    assert _fingerprint(model_dir, tmp_path, "recipient,key\nalice,\nbob,bobs-key\ncarol,\n",
+                        "--early-stop", "min_steps=1,window=1,margin=50") == 0
     out = capsys.readouterr().out
     assert "skipped alice" in out and "skipped bob" in out and "embedded carol" in out
+    assert "2 steps" in out  # a margin no decoder reaches: carol runs to the cap (1 epoch of 2 views)
+
+
+def test_bad_early_stop_setting(model_dir, tmp_path, capsys) -> None:
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--early-stop", "windw=4") == 2
+    assert "early-stop setting 'windw=4'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_malformed_recipients_file(model_dir, tmp_path, capsys) -> None:

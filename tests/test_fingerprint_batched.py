@@ -1,4 +1,4 @@
-"""gsw.fingerprint.batched: K recipients fine-tuned together get what each would get alone."""
+"""gsw.fingerprint.batched: recipients fine-tuned together in a pool of slots get what each would get alone."""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import pytest
 import torch
 
 from gsw.decoder.zoo import load_decoder
-from gsw.fingerprint.batched import BatchedParams, batched_loss, finetune_batch
+from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch
 from gsw.fingerprint.shared import prepare_scene, worker_scene
-from gsw.mark.embed import EmbedConfig
+from gsw.fingerprint.stopping import EarlyStop
+from gsw.mark.embed import EmbedConfig, embed
 from gsw.mark.loss import LossWeights, WatermarkLoss
 from gsw.mark.message import as_message
 from gsw.scenes import default_scene
@@ -34,13 +35,21 @@ def test_batched_loss_is_the_sum_of_the_single_losses(lpips_net) -> None:
 
 def test_stacked_parameters_start_from_the_model() -> None:
     scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
-    params = BatchedParams(scene.gaussians, 3, EmbedConfig(lpips_net=None))
+    params = SlotParams(scene.gaussians, 3, EmbedConfig(lpips_net=None))
     assert params.dc.shape == (3, len(scene.gaussians), 1, 3)
     for j in range(3):
         g = params.gaussians(j)
         assert torch.equal(g.sh, scene.gaussians.sh) and torch.equal(g.quats, scene.gaussians.quats)
     assert not params.means.requires_grad  # positions are shared and frozen by default
-    assert all(torch.equal(m[0], m[2]) for m in params.mask.masks)  # per-copy masks are the copies' own
+    assert all(mask.shape == p.shape[1:] for p, _, mask in params.groups)  # one recipient's mask, broadcast
+    # a slot that is not stepped keeps its parameters; a reset slot starts over
+    (params.dc.sum() + params.rest.sum() + params.logits.sum()).backward()
+    params.step([0])
+    assert not torch.equal(params.dc[0], params.dc[1]) and torch.equal(params.dc[1], params.dc[2])
+    assert params.steps == [1, 0, 0]
+    params.reset(0)
+    assert torch.equal(params.dc[0], params.dc[1]) and params.steps == [0, 0, 0]
+    assert all(float(m[0].abs().sum()) == 0 for m in params.exp_avg)
 
 
 def test_batch_matches_one_at_a_time() -> None:
@@ -61,6 +70,124 @@ def test_batch_matches_one_at_a_time() -> None:
     # while the two recipients' copies differ
     assert (both[0].gaussians.sh - both[1].gaussians.sh).abs().mean() > 1e-3
     assert all(0 <= r.min_bit_accuracy <= r.bit_accuracy <= 1 and r.min_psnr <= r.psnr for r in both)
+
+
+def _cpu_scene(n_cameras: int = 3):
+    scene = default_scene(width=64, height=64, n_cameras=n_cameras, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
+    return scene, cfg, worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
+
+
+def test_a_refilled_slot_is_gsw_embed() -> None:
+    scene, cfg, ws = _cpu_scene()
+    messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
+    finished = []
+    copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2, on_copy=lambda c: finished.append(c.name))
+    assert [c.name for c in copies] == ["a", "b", "c"] and finished == ["a", "b", "c"]
+    assert all(c.steps == 3 and not c.stopped_early for c in copies)
+    # "c" ran in "a"'s slot after it: fresh parameters and Adam state, its own view order = gsw.embed's
+    alone = embed(scene.gaussians, scene.cameras, message=messages[2], config=cfg, progress=False)
+    assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().max() < 1e-3
+    assert (copies[2].gaussians.opacity_logits - alone.gaussians.opacity_logits).abs().max() < 1e-3
+    assert abs(copies[2].psnr - sum(alone.psnr) / len(alone.psnr)) < 0.05
+
+
+class _Confident(torch.nn.Module):
+    """A decoder that reads every bit as 1 with logit 5 (a message of ones always passes)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias = torch.nn.Parameter(torch.full((32,), 5.0))
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        return self.bias.expand(ll.shape[0], 32) + 0 * ll.mean()
+
+
+def test_early_stopping_finishes_and_refills() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    ones, zeros = torch.ones(32), torch.zeros(32)
+    progress = []
+    rule = EarlyStop(min_steps=4, window=3, margin=1.0, check_every=2)
+    copies = finetune_batch(ws, ["yes", "no", "yes2"], torch.stack([ones, zeros, ones]), progress.append, slots=2,
+                            stop=rule)
+    assert [(c.steps, c.stopped_early) for c in copies] == [(4, True), (12, False), (4, True)]
+    assert sum(progress) == 3 * 12  # skipped steps are reported when a recipient leaves
+    assert copies[0].bit_accuracy == 1.0 and copies[1].bit_accuracy == 0.0
+    # a margin above the decoder's confidence never passes
+    strict = finetune_batch(ws, ["yes"], ones[None], stop=EarlyStop(min_steps=2, window=1, margin=6.0, check_every=1))
+    assert strict[0].steps == 12 and not strict[0].stopped_early
+
+
+class _RightInBatches(_Confident):
+    """Reads bit 0 as 0 (logit -4) when it decodes a single image: the training steps of two slots pass,
+    the score of a finished copy (one view at a time) has 31 of 32 bits of a message of ones."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias.data.fill_(4.0)  # other weights than _Confident's: another decoder for the worker-scene cache
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        out = super().forward(ll)
+        return out if ll.shape[0] > 1 else torch.cat([-out[:, :1], out[:, 1:]], dim=1)
+
+
+def test_confirmation_on_the_embedding_views() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_RightInBatches()), "cpu")
+    ones = torch.ones(2, 32)
+    strict = EarlyStop(min_steps=4, window=2, check_every=2, confirm=1.0)
+    refused = finetune_batch(ws, ["a", "b"], ones, stop=strict)
+    assert [(c.steps, c.stopped_early) for c in refused] == [(12, False)] * 2
+    assert all(c.refusals == 2 for c in refused)  # attempts at 4 and 8 steps (the window doubles), all refused
+    lenient = EarlyStop(min_steps=4, window=2, check_every=2, confirm=0.95)
+    copies = finetune_batch(ws, ["a", "b"], ones, stop=lenient)
+    assert [(c.steps, c.stopped_early, c.bit_accuracy) for c in copies] == [(4, True, 31 / 32)] * 2
+    assert strict.confirmed(1.0, 20.0) and not strict.confirmed(0.99, 50.0)
+    assert not EarlyStop(psnr_target=37.0).confirmed(1.0, 36.9)
+
+
+def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    rule = EarlyStop(min_steps=1, window=1, check_every=1, psnr_target=200.0, adapt=2.0, max_factor=4.0)
+    copy = finetune_batch(ws, ["x"], torch.ones(1, 32), stop=rule)[0]
+    assert copy.steps == 6 and not copy.stopped_early  # the PSNR target is out of reach
+    assert copy.message_weight == pytest.approx(cfg.weights.message / 4)  # lowered down to its bound
+    # PSNR above the target but bits that never pass: the weight goes back up, never above the configured one
+    easy = EarlyStop(min_steps=1, window=1, check_every=1, psnr_target=-100.0, adapt=2.0)
+    stuck = finetune_batch(ws, ["y"], torch.zeros(1, 32), stop=easy)[0]
+    assert stuck.steps == 6 and stuck.message_weight == pytest.approx(cfg.weights.message)
+
+
+def test_early_stop_settings() -> None:
+    rule = EarlyStop.parse("min_steps=50, window=8,margin=1.5,psnr_target=37,adapt=1.2")
+    assert (rule.min_steps, rule.window, rule.margin, rule.psnr_target, rule.adapt) == (50, 8, 1.5, 37.0, 1.2)
+    assert EarlyStop.parse("psnr_target=none").psnr_target is None
+    assert EarlyStop.parse("confirm=0.998").confirm == 0.998
+    for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
+                       ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm")]:
+        with pytest.raises(ValueError, match=match):
+            EarlyStop.parse(bad)
+
+
+def test_train_time_image_attacks_per_slot() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=2, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = EmbedConfig(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, attacks=1.0)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
+    messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
+    copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2)  # attacks of different output sizes
+    alone = embed(scene.gaussians, scene.cameras, message=messages[2], config=cfg, progress=False)
+    # the same attacks as gsw.embed (Adam with eps 1e-15 amplifies float-order differences in a few elements)
+    assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-4
 
 
 def test_model_attacks_are_refused() -> None:

@@ -36,7 +36,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--output", required=True, help="the job's folder (new, or this scene's earlier job)")
     fp.add_argument("--registry", help=REGISTRY_HELP)
     add_bits_option(fp, 32, "message length (default: %(default)s)")
-    fp.add_argument("--batch", type=positive_int, default=4, help="recipients fine-tuned together (default %(default)s)")
+    fp.add_argument("--batch", type=positive_int, default=4,
+                    help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
+    fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
+                    help="finish each recipient once its own training renders decode right (and refill its slot): "
+                         "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X' "
+                         "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
+    fp.add_argument("--task-size", type=positive_int, default=None,
+                    help="recipients per Ray task (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
     fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
     fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
@@ -83,9 +90,11 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     from gsw.cli.mark import _load_model, embed_config
     from gsw.device import resolve_device
     from gsw.fingerprint import fingerprint, read_recipients
+    from gsw.fingerprint.stopping import EarlyStop
 
     with reading(args.recipients):
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
+    early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
     device = resolve_device(args.device)
     g, cams, images = _load_model(args)
     if cams is None:
@@ -93,8 +102,9 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
                          "or an INRIA model folder)")
     report = fingerprint(g, cams, recipients, args.output, args.registry, num_bits=args.bits,
                          config=embed_config(args), images=None if images is None else list(images),
-                         batch_size=args.batch, device=device, use_ray=_use_ray(args), address=args.address,
-                         gpus_per_task=args.gpus_per_task, max_retries=args.max_retries,
+                         batch_size=args.batch, early_stop=early_stop, task_size=args.task_size, device=device,
+                         use_ray=_use_ray(args), address=args.address, gpus_per_task=args.gpus_per_task,
+                         max_retries=args.max_retries,
                          progress=not args.no_progress)
     if args.json:
         print_json(report.to_dict())
@@ -102,7 +112,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     for r in report.recipients:
         if r.status == "embedded":
             print(f"embedded {r.name}: {100 * r.bit_accuracy:.2f} % of the bits (worst view "
-                  f"{100 * r.min_bit_accuracy:.1f} %), {r.psnr:.2f} dB -> {r.folder}")
+                  f"{100 * r.min_bit_accuracy:.1f} %), {r.psnr:.2f} dB, {r.steps} steps -> {r.folder}")
         else:
             print(f"{r.status} {r.name} (finished earlier) -> {r.folder}")
     print(f"{len(report.names('embedded'))} embedded, {len(report.recipients) - len(report.names('embedded'))} "

@@ -1,96 +1,171 @@
-"""Several recipients fine-tuned together on one device: batched parameters, one loss, one Adam.
+"""Recipients fine-tuned together on one device: a pool of K slots over stacked parameters.
 
-Every recipient starts from the same FGD'd model (:class:`gsw.fingerprint.shared.WorkerScene`). The
-trained parameters of K recipients are stacked into ``[K, N, ...]`` tensors with one Adam and one update
-mask over them (both act element-wise, so each recipient gets exactly the update it would get alone).
-Per step (one view, the same shuffled order for all K): K renders, then ONE batched pass of the wavelet
-transform, decoder, LPIPS and the loss over ``[K, 3, H, W]``. The batched loss is K times the mean of the
-per-recipient losses, i.e. their sum, so each recipient's gradient is that of :func:`gsw.mark.embed.embed`
-with the same message, views and seed. What batching saves is the per-step fixed cost (small kernels,
-launches, Python) of the loss, decoder and optimiser; the renders stay one per recipient.
+Every recipient starts from the same FGD'd model (:class:`gsw.fingerprint.shared.WorkerScene`). The trained
+parameters of K slots are stacked into ``[K, N, ...]`` tensors with per-slot Adam moments and step counts
+and one update mask (:mod:`gsw.mark.mask`, computed once from the starting model). Per step every occupied
+slot renders the next view of its own shuffled order (the order :func:`gsw.mark.embed.embed` draws from
+``EmbedConfig.seed``), then ONE batched pass of the wavelet transform, decoder, LPIPS and loss over
+``[B, 3, H, W]`` gives the sum of the per-recipient losses, so each recipient's update is that of
+:func:`gsw.mark.embed.embed` with the same message and seed (up to float summation order).
+
+A recipient leaves its slot when it is finished (:mod:`gsw.fingerprint.stopping`: early stopping on its own
+training renders, or the step cap of ``EmbedConfig.epochs`` passes); its copy is scored, handed out, and the
+slot is refilled with the next recipient (a fresh copy of the starting parameters, fresh Adam state).
 """
 
 from __future__ import annotations
 
+import functools
 import random
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
+from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import EmbedConfig
-from gsw.mark.mask import UpdateMask
 
-__all__ = ["BatchedParams", "CopyResult", "batched_loss", "finetune_batch"]
+__all__ = ["SlotParams", "CopyResult", "batched_loss", "finetune_batch"]
+
+_BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
 
 
 def _stack(t: Tensor, k: int) -> Tensor:
+    """``k`` stacked copies of ``t`` as a new leaf that requires grad: [k, *t.shape]."""
     return t.detach().unsqueeze(0).repeat(k, *([1] * t.dim())).contiguous().requires_grad_()
 
 
-class BatchedParams:
-    """K recipients' trainable parameters stacked along a leading axis, their Adam and update mask.
+class SlotParams:
+    """K slots' trainable parameters stacked along a leading axis, with per-slot Adam and the update mask.
+
+    The update of slot ``j`` is, element-wise, ``torch.optim.Adam``'s (its own step count for the bias
+    corrections) scaled by the mask: what :class:`gsw.mark.mask.UpdateMask` does to one recipient's Adam.
 
     Args:
         model: the shared starting model.
-        k: number of recipients.
+        k: number of slots.
         cfg: the embedding settings (learning rates, mask kind; positions stay shared while
             ``lr_position`` is 0).
     """
 
     def __init__(self, model: Gaussians, k: int, cfg: EmbedConfig) -> None:
-        self.k = k
-        self.means = _stack(model.means, k) if cfg.lr_position > 0 else model.means.detach()
-        self.dc = _stack(model.sh[:, :1], k)  # [K, N, 1, 3]
-        self.rest = _stack(model.sh[:, 1:], k)  # [K, N, C-1, 3]
-        self.logits = _stack(model.opacity_logits, k)  # [K, N]
-        self.log_scales = _stack(model.log_scales, k)  # [K, N, 3]
-        self.quats = _stack(model.quats, k)  # [K, N, 4]
+        from gsw.mark.mask import exp_mask, stega_mask
+
+        self.k, self.model = k, model.detach()
+        stack = functools.partial(_stack, k=k)
+        self.means = stack(model.means) if cfg.lr_position > 0 else self.model.means
+        self.dc = stack(model.sh[:, :1])  # [K, N, 1, 3]
+        self.rest = stack(model.sh[:, 1:])  # [K, N, C-1, 3]
+        self.logits = stack(model.opacity_logits)  # [K, N]
+        self.log_scales = stack(model.log_scales)  # [K, N, 3]
+        self.quats = stack(model.quats)  # [K, N, 4]
         groups = [(self.dc, cfg.lr_f_dc), (self.rest, cfg.lr_f_rest), (self.logits, cfg.lr_opacity),
                   (self.log_scales, cfg.lr_scaling), (self.quats, cfg.lr_rotation)]
-        masked = [p for p, _ in groups if p.numel() > 0]
+        maker = {"exp": exp_mask, "stega": stega_mask}.get(cfg.mask)
+        if cfg.mask not in ("exp", "stega", "none"):
+            raise ValueError(f"mask kind must be 'exp', 'stega' or 'none', got {cfg.mask!r}")
+        # one recipient's mask (the stacked copies' masks are identical), broadcast over the slots
+        self.groups = [(p, lr, None if maker is None else maker(p[0])) for p, lr in groups if p.numel() > 0]
         if cfg.lr_position > 0:
-            groups.append((self.means, cfg.lr_position))
-        self.opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in groups if p.numel() > 0], eps=1e-15)
-        # the masks of identical stacked copies are the copies' masks (normalised by the same extreme)
-        self.mask = UpdateMask(masked, kind=cfg.mask)
+            self.groups.append((self.means, cfg.lr_position, None))  # positions are not masked (paper)
+        self.exp_avg = [torch.zeros_like(p) for p, _, _ in self.groups]
+        self.exp_avg_sq = [torch.zeros_like(p) for p, _, _ in self.groups]
+        self.steps = [0] * k
+        self._t = torch.zeros(k, dtype=torch.float64, device=self.dc.device)  # per-slot steps, on the device
+        self._key: tuple[int, ...] | None = None
+        self._on = torch.zeros(k, dtype=torch.bool, device=self.dc.device)
 
     def gaussians(self, j: int) -> Gaussians:
-        """Recipient ``j``'s current model (differentiable in its parameters)."""
+        """Slot ``j``'s current model (differentiable in its parameters)."""
         means = self.means[j] if self.means.dim() == 3 else self.means
         return Gaussians(means, self.log_scales[j], self.quats[j], self.logits[j],
                          torch.cat([self.dc[j], self.rest[j]], dim=1))
 
+    def slot_models(self, slots: Sequence[int]) -> list[Gaussians]:
+        """The current models of ``slots``, differentiable, through one ``unbind`` per parameter tensor (its
+        backward stacks the slots' gradients once instead of one full-size gradient per indexed slot)."""
+        dc, rest, logits, scales, quats = (t.unbind(0) for t in (self.dc, self.rest, self.logits, self.log_scales,
+                                                                 self.quats))
+        means = self.means.unbind(0) if self.means.dim() == 3 else None
+        return [Gaussians(self.means if means is None else means[j], scales[j], quats[j], logits[j],
+                          torch.cat([dc[j], rest[j]], dim=1)) for j in slots]
+
+    @torch.no_grad()
+    def reset(self, j: int) -> None:
+        """Slot ``j`` starts over: the starting parameters, zero Adam moments, step 0."""
+        sources = {id(self.dc): self.model.sh[:, :1], id(self.rest): self.model.sh[:, 1:],
+                   id(self.logits): self.model.opacity_logits, id(self.log_scales): self.model.log_scales,
+                   id(self.quats): self.model.quats, id(self.means): self.model.means}
+        for (p, _, _), m, v in zip(self.groups, self.exp_avg, self.exp_avg_sq):
+            p[j].copy_(sources[id(p)])
+            m[j].zero_()
+            v[j].zero_()
+        self.steps[j] = 0
+        self._t[j] = 0.0
+
+    @torch.no_grad()
+    def step(self, slots: Sequence[int]) -> None:
+        """One masked Adam step of the ``slots`` (the others keep their parameters); clears the gradients.
+
+        The per-slot step counts and bias corrections live on the device (no host-to-device copy per step).
+        """
+        for j in slots:
+            self.steps[j] += 1
+        if self._key != tuple(slots):
+            self._key = tuple(slots)
+            self._on = torch.zeros(self.k, dtype=torch.bool, device=self.dc.device)
+            self._on[list(slots)] = True
+        b1, b2 = _BETAS
+        self._t += self._on
+        inv_bc1 = torch.where(self._on, 1 / (1 - b1 ** self._t), 0.0).float()
+        root2 = torch.where(self._on, (1 - b2 ** self._t).sqrt(), 1.0).float()
+        for (p, lr, mask), m, v in zip(self.groups, self.exp_avg, self.exp_avg_sq):
+            if p.grad is None:
+                continue
+            shape = (self.k,) + (1,) * (p.dim() - 1)
+            size = (-lr * inv_bc1).view(shape)
+            m.lerp_(p.grad, 1 - b1)
+            v.mul_(b2).addcmul_(p.grad, p.grad, value=1 - b2)
+            scale = size if mask is None else size * mask
+            p.addcdiv_(m * scale, (v.sqrt() / root2.view(shape)).add_(_EPS))
+            p.grad = None
+
 
 def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messages: Tensor,
-                 decoded: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                 decoded: Tensor | None = None, message_weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The sum over recipients of :class:`gsw.mark.loss.WatermarkLoss`, computed in one batched pass.
 
     Args:
         loss: the :class:`~gsw.mark.loss.WatermarkLoss` (its decoder, LPIPS network and weights are used).
-        renders: [K, 3, H, W] the recipients' renders of one view.
-        original: [3, H, W] the input model's render of that view.
+        renders: [K, 3, H, W] the recipients' renders.
+        original: [3, H, W] or [K, 3, H, W] the input model's render(s) of those views.
         messages: [K, k] the recipients' bits.
         decoded: optional [K, 3, H', W'] images to decode instead of ``renders`` (attacked copies).
+        message_weights: optional [K] per-recipient message weights (default: the loss's weight).
 
     Returns:
         (the summed loss, [K, k] decoder logits).
     """
-    from gsw.decoder.dwt import ll_subband
-    from gsw.mark.loss import message_loss, subband_l1
+    import torch.nn.functional as F
 
-    w, k = loss.weights, renders.shape[0]
-    target = original.unsqueeze(0).expand_as(renders)
+    from gsw.decoder.dwt import dwt2, ll_subband
+
+    w = loss.weights
+    target = original.expand_as(renders)
     logits = loss.decoder(ll_subband(renders if decoded is None else decoded))
-    # every term is a mean over equally sized samples: K x (batch mean) = sum of the per-recipient terms
-    total = (w.l1 * (renders - target).abs().mean() + w.subband * subband_l1(renders, target)
-             + w.message * message_loss(logits, messages, loss.logit_scale))
+    diff = renders - target
+    # per recipient: the terms of WatermarkLoss (the DWT is linear: the subbands of the difference)
+    per = w.l1 * diff.abs().mean(dim=(1, 2, 3))
+    per = per + w.subband * sum(band.abs().mean(dim=(1, 2, 3)) for level in dwt2(diff)[1] for band in level)
+    bce = F.binary_cross_entropy_with_logits(logits * loss.logit_scale, messages.to(logits),
+                                             reduction="none").mean(dim=1)
+    per = per + (w.message * bce if message_weights is None else message_weights * bce)
     if loss.lpips is not None:
-        total = total + w.lpips * loss.lpips(renders, target).mean()
-    return k * total, logits
+        per = per + w.lpips * loss.lpips(renders, target)
+    return per.sum(), logits
 
 
 @dataclass
@@ -104,7 +179,11 @@ class CopyResult:
         min_bit_accuracy: the worst view's.
         psnr: mean PSNR (dB) of the final renders against the original renders.
         min_psnr: the worst view's.
-        seconds: this recipient's share of the batch's wall time.
+        seconds: this recipient's share of the pool's wall time (its time in a slot / slots).
+        steps: optimisation steps it took.
+        stopped_early: whether the stopping rule finished it before the step cap.
+        message_weight: its message weight at the end (differs from the configured one under control).
+        refusals: early stops refused by the confirmation before it finished.
     """
 
     name: str
@@ -114,6 +193,10 @@ class CopyResult:
     psnr: float
     min_psnr: float
     seconds: float = 0.0
+    steps: int = 0
+    stopped_early: bool = False
+    message_weight: float | None = None
+    refusals: int = 0
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
@@ -122,58 +205,168 @@ def _attack_layers(cfg: EmbedConfig) -> dict | None:
                          "use gsw embed per recipient for them")
     if cfg.attacks <= 0:
         return None
-    from gsw.attacks.layers import training_noise_layers
+    from gsw.attacks.layers import matched_noise_layers, training_noise_layers
 
-    return {k: v for k, v in training_noise_layers().items() if k != "identity"}
+    layers = training_noise_layers() if cfg.attack_ranges == "training" else matched_noise_layers()
+    return {k: v for k, v in layers.items() if k != "identity"}
 
 
-def finetune_batch(scene, names: Sequence[str], messages: Tensor,
-                   on_step: Callable[[int], None] | None = None) -> list[CopyResult]:
-    """Fine-tunes one copy per recipient, all together, and scores them on the embedding views.
+@dataclass
+class _Slot:
+    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in."""
+
+    index: int
+    rng: random.Random
+    tgen: torch.Generator
+    order: list[int] = field(default_factory=list)
+    start: float = 0.0
+
+    def next_view(self, views: int) -> int:
+        if not self.order:  # a new epoch: the shuffle of gsw.mark.embed
+            self.order = list(range(views))
+            self.rng.shuffle(self.order)
+        return self.order.pop(0)
+
+
+class _Pool:
+    """The slots, their recipients and the step loop's pieces."""
+
+    def __init__(self, scene, messages: Tensor, k: int, stop: EarlyStop | None) -> None:
+        cfg: EmbedConfig = scene.shared.config
+        self.scene, self.cfg = scene, cfg
+        self.messages = messages.to(scene.device, torch.float32)
+        self.params = SlotParams(scene.model, k, cfg)
+        self.monitor = SlotMonitor(k, cfg.weights.message, stop, scene.device)
+        self.attacks = _attack_layers(cfg)
+        self.slots: list[_Slot | None] = [None] * k
+        self.cap = cfg.epochs * len(scene.shared.cameras)
+        self.uniform = len({(c.width, c.height) for c in scene.shared.cameras}) == 1
+        self._cache: dict = {}
+
+    def fill(self, j: int, index: int) -> None:
+        self.params.reset(j)
+        self.monitor.reset(j)
+        seed = self.cfg.seed
+        self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
+                              start=time.perf_counter())
+
+    def _indices(self, slots: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+        """The device index tensor of ``slots`` and their recipients' messages (cached while they stay)."""
+        key = (slots, tuple(self.slots[j].index for j in slots))
+        if key not in self._cache:
+            self._cache.clear()
+            dev = self.messages.device
+            self._cache[key] = (torch.tensor(slots, device=dev),
+                                self.messages[torch.tensor(list(key[1]), device=dev)])
+        return self._cache[key]
+
+    def active(self) -> list[int]:
+        return [j for j, s in enumerate(self.slots) if s is not None]
+
+    def _decoder_input(self, slot: _Slot, render: Tensor) -> Tensor:
+        """What the message loss decodes for one slot (an attacked render with ``cfg.attacks``)."""
+        if self.attacks is not None and slot.rng.random() < self.cfg.attacks:
+            name = slot.rng.choice(sorted(self.attacks))
+            return self.attacks[name](render.clamp(0, 1)[None], generator=slot.tgen)[0]
+        return render
+
+    def step(self) -> None:
+        """One optimisation step of every occupied slot."""
+        from gsw.render.rasterize import rasterize
+
+        cams, originals, bg = self.scene.shared.cameras, self.scene.originals, self.cfg.background
+        slots = self.active()
+        views = [self.slots[j].next_view(len(cams)) for j in slots]
+        renders = [rasterize(g, cams[v], background=bg, validate=False).image
+                   for g, v in zip(self.params.slot_models(slots), views)]
+        decoded = [self._decoder_input(self.slots[j], r) for j, r in zip(slots, renders)]
+        targets = [originals[v] for v in views]
+        # one batched pass when every view has the same size (attacked images may not: one pass per slot)
+        batched = self.uniform and self.attacks is None
+        groups = [list(range(len(slots)))] if batched else [[i] for i in range(len(slots))]
+        total = 0.0
+        for g in groups:
+            r = torch.stack([renders[i] for i in g])
+            t = torch.stack([targets[i] for i in g])
+            d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
+            idx, msgs = self._indices(tuple(slots[i] for i in g))
+            part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx])
+            self.monitor.observe(idx, logits, msgs, r, t)
+            total = total + part
+        total.backward()
+        self.params.step(slots)
+
+
+def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Callable[[int], None] | None = None, *,
+                   slots: int | None = None, stop: EarlyStop | None = None,
+                   on_copy: Callable[[CopyResult], None] | None = None) -> list[CopyResult]:
+    """Fine-tunes one copy per recipient in a pool of ``slots`` slots and scores them on the embedding views.
 
     Args:
         scene: a :class:`gsw.fingerprint.shared.WorkerScene`.
-        names: the K recipients.
-        messages: [K, k] their bits.
-        on_step: called with K after every optimisation step (progress).
+        names: the recipients.
+        messages: [R, k] their bits.
+        on_step: progress: called with the number of recipient-steps done (after every step; a recipient
+            that stops early reports the steps it skipped when it leaves).
+        slots: recipients fine-tuned together (default: all of them).
+        stop: the early-stopping rule (default: none; every recipient runs ``EmbedConfig.epochs`` passes).
+        on_copy: called with each copy as soon as it is finished (in finishing order).
 
     Returns:
-        One :class:`CopyResult` per recipient, in order.
+        One :class:`CopyResult` per recipient, in input order.
     """
-    from gsw.render.rasterize import rasterize
+    k = min(len(names), slots or len(names))
+    pool = _Pool(scene, messages, k, stop)
+    queue = list(range(len(names)))
+    for j in range(k):
+        pool.fill(j, queue.pop(0))
+    results: dict[int, CopyResult] = {}
+    every, tick = (stop.check_every if stop is not None else 1), 0
+    while pool.active():
+        pool.step()
+        tick += 1
+        if on_step is not None:
+            on_step(len(pool.active()))
+        steps = pool.params.steps
+        if tick % every and not any(steps[j] >= pool.cap for j in pool.active()):
+            continue
+        occupied = [s is not None for s in pool.slots]
+        for j in pool.monitor.decide(list(steps), occupied, pool.cap):
+            result = _finish(pool, j, names, k)
+            if result is None:  # early, but its copy failed the confirmation on the embedding views: go on
+                continue
+            results[result[0]] = result[1]
+            if on_step is not None and pool.cap > result[1].steps:
+                on_step(pool.cap - result[1].steps)
+            if on_copy is not None:
+                on_copy(result[1])
+            pool.slots[j] = None
+            if queue:
+                pool.fill(j, queue.pop(0))
+    return [results[i] for i in range(len(names))]
 
-    start = time.perf_counter()
-    cfg: EmbedConfig = scene.shared.config
-    cams, bg, k = scene.shared.cameras, cfg.background, len(names)
-    target = messages.to(scene.device, torch.float32)
-    params = BatchedParams(scene.model, k, cfg)
-    attacks = _attack_layers(cfg)
-    rng, tgen = random.Random(cfg.seed), torch.Generator().manual_seed(cfg.seed)
-    for _ in range(cfg.epochs):
-        order = list(range(len(cams)))
-        rng.shuffle(order)
-        for v in order:
-            renders = torch.stack([rasterize(params.gaussians(j), cams[v], background=bg, validate=False).image
-                                   for j in range(k)])
-            decoded = None
-            if attacks is not None and rng.random() < cfg.attacks:
-                decoded = attacks[rng.choice(sorted(attacks))](renders.clamp(0, 1), generator=tgen)
-            total, _ = batched_loss(scene.loss, renders, scene.originals[v], target, decoded)
-            params.opt.zero_grad(set_to_none=True)
-            total.backward()
-            params.mask.step(params.opt)
-            if on_step is not None:
-                on_step(k)
-    copies = [params.gaussians(j).detach() for j in range(k)]
-    results = _score(scene, names, copies, target)
-    for r in results:
-        r.seconds = (time.perf_counter() - start) / k
-    return results
+
+def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | None:
+    """Slot ``j``'s copy, scored on the embedding views; None when it stops early and the score fails the
+    rule's confirmation (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`)."""
+    slot = pool.slots[j]
+    steps = pool.params.steps[j]
+    with torch.no_grad():
+        copy = pool.params.gaussians(j).detach().clone()
+    acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
+    rule = pool.monitor.rule
+    if steps < pool.cap and rule is not None and not rule.confirmed(acc, ps):
+        pool.monitor.refuse(j)
+        return None
+    weight = float(pool.monitor.weights[j])
+    return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
+                                  (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,
+                                  pool.monitor.rejections[j])
 
 
 @torch.no_grad()
-def _score(scene, names: Sequence[str], copies: Sequence[Gaussians], target: Tensor) -> list[CopyResult]:
-    """Bit accuracy and PSNR of each copy on every embedding view (decoded in one batch per view)."""
+def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:
+    """(mean, worst) bit accuracy and (mean, worst) PSNR of one copy over the embedding views."""
     from gsw.decoder.dwt import ll_subband
     from gsw.metrics.image import psnr
     from gsw.render.rasterize import rasterize
@@ -181,11 +374,9 @@ def _score(scene, names: Sequence[str], copies: Sequence[Gaussians], target: Ten
     bg = scene.shared.config.background
     accs, psnrs = [], []
     for cam, orig in zip(scene.shared.cameras, scene.originals):
-        imgs = torch.stack([rasterize(g, cam, background=bg).image.clamp(0, 1) for g in copies])
-        logits = scene.loss.decoder(ll_subband(imgs))
-        accs.append(((logits > 0).float() == target).float().mean(dim=1).cpu())
-        psnrs.append(torch.stack([psnr(img, orig.clamp(0, 1)) for img in imgs]).cpu())
-    acc, ps = torch.stack(accs, dim=1), torch.stack(psnrs, dim=1)  # [K, views]
-    return [CopyResult(n, g.to("cpu"), float(a.mean()), float(a.min()), float(p.mean()), float(p.min()))
-            for n, g, a, p in zip(names, copies, acc, ps)]
-
+        img = rasterize(copy, cam, background=bg).image.clamp(0, 1)
+        logits = scene.loss.decoder(ll_subband(img[None]))[0]
+        accs.append(((logits > 0).float() == target).float().mean())
+        psnrs.append(psnr(img, orig.clamp(0, 1)))
+    acc, ps = torch.stack(accs).cpu(), torch.stack(psnrs).cpu()
+    return float(acc.mean()), float(acc.min()), float(ps.mean()), float(ps.min())

@@ -2,10 +2,10 @@
 
 Flow: check the recipients, the output folder (:class:`~gsw.fingerprint.store.JobFolder`) and the registry
 before any work; skip finished recipients; run the once-per-scene work (FGD) once
-(:func:`~gsw.fingerprint.shared.prepare_scene`); fine-tune the others in batches
+(:func:`~gsw.fingerprint.shared.prepare_scene`); fine-tune the others in a pool of slots
 (:mod:`gsw.fingerprint.batched`) in this process or as Ray tasks (:mod:`gsw.fingerprint.run`); for every
-finished batch, in this process: write each copy's folder atomically, register the batch in one
-transaction, then write each completion marker.
+finished copy, in this process: write its folder atomically (on a writer thread while the fine-tunes go
+on), register it, then write its completion marker.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from torch import Tensor
 
 from gsw.camera import Camera
 from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
+from gsw.fingerprint.stopping import EarlyStop
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import EmbedConfig
 
@@ -37,7 +38,10 @@ class RecipientReport:
         folder: its model folder.
         mark_id: its registry id.
         bit_accuracy, min_bit_accuracy, psnr, min_psnr: scores on the embedding views (embedded only).
-        seconds: its share of its batch's fine-tune time (embedded only).
+        seconds: its share of its pool's fine-tune time (embedded only).
+        steps: its optimisation steps (embedded only).
+        stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
+        refusals: early stops refused by the rule's confirmation (embedded only).
     """
 
     name: str
@@ -49,6 +53,9 @@ class RecipientReport:
     psnr: float | None = None
     min_psnr: float | None = None
     seconds: float | None = None
+    steps: int | None = None
+    stopped_early: bool | None = None
+    refusals: int | None = None
 
 
 @dataclass
@@ -108,26 +115,52 @@ def _choose_runner(use_ray: bool | None, address: str | None, batches: int, log:
 
 
 class _Writer:
-    """The one writer: copies, registry records and completion markers, batch by batch."""
+    """The one writer: copies, registry records and completion markers.
+
+    Each copy's folder is written (atomically) on one background thread while the fine-tunes go on; once
+    written, it is registered and marked complete in the calling thread (the registry's), at the next call,
+    or at :meth:`flush`. The order per recipient stays: folder, registry record, completion marker.
+    """
 
     def __init__(self, folder, registry, shared, record: dict, reports: dict, bar) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
         self.folder, self.registry, self.shared, self.record, self.reports, self.bar = (
             folder, registry, shared, record, reports, bar)
         self.messages: dict[str, str] = {}
-        self.steps = shared.config.epochs * len(shared.cameras)
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gsw-fingerprint-writer")
+        self.pending: list = []  # (result, future of its model hash)
 
-    def __call__(self, results: list) -> None:
+    def _write(self, r) -> str:
         from gsw.cli.metadata import watermark_record
 
+        cams, cfg = self.shared.cameras, self.shared.config
+        stats = dict(self.shared.stats, mean_bit_accuracy=r.bit_accuracy, mean_psnr=r.psnr, steps=r.steps)
+        rec = watermark_record(num_bits=self.shared.num_bits, background=cfg.background, cameras=cams, config=cfg,
+                               stats=stats, decoder=self.record["decoder"])
+        return self.folder.write_copy(r.name, r.gaussians, cams, rec)
+
+    def __call__(self, results: list) -> None:
+        self.pending += [(r, self.pool.submit(self._write, r)) for r in results]
+        self._register(wait=False)
+
+    def flush(self) -> None:
+        """Waits for every copy and registers it; stops the thread."""
+        try:
+            self._register(wait=True)
+        finally:
+            self.pool.shutdown(wait=True)
+
+    def _register(self, wait: bool) -> None:
+        ready = [(r, f) for r, f in self.pending if wait or f.done()]
+        if not ready:
+            return
+        self.pending = [(r, f) for r, f in self.pending if not (wait or f.done())]
         cams, cfg, k = self.shared.cameras, self.shared.config, self.shared.num_bits
         sizes = {(c.width, c.height) for c in cams}
         width, height = next(iter(sizes)) if len(sizes) == 1 else (None, None)
-        hashes = []
-        for r in results:
-            stats = dict(self.shared.stats, mean_bit_accuracy=r.bit_accuracy, mean_psnr=r.psnr)
-            rec = watermark_record(num_bits=k, background=cfg.background, cameras=cams, config=cfg, stats=stats,
-                                   decoder=self.record["decoder"])
-            hashes.append(self.folder.write_copy(r.name, r.gaussians, cams, rec))
+        hashes = [f.result() for _, f in ready]  # re-raises a failed write
+        results = [r for r, _ in ready]
         ids = self.registry.add_many([dict(label=r.name, message=self.messages[r.name], num_bits=k,
                                            decoder_sha256=self.shared.decoder_sha256, model_hash=h, width=width,
                                            height=height, background=cfg.background)
@@ -136,7 +169,7 @@ class _Writer:
             self.folder.mark_done(r.name, h, mark_id)
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
-                                                   r.seconds)
+                                                   r.seconds, r.steps, r.stopped_early, r.refusals)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
@@ -144,7 +177,8 @@ class _Writer:
 def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | os.PathLike | Sequence[Recipient | str],
                 output_dir: str | os.PathLike, registry: Any, *, num_bits: int = 32,
                 config: EmbedConfig | None = None, images: Sequence[Tensor] | None = None,
-                decoder: torch.nn.Module | None = None, batch_size: int = 4, device: str | torch.device | None = None,
+                decoder: torch.nn.Module | None = None, batch_size: int = 4, early_stop: EarlyStop | None = None,
+                task_size: int | None = None, device: str | torch.device | None = None,
                 use_ray: bool | None = None, address: str | None = None, gpus_per_task: float = 1.0,
                 max_retries: int = 3, progress: bool = True,
                 log: Callable[[str], None] | None = None) -> FingerprintReport:
@@ -160,7 +194,12 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         config: embedding settings (default :class:`~gsw.mark.embed.EmbedConfig`).
         images: optional training images for FGD phase 1.
         decoder: a custom decoder (default: the shipped one).
-        batch_size: recipients fine-tuned together on one device.
+        batch_size: recipients fine-tuned together on one device (the slots of a pool: a finished
+            recipient's slot is refilled with the next one, :mod:`gsw.fingerprint.batched`).
+        early_stop: per-recipient early stopping (:class:`~gsw.fingerprint.stopping.EarlyStop`); None: every
+            recipient runs ``config.epochs`` passes over the views.
+        task_size: recipients per Ray task (default: ``batch_size``); in one process all recipients go
+            through one pool.
         device: where to compute (default: :func:`gsw.device.resolve_device` "auto").
         use_ray: True: Ray tasks; False: this process; None: Ray when installed and there are several
             batches (or an ``address``).
@@ -184,8 +223,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     from gsw.registry import Registry, open_registry
 
     start = time.perf_counter()
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    if batch_size < 1 or (task_size is not None and task_size < 1):
+        raise ValueError(f"batch_size and task_size must be >= 1, got {batch_size}, {task_size}")
     log = log or ((lambda text: print(f"gsw fingerprint: {text}", file=sys.stderr)) if progress else (lambda _t: None))
     cfg = config or EmbedConfig()
     people = _recipients(recipients)
@@ -195,14 +234,15 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
                        num_bits=num_bits)
     reg = registry if isinstance(registry, Registry) else open_registry(registry)
     try:
-        return _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, batch_size, dev, use_ray,
+        pool = dict(slots=batch_size, stop=early_stop, task_size=task_size or batch_size)
+        return _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, pool, dev, use_ray,
                     address, gpus_per_task, max_retries, progress, log, start)
     finally:
         if reg is not registry:
             reg.close()
 
 
-def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, batch_size, dev, use_ray, address,
+def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, pool, dev, use_ray, address,
          gpus_per_task, max_retries, progress, log, start) -> FingerprintReport:
     """The body of :func:`fingerprint` once the inputs are checked."""
     from gsw.fingerprint.run import run_local, run_ray
@@ -227,7 +267,8 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, ba
     timings: dict[str, float] = {}
     runner = "none"
     if todo:
-        batches = [[(r.name, r.message) for r in todo[i:i + batch_size]] for i in range(0, len(todo), batch_size)]
+        size = pool["task_size"]
+        batches = [[(r.name, r.message) for r in todo[i:i + size]] for i in range(0, len(todo), size)]
         runner = _choose_runner(use_ray, address, len(batches), log)
         t0 = time.perf_counter()
         shared = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
@@ -239,15 +280,19 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, ba
                              bar)
             writer.messages = {r.name: r.message for r in todo}
             t0 = time.perf_counter()
-            if runner == "ray":
-                def on_result(results: list) -> None:
-                    writer(results)
-                    bar.update(len(results) * steps)
+            try:
+                if runner == "ray":
+                    def on_result(results: list) -> None:
+                        writer(results)
+                        bar.update(len(results) * steps)
 
-                run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
-                        max_retries=max_retries)
-            else:
-                run_local(shared, batches, str(dev), writer, on_step=bar.update)
+                    run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
+                            max_retries=max_retries, slots=pool["slots"], stop=pool["stop"])
+                else:
+                    run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
+                              stop=pool["stop"])
+            finally:
+                writer.flush()  # the copies finished so far are registered even when a batch failed
             timings["finetune"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return FingerprintReport([reports[p.name] for p in people], runner, folder.scene_hash, timings)

@@ -124,7 +124,7 @@ class WorkerScene:
     loss: torch.nn.Module
 
 
-_CACHE: dict[tuple[str, str], WorkerScene] = {}
+_CACHE: dict[tuple[str, str, str], WorkerScene] = {}
 
 
 def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene:
@@ -139,7 +139,7 @@ def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene
     from gsw.render.rasterize import rasterize
 
     device = torch.device(device)
-    key = (shared.scene_hash, str(device))
+    key = (shared.scene_hash, shared.decoder_sha256, str(device))
     if key not in _CACHE:
         _CACHE.clear()  # one scene at a time per worker
         cfg = shared.config

@@ -1,0 +1,182 @@
+"""When a recipient's fine-tune is finished: per-recipient early stopping and message-weight control.
+
+Every decision is taken from the fine-tune's own training steps (the renders of the embedding views it
+already decodes for the loss), never from other views: a recipient is *passing* at a step when the decoder
+reads every bit of that step's render right with ``|logit| >= margin``; it finishes once it has passed on
+``window`` consecutive steps (each a different shuffled embedding view), after at least ``min_steps`` steps,
+and, with a ``psnr_target``, once the running PSNR of its renders against the original renders is at least
+that target; then its copy is scored on every embedding view (as every finished copy is) and, with
+``confirm``, kept only when that score reaches ``confirm`` bit accuracy (and the PSNR target), else the
+recipient goes on and needs twice as many consecutive passing steps for its next attempt. A recipient that reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes
+there, as without early stopping.
+
+With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
+by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
+``w``), multiplied by ``adapt`` while the PSNR is above it and its bits do not pass yet (up to ``w``: the
+control only ever lowers the configured recipe's weight).
+
+The statistics stay on the device; the host reads them every ``check_every`` steps (one synchronisation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["EarlyStop", "SlotMonitor"]
+
+
+@dataclass(frozen=True)
+class EarlyStop:
+    """Per-recipient stopping rule (see the module docstring).
+
+    Attributes:
+        min_steps: steps before a recipient may finish.
+        window: consecutive passing steps needed.
+        margin: smallest ``|logit|`` of a right bit that counts (decoder logit units).
+        check_every: steps between decisions (host synchronisations).
+        psnr_target: running training-view PSNR (dB) also required to finish; None: no PSNR condition.
+        adapt: per-check factor of the message-weight control (1: off; needs ``psnr_target``).
+        max_factor: the controlled weight stays >= the configured one / ``max_factor``.
+        confirm: before a recipient stops early, its copy is scored on every embedding view (as every finished
+            copy is); it stops only when the mean bit accuracy there is >= ``confirm`` (and the mean PSNR >=
+            ``psnr_target`` when given), else its streak starts over. 0: no condition on the bits.
+    """
+
+    min_steps: int = 100
+    window: int = 16
+    margin: float = 1.0
+    check_every: int = 8
+    psnr_target: float | None = None
+    adapt: float = 1.0
+    max_factor: float = 4.0
+    confirm: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("min_steps", "window", "check_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"EarlyStop.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.confirm <= 1.0:
+            raise ValueError(f"EarlyStop.confirm is a bit accuracy in [0, 1], got {self.confirm}")
+        if self.margin < 0:
+            raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
+        if self.adapt < 1 or self.max_factor < 1:
+            raise ValueError(f"EarlyStop.adapt and max_factor must be >= 1, got {self.adapt}, {self.max_factor}")
+        if self.adapt > 1 and self.psnr_target is None:
+            raise ValueError("EarlyStop.adapt > 1 steers the message weight towards psnr_target: give one")
+
+    def confirmed(self, bit_accuracy: float, psnr: float) -> bool:
+        """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early."""
+        return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
+
+    @classmethod
+    def parse(cls, text: str) -> "EarlyStop":
+        """From ``"key=value,..."`` with the attribute names (``psnr_target=none`` for no target).
+
+        Raises:
+            ValueError: an unknown key or a malformed value.
+        """
+        fields = {f: t for f, t in cls.__annotations__.items()}
+        kwargs: dict = {}
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            key, sep, value = part.partition("=")
+            key = key.strip().replace("-", "_")
+            if not sep or key not in fields:
+                raise ValueError(f"early-stop setting {part!r}: expected key=value with key one of "
+                                 f"{', '.join(fields)}")
+            try:
+                if key == "psnr_target":
+                    kwargs[key] = None if value.strip().lower() == "none" else float(value)
+                else:
+                    kwargs[key] = int(value) if key in ("min_steps", "window", "check_every") else float(value)
+            except ValueError:
+                raise ValueError(f"early-stop setting {part!r}: {value!r} is not a number") from None
+        return cls(**kwargs)
+
+
+class SlotMonitor:
+    """Device-side per-slot statistics of a recipient pool and the decisions of an :class:`EarlyStop`.
+
+    Args:
+        k: number of slots.
+        weight: the configured message weight.
+        rule: the stopping rule, or None (every recipient runs to the step cap).
+        device: where the statistics live.
+    """
+
+    def __init__(self, k: int, weight: float, rule: EarlyStop | None, device: torch.device) -> None:
+        self.rule, self.weight = rule, float(weight)
+        self.streak = torch.zeros(k, device=device)
+        self.psnr = torch.zeros(k, device=device)
+        self.weights = torch.full((k,), self.weight, device=device)
+        self.count = torch.zeros(k, device=device)  # steps observed per slot
+        self.rejections = [0] * k  # early stops refused by the confirmation, per slot
+        self.alpha = 2.0 / ((rule.window if rule else 16) + 1)
+
+    def reset(self, j: int) -> None:
+        """Slot ``j`` holds a new recipient."""
+        self.streak[j] = 0.0
+        self.psnr[j] = 0.0
+        self.count[j] = 0.0
+        self.rejections[j] = 0
+        self.weights[j] = self.weight
+
+    @torch.no_grad()
+    def observe(self, slots: Tensor, logits: Tensor, messages: Tensor, renders: Tensor, targets: Tensor) -> None:
+        """Records one step of the ``slots`` (no host synchronisation).
+
+        Args:
+            slots: [B] the active slots (device indices), in the order of the batch.
+            logits: [B, k] decoder logits of their renders.
+            messages: [B, k] their bits.
+            renders: [B, 3, H, W] their renders.
+            targets: [B, 3, H, W] the original renders.
+        """
+        if self.rule is None:
+            return
+        signed = logits.detach() * (2 * messages - 1)
+        ok = (signed >= max(self.rule.margin, 1e-12)).all(dim=1).float()
+        self.streak[slots] = (self.streak[slots] + 1) * ok
+        mse = (renders.detach().clamp(0, 1) - targets.clamp(0, 1)).square().mean(dim=(1, 2, 3))
+        p = -10 * torch.log10(mse.clamp_min(1e-12))
+        first = self.count[slots] == 0
+        self.psnr[slots] = torch.where(first, p, (1 - self.alpha) * self.psnr[slots] + self.alpha * p)
+        self.count[slots] += 1
+
+    def decide(self, steps: list[int], active: list[bool], cap: int) -> list[int]:
+        """The active slots that finish now (one host synchronisation); adjusts the message weights.
+
+        Args:
+            steps: per slot, the steps its recipient has taken.
+            active: per slot, whether it holds a recipient.
+            cap: the step cap.
+        """
+        done = [j for j, (s, a) in enumerate(zip(steps, active)) if a and s >= cap]
+        rule = self.rule
+        if rule is None:
+            return done
+        streak, psnr = (t.tolist() for t in torch.stack([self.streak, self.psnr]).cpu())
+        for j, (s, a) in enumerate(zip(steps, active)):
+            if not a or j in done:
+                continue
+            bits_ok = streak[j] >= rule.window * 2 ** self.rejections[j]  # each refusal doubles the window
+            psnr_ok = rule.psnr_target is None or psnr[j] >= rule.psnr_target
+            if s >= rule.min_steps and bits_ok and psnr_ok:
+                done.append(j)
+            elif rule.adapt > 1 and not psnr_ok:
+                self._scale(j, 1 / rule.adapt)
+            elif rule.adapt > 1 and not bits_ok:
+                self._scale(j, rule.adapt)
+        return sorted(done)
+
+    def refuse(self, j: int) -> None:
+        """Slot ``j``'s early stop was refused (:meth:`EarlyStop.confirmed`): its streak starts over and the
+        next attempt needs twice the window (the scores stay a bounded share of the steps)."""
+        self.streak[j] = 0.0
+        self.rejections[j] += 1
+
+    def _scale(self, j: int, factor: float) -> None:
+        lo, hi = self.weight / self.rule.max_factor, self.weight
+        self.weights[j] = float(min(hi, max(lo, float(self.weights[j]) * factor)))
