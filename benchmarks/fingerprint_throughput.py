@@ -12,10 +12,8 @@ back from its folder and measured on the held-out views (never used by the job):
 its mean held-out bit accuracy is >= 99 % and its mean held-out PSNR >= 37 dB.
 
 A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (recipients), ``epochs`` (step
-cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
-:meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``) and ``basis`` (a bit basis,
-:meth:`~gsw.fingerprint.basis.BasisConfig.parse` string such as ``steps=600,batch=8``, or ``none``; its fit
-counts in the job's fine-tune time). The JSON (``--out``/``<tag>.json``)
+cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none) and ``stop`` (an
+:meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``). The JSON (``--out``/``<tag>.json``)
 is rewritten after every setting; ``--budget-s`` stops starting new settings. ``--scan-only MARKS`` only
 times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of the unmarked model.
 
@@ -97,16 +95,12 @@ def parse_setting(text: str) -> dict:
     """A sweep setting (see the module docstring) as a dict with every key."""
     from gsw.fingerprint.stopping import EarlyStop
 
-    from gsw.fingerprint.basis import BasisConfig
-
-    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, basis=None, text=text)
+    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, text=text)
     for token in text.split():
         key, sep, value = token.partition("=")
         if not sep or key not in out or key == "text":
-            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop basis)")
-        if key == "basis":
-            out[key] = None if value == "none" else BasisConfig.parse(value)
-        elif key == "stop":
+            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop)")
+        if key == "stop":
             out[key] = None if value == "none" else EarlyStop.parse(value)
         elif key == "lpips":
             out[key] = value
@@ -170,7 +164,7 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     t0 = time.perf_counter()
     with open_registry(tmp / "marks.sqlite") as reg:
         report = gsw.fingerprint(g, cams, names, tmp / "copies", reg, num_bits=args.bits, config=cfg, images=images,
-                                 batch_size=setting["k"], early_stop=setting["stop"], basis=setting["basis"], device=dev, use_ray=False,
+                                 batch_size=setting["k"], early_stop=setting["stop"], device=dev, use_ray=False,
                                  progress=False)
         _sync(dev)
         wall = time.perf_counter() - t0
@@ -186,7 +180,6 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=weights.message,
                lpips=setting["lpips"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
-               basis=None if setting["basis"] is None else vars(setting["basis"]),
                setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
                recipients_per_hour=3600 * len(rows) / fine,
                ms_per_recipient_step=1000 * fine / max(1, sum(r["steps"] or 0 for r in rows)),

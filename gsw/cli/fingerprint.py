@@ -42,10 +42,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
                          "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X' "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
-    fp.add_argument("--basis", nargs="?", const="", default=None, metavar="SETTINGS",
-                    help="start every recipient from a bit basis fitted once for the scene (with --early-stop, a "
-                         "start that already passes is handed out without fine-tuning); optionally "
-                         "'steps=N,batch=N,seed=N' (gsw.fingerprint.basis.BasisConfig)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients per Ray task (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
@@ -94,13 +90,11 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     from gsw.cli.mark import _load_model, embed_config
     from gsw.device import resolve_device
     from gsw.fingerprint import fingerprint, read_recipients
-    from gsw.fingerprint.basis import BasisConfig
     from gsw.fingerprint.stopping import EarlyStop
 
     with reading(args.recipients):
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
     early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
-    basis = None if args.basis is None else BasisConfig.parse(args.basis)
     device = resolve_device(args.device)
     g, cams, images = _load_model(args)
     if cams is None:
@@ -108,7 +102,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
                          "or an INRIA model folder)")
     report = fingerprint(g, cams, recipients, args.output, args.registry, num_bits=args.bits,
                          config=embed_config(args), images=None if images is None else list(images),
-                         batch_size=args.batch, early_stop=early_stop, basis=basis, task_size=args.task_size, device=device,
+                         batch_size=args.batch, early_stop=early_stop, task_size=args.task_size, device=device,
                          use_ray=_use_ray(args), address=args.address, gpus_per_task=args.gpus_per_task,
                          max_retries=args.max_retries,
                          progress=not args.no_progress)

@@ -94,14 +94,11 @@ class SlotParams:
                           torch.cat([dc[j], rest[j]], dim=1)) for j in slots]
 
     @torch.no_grad()
-    def reset(self, j: int, start: dict[str, Tensor] | None = None) -> None:
-        """Slot ``j`` starts over: the starting parameters (or ``start``'s tensors by attribute name, e.g. a
-        :meth:`gsw.fingerprint.basis.BitBasis.start`), zero Adam moments, step 0."""
+    def reset(self, j: int) -> None:
+        """Slot ``j`` starts over: the starting parameters, zero Adam moments, step 0."""
         sources = {id(self.dc): self.model.sh[:, :1], id(self.rest): self.model.sh[:, 1:],
                    id(self.logits): self.model.opacity_logits, id(self.log_scales): self.model.log_scales,
                    id(self.quats): self.model.quats, id(self.means): self.model.means}
-        for name, t in (start or {}).items():
-            sources[id(getattr(self, name))] = t
         for (p, _, _), m, v in zip(self.groups, self.exp_avg, self.exp_avg_sq):
             p[j].copy_(sources[id(p)])
             m[j].zero_()
@@ -234,9 +231,9 @@ class _Slot:
 class _Pool:
     """The slots, their recipients and the step loop's pieces."""
 
-    def __init__(self, scene, messages: Tensor, k: int, stop: EarlyStop | None, basis=None) -> None:
+    def __init__(self, scene, messages: Tensor, k: int, stop: EarlyStop | None) -> None:
         cfg: EmbedConfig = scene.shared.config
-        self.scene, self.cfg, self.basis = scene, cfg, basis
+        self.scene, self.cfg = scene, cfg
         self.messages = messages.to(scene.device, torch.float32)
         self.params = SlotParams(scene.model, k, cfg)
         self.monitor = SlotMonitor(k, cfg.weights.message, stop, scene.device)
@@ -247,8 +244,7 @@ class _Pool:
         self._cache: dict = {}
 
     def fill(self, j: int, index: int) -> None:
-        start = None if self.basis is None else self.basis.start(self.messages[index])
-        self.params.reset(j, start)
+        self.params.reset(j)
         self.monitor.reset(j)
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
@@ -303,7 +299,7 @@ class _Pool:
 
 def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Callable[[int], None] | None = None, *,
                    slots: int | None = None, stop: EarlyStop | None = None,
-                   on_copy: Callable[[CopyResult], None] | None = None, basis=None) -> list[CopyResult]:
+                   on_copy: Callable[[CopyResult], None] | None = None) -> list[CopyResult]:
     """Fine-tunes one copy per recipient in a pool of ``slots`` slots and scores them on the embedding views.
 
     Args:
@@ -315,40 +311,16 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         slots: recipients fine-tuned together (default: all of them).
         stop: the early-stopping rule (default: none; every recipient runs ``EmbedConfig.epochs`` passes).
         on_copy: called with each copy as soon as it is finished (in finishing order).
-        basis: a :class:`gsw.fingerprint.basis.BitBasis`: each recipient starts from its point of the basis
-            instead of the scene's model, and with ``stop`` a start whose copy already passes the rule's
-            confirmation on the embedding views is handed out without a step.
 
     Returns:
         One :class:`CopyResult` per recipient, in input order.
     """
     k = min(len(names), slots or len(names))
-    pool = _Pool(scene, messages, k, stop, basis)
+    pool = _Pool(scene, messages, k, stop)
     queue = list(range(len(names)))
-    results: dict[int, CopyResult] = {}
-
-    def hand_out(index: int, copy: CopyResult) -> None:
-        results[index] = copy
-        if on_step is not None and pool.cap > copy.steps:
-            on_step(pool.cap - copy.steps)
-        if on_copy is not None:
-            on_copy(copy)
-
-    def refill(j: int) -> None:
-        """Slot ``j`` takes the next recipient whose start does not already pass (or stays empty)."""
-        pool.slots[j] = None
-        while queue:
-            pool.fill(j, queue.pop(0))
-            if basis is None or stop is None:
-                return
-            done = _finish(pool, j, names, k, ready=True)
-            if done is None:
-                return
-            hand_out(*done)
-            pool.slots[j] = None
-
     for j in range(k):
-        refill(j)
+        pool.fill(j, queue.pop(0))
+    results: dict[int, CopyResult] = {}
     every, tick = (stop.check_every if stop is not None else 1), 0
     while pool.active():
         pool.step()
@@ -363,15 +335,20 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
             result = _finish(pool, j, names, k)
             if result is None:  # early, but its copy failed the confirmation on the embedding views: go on
                 continue
-            hand_out(*result)
-            refill(j)
+            results[result[0]] = result[1]
+            if on_step is not None and pool.cap > result[1].steps:
+                on_step(pool.cap - result[1].steps)
+            if on_copy is not None:
+                on_copy(result[1])
+            pool.slots[j] = None
+            if queue:
+                pool.fill(j, queue.pop(0))
     return [results[i] for i in range(len(names))]
 
 
-def _finish(pool: _Pool, j: int, names: Sequence[str], k: int, ready: bool = False) -> tuple[int, CopyResult] | None:
+def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | None:
     """Slot ``j``'s copy, scored on the embedding views; None when it stops early and the score fails the
-    rule's confirmation (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`), or, with ``ready`` (a fresh
-    start, not yet stepped), when the start does not pass it (nothing refused then)."""
+    rule's confirmation (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`)."""
     slot = pool.slots[j]
     steps = pool.params.steps[j]
     with torch.no_grad():
@@ -379,8 +356,7 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int, ready: bool = Fal
     acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
     rule = pool.monitor.rule
     if steps < pool.cap and rule is not None and not rule.confirmed(acc, ps):
-        if not ready:
-            pool.monitor.refuse(j)
+        pool.monitor.refuse(j)
         return None
     weight = float(pool.monitor.weights[j])
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,

@@ -20,7 +20,6 @@ import torch
 from torch import Tensor
 
 from gsw.camera import Camera
-from gsw.fingerprint.basis import BasisConfig
 from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
 from gsw.fingerprint.stopping import EarlyStop
 from gsw.gaussians import Gaussians
@@ -179,7 +178,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
                 output_dir: str | os.PathLike, registry: Any, *, num_bits: int = 32,
                 config: EmbedConfig | None = None, images: Sequence[Tensor] | None = None,
                 decoder: torch.nn.Module | None = None, batch_size: int = 4, early_stop: EarlyStop | None = None,
-                basis: BasisConfig | None = None, task_size: int | None = None, device: str | torch.device | None = None,
+                task_size: int | None = None, device: str | torch.device | None = None,
                 use_ray: bool | None = None, address: str | None = None, gpus_per_task: float = 1.0,
                 max_retries: int = 3, progress: bool = True,
                 log: Callable[[str], None] | None = None) -> FingerprintReport:
@@ -199,9 +198,6 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
             recipient's slot is refilled with the next one, :mod:`gsw.fingerprint.batched`).
         early_stop: per-recipient early stopping (:class:`~gsw.fingerprint.stopping.EarlyStop`); None: every
             recipient runs ``config.epochs`` passes over the views.
-        basis: start every recipient from a bit basis fitted once per scene and worker
-            (:mod:`gsw.fingerprint.basis`); with ``early_stop`` a start that already passes its confirmation is
-            handed out without fine-tuning. None: every recipient starts from the scene's model.
         task_size: recipients per Ray task (default: ``batch_size``); in one process all recipients go
             through one pool.
         device: where to compute (default: :func:`gsw.device.resolve_device` "auto").
@@ -238,7 +234,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
                        num_bits=num_bits)
     reg = registry if isinstance(registry, Registry) else open_registry(registry)
     try:
-        pool = dict(slots=batch_size, stop=early_stop, basis=basis, task_size=task_size or batch_size)
+        pool = dict(slots=batch_size, stop=early_stop, task_size=task_size or batch_size)
         return _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, pool, dev, use_ray,
                     address, gpus_per_task, max_retries, progress, log, start)
     finally:
@@ -291,10 +287,10 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
                         bar.update(len(results) * steps)
 
                     run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
-                            max_retries=max_retries, slots=pool["slots"], stop=pool["stop"], basis=pool["basis"])
+                            max_retries=max_retries, slots=pool["slots"], stop=pool["stop"])
                 else:
                     run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
-                              stop=pool["stop"], basis=pool["basis"])
+                              stop=pool["stop"])
             finally:
                 writer.flush()  # the copies finished so far are registered even when a batch failed
             timings["finetune"] = time.perf_counter() - t0

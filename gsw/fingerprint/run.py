@@ -15,7 +15,6 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import torch
 
 if TYPE_CHECKING:
-    from gsw.fingerprint.basis import BasisConfig
     from gsw.fingerprint.stopping import EarlyStop
 
 __all__ = ["SCALE_OUT_HINT", "BatchFailure", "connect_ray", "ray_available", "map_ray", "run_batch", "run_local", "run_ray"]
@@ -36,7 +35,7 @@ def ray_available() -> bool:
 
 def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Callable[[int], None] | None = None,
               *, slots: int | None = None, stop: EarlyStop | None = None,
-              on_copy: Callable[[Any], None] | None = None, basis: BasisConfig | None = None) -> list:
+              on_copy: Callable[[Any], None] | None = None) -> list:
     """Fine-tunes recipients in a pool of ``slots`` slots on ``device`` (the body of a task).
 
     Args:
@@ -47,38 +46,33 @@ def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Ca
         slots: recipients fine-tuned together (default: all of ``batch``).
         stop: a :class:`~gsw.fingerprint.stopping.EarlyStop`, or None.
         on_copy: called with each finished copy.
-        basis: a bit basis to start the recipients from (:mod:`gsw.fingerprint.basis`), fitted once per
-            worker and scene; None: every recipient starts from the scene's model.
 
     Returns:
         Their :class:`~gsw.fingerprint.batched.CopyResult`, in order (models on the CPU).
     """
     from gsw.fingerprint.batched import finetune_batch
-    from gsw.fingerprint.basis import scene_basis
     from gsw.fingerprint.shared import worker_scene
     from gsw.mark.message import message_from_hex
 
     scene = worker_scene(shared, device)
     messages = torch.stack([message_from_hex(m, shared.num_bits) for _, m in batch])
-    fitted = None if basis is None else scene_basis(scene, basis)
-    return finetune_batch(scene, [n for n, _ in batch], messages, on_step, slots=slots, stop=stop, on_copy=on_copy,
-                          basis=fitted)
+    return finetune_batch(scene, [n for n, _ in batch], messages, on_step, slots=slots, stop=stop, on_copy=on_copy)
 
 
 def run_local(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
               on_result: Callable[[list], None], on_step: Callable[[int], None] | None = None, *,
-              slots: int | None = None, stop: EarlyStop | None = None, basis: BasisConfig | None = None) -> None:
+              slots: int | None = None, stop: EarlyStop | None = None) -> None:
     """Runs every recipient of ``batches`` through one pool of ``slots`` slots in this process; each copy
     is handed to ``on_result`` (as a one-element list) as soon as it is finished."""
     recipients = [r for batch in batches for r in batch]
     run_batch(shared, recipients, device, on_step, slots=slots or max(len(b) for b in batches), stop=stop,
-              on_copy=lambda copy: on_result([copy]), basis=basis)
+              on_copy=lambda copy: on_result([copy]))
 
 
-def _ray_task(shared, batch, device, slots=None, stop=None, basis=None):  # pragma: no cover - runs in a Ray worker
+def _ray_task(shared, batch, device, slots=None, stop=None):  # pragma: no cover - runs in a Ray worker
     if device.startswith("cuda"):
         device = "cuda"  # Ray sets CUDA_VISIBLE_DEVICES to the task's GPU
-    return run_batch(shared, batch, device, slots=slots, stop=stop, basis=basis)
+    return run_batch(shared, batch, device, slots=slots, stop=stop)
 
 
 def map_ray(fn: Callable[..., Any], shared: Any, payloads: Sequence[Any], on_result: Callable[[int, Any], None], *,
@@ -137,10 +131,9 @@ def connect_ray(address: str | None, **init_kwargs: Any) -> bool:
 
 def run_ray(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str, on_result: Callable[[list], None], *,
             address: str | None = None, gpus_per_task: float = 1.0, max_retries: int = 3, slots: int | None = None,
-            stop: EarlyStop | None = None, basis: BasisConfig | None = None) -> None:
+            stop: EarlyStop | None = None) -> None:
     """Runs the batches as Ray tasks (``num_gpus=gpus_per_task`` each on a CUDA device), each a pool of
-    ``slots`` slots (default: the batch's size) with the early-stopping rule ``stop`` (and the bit basis
-    ``basis``, fitted once per worker).
+    ``slots`` slots (default: the batch's size) with the early-stopping rule ``stop``.
 
     Raises:
         BatchFailure: batches that failed after their retries (the others were handed to ``on_result``).
@@ -152,7 +145,7 @@ def run_ray(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str, o
         gpu = device.startswith("cuda")
         failed = map_ray(_ray_task, shared, batches, lambda _i, res: on_result(res),
                          num_gpus=gpus_per_task if gpu else 0.0, num_cpus=1.0, max_retries=max_retries,
-                         args=(device, slots, stop, basis))
+                         args=(device, slots, stop))
     finally:
         if started:
             ray.shutdown()

@@ -115,7 +115,6 @@ class WorkerScene:
         model: the FGD'd model on ``device``.
         originals: per camera, the [3, H, W] render of the input model.
         loss: the watermark loss (decoder + LPIPS) on ``device``.
-        bases: bit bases fitted for this scene, by settings (:func:`gsw.fingerprint.basis.scene_basis`).
     """
 
     shared: SharedScene
@@ -123,7 +122,6 @@ class WorkerScene:
     model: Gaussians
     originals: list[Tensor]
     loss: torch.nn.Module
-    bases: dict = field(default_factory=dict)
 
 
 _CACHE: dict[tuple[str, str, str], WorkerScene] = {}
