@@ -58,9 +58,10 @@ __device__ __forceinline__ U warp_max(U v) {
 // whose offset bit is 0 keeps v[i] and the other v[H + i] (a missing v[H + i] counts as 0), each
 // adding its partner's copy of what it keeps; a lone value (n = 1) is summed whole, as the last
 // step (offset 1) always is. Afterwards every lane holds the warp sum of one value, returned with
-// its index in `index` (-1: this lane holds a padding 0): index 0 in lanes 0-1, and in general
-// the pairs (2l, 2l + 1) share one index. N = 3: lanes 0-7 hold sum(v[0]), 8-15 sum(v[1]), 16-23
-// sum(v[2]), 24-31 padding. N = 10: every value lies in an even lane.
+// its index in `index` (-1: this lane holds a padding 0); lanes 2l and 2l + 1 share one. N = 3:
+// lanes 0-7 hold sum(v[0]), 8-15 sum(v[1]), 16-23 sum(v[2]), 24-31 padding. N = 10: lanes 0-5
+// hold sum(v[0..2]), 8-11 sum(v[3..4]), 16-21 sum(v[5..7]), 24-27 sum(v[8..9]) (two lanes each),
+// the others padding.
 template <int O, int N, typename U>
 __device__ __forceinline__ U warp_sum_transposed_step(const U (&v)[N], int lane, int& index,
                                                       int& count) {
