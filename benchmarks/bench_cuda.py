@@ -28,14 +28,21 @@ not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak
 tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
 that change.
 
+`--backward legacy px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
+GSW_CUDA_BACKWARD of csrc/cuda/rasterize_cuda.cu, set in this process around each call): per variant the
+blend backward op alone on the same bins and the whole forward+backward, two interleaved rounds, and the
+largest gradient difference to the first variant named (relative to each gradient tensor's largest value).
+
     python benchmarks/bench_cuda.py --out benchmarks/results/cuda.json --md benchmarks/results/cuda.md
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import os
 import platform
 import statistics
 import subprocess
@@ -50,6 +57,8 @@ from gsw.gaussians import Gaussians
 from gsw.scenes import frustum_scene, heavy_scene
 
 GSPLAT_MODES = {"packed": True, "unpacked": False}
+BACKWARD_ENV = "GSW_CUDA_BACKWARD"  # read by the CUDA blend backward at every call
+BACKWARD_VARIANTS = ("legacy", "px2", "px4")
 
 
 def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
@@ -224,6 +233,71 @@ def compare(row: dict[str, object]) -> None:
         row[f"ratio_{key}"] = row[f"gsw_{key}"] / row[f"gsplat_{best}_{key}"]
 
 
+@contextlib.contextmanager
+def backward_variant(name: str | None):
+    """Runs the block with the CUDA blend backward `name` (None: the default), restoring the environment after."""
+    old = os.environ.get(BACKWARD_ENV)
+    if name is None:
+        os.environ.pop(BACKWARD_ENV, None)
+    else:
+        os.environ[BACKWARD_ENV] = name
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(BACKWARD_ENV, None)
+        else:
+            os.environ[BACKWARD_ENV] = old
+
+
+def compare_backward_variants(g: Gaussians, cam: Camera, w_img: torch.Tensor, variants: list[str], reps: int,
+                              warmup: int) -> dict[str, float]:
+    """Blend backward op alone and whole forward+backward per backward variant (two interleaved rounds, ms), and
+    each variant's largest gradient difference to the first variant's (relative to each tensor's max abs)."""
+    from gsw import _C
+    from gsw.render.rasterize import _camera_args
+
+    ca = _camera_args(cam)
+    W, H = cam.width, cam.height
+    ins = (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)
+    radii, m2d, conics, depths, colors, opac = _C.project_forward(*ins, sh_degree=3, **ca)
+    bins = _C.bin_gaussians(m2d, conics, opac, radii, depths, W, H)
+    bg = torch.zeros(3, device=g.means.device)
+    _, _, _, final_T, n_contrib = _C.rasterize_forward(m2d, conics, colors, opac, depths, bg, bins=bins, width=W,
+                                                       height=H)
+    bwd = lambda: _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins,  # noqa: E731
+                                        width=W, height=H, final_T=final_T, n_contrib=n_contrib, v_image=w_img)
+    params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
+    g_train = Gaussians(*params)
+
+    def reset():
+        for p in params:
+            p.grad = None
+
+    def fwdbwd():
+        (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
+
+    res: dict[str, float] = {}
+    for rnd in range(2):
+        for v in variants:
+            with backward_variant(v):
+                res[f"blend_bwd_{v}_{rnd}"] = cuda_time(bwd, reps, warmup)
+                res[f"fwdbwd_{v}_{rnd}"] = cuda_time(fwdbwd, reps, warmup, reset)
+    for v in variants:
+        for key in ("blend_bwd", "fwdbwd"):
+            res[f"{key}_{v}"] = (res[f"{key}_{v}_0"] + res[f"{key}_{v}_1"]) / 2
+    ref = None
+    for v in variants:
+        with backward_variant(v):
+            grads = [t.clone() for t in bwd()]
+        if ref is None:
+            ref = grads
+        res[f"grad_maxdiff_{v}"] = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30))
+                                       for a, b in zip(grads, ref) if b.numel())
+    reset()
+    return res
+
+
 def bench_case(family: str, n: int, width: int, height: int, args: argparse.Namespace) -> dict[str, object]:
     g, cam = make_scene(family, n, width, height, args.ply, args.device)
     gen = torch.Generator(device="cpu").manual_seed(1)
@@ -242,6 +316,9 @@ def bench_case(family: str, n: int, width: int, height: int, args: argparse.Name
     row["contrib_over_fwd"] = row["gsw_contrib_ms"] / row["gsw_fwd_ms"]
     if args.breakdown:
         row["gsw_breakdown_ms"] = stage_breakdown(g, cam, w_img, args.reps, args.warmup)
+    if args.backward:
+        row["gsw_backward_variants"] = compare_backward_variants(g, cam, w_img, args.backward, args.reps,
+                                                                 args.warmup)
     if not args.no_gsplat:
         row.update(bench_gsplat(g, cam, w_img, args.reps, args.warmup, image))
         compare(row)
@@ -335,6 +412,21 @@ def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int
             vals = [f"{v:,.0f}" if k.startswith("M") else (f"{v:.1e}" if k.startswith("image") else f"{v:.3f}")
                     for k, v in r["gsw_breakdown_ms"].items()]
             lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | " + " | ".join(vals) + " |")
+    bv = [r for r in rows if "gsw_backward_variants" in r]
+    if bv:
+        names = [k[len("grad_maxdiff_"):] for k in bv[0]["gsw_backward_variants"] if k.startswith("grad_maxdiff_")]
+        lines += ["", f"CUDA blend backward variants ({BACKWARD_ENV}; ms, mean of two interleaved rounds; blend bwd: the "
+                  "op alone on the same bins; fwd+bwd: the whole pipeline; grad diff: largest gradient difference to "
+                  f"{names[0]}, relative to each tensor's max abs):", "",
+                  "| scene | N | size | M | " + " | ".join(f"blend bwd {v}" for v in names) + " | "
+                  + " | ".join(f"fwd+bwd {v}" for v in names) + " | " + " | ".join(f"grad diff {v}" for v in names[1:])
+                  + " |", "|---|---|---|---|" + "---|" * (3 * len(names) - 1)]
+        for r in bv:
+            d = r["gsw_backward_variants"]
+            lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | {r['intersections']:,} | "
+                         + " | ".join(f"{d[f'blend_bwd_{v}']:.3f}" for v in names) + " | "
+                         + " | ".join(f"{d[f'fwdbwd_{v}']:.2f}" for v in names) + " | "
+                         + " | ".join(f"{d[f'grad_maxdiff_{v}']:.1e}" for v in names[1:]) + " |")
     diffs = [r for r in rows if "image_mean_abs_diff_vs_gsplat_unpacked" in r]
     if diffs:
         lines += ["", "Image difference gsw vs gsplat unpacked (mean / max abs): " + "; ".join(
@@ -354,6 +446,9 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--no-gsplat", action="store_true")
     ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (ellipse tiles vs radius rectangles)")
+    ap.add_argument("--backward", nargs="+", choices=BACKWARD_VARIANTS, default=[],
+                    help="also compare these CUDA blend backward variants (the first is the reference of the gradient "
+                         "differences), e.g. legacy px2 px4")
     ap.add_argument("--commit", default="", help="gsw commit to record")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")

@@ -598,10 +598,18 @@ GSW_HD Vec3<T> sh_to_color_vjp(int degree, const Vec3<T>& dir_unnorm, const T* s
 // ------------------------------------------------------------------ per-pixel blending
 
 // Exponent of the 2-D Gaussian at pixel centre (px, py): -0.5 d^T conic d, d = mean2d - p.
+// On the device its roundings are fixed by two explicit FMAs (the scalings by -0.5 and -1 are
+// exact), so every CUDA blend kernel gets the same bits whatever the compiler would fuse: kernels
+// with several pixels per thread share the pixels' common terms, which changes the contraction
+// the compiler picks, and the backward must blend exactly the splats the forward blended.
 template <typename T>
 GSW_HD T gaussian_power(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py) {
   const T dx = mean_x - px, dy = mean_y - py;
+#if defined(__CUDA_ARCH__)
+  return fma(dy, fma(T(-0.5) * conic.c, dy, -conic.b * dx), T(-0.5) * conic.a * dx * dx);
+#else
   return T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+#endif
 }
 
 // exp() of the blending hot loop. Host float32: a branch-free Cephes-style approximation

@@ -11,10 +11,10 @@
 //    radix sort (both stable, so equal depths keep the Gaussian index order: the CPU's bins);
 //    `fill_bins` needs the number of intersections M (the dispatcher knows it);
 //  * rasterize_backward and contribution reduce per-splat values over a warp (shuffles) and then
-//    add them to the per-Gaussian outputs with atomics (backward: one per warp; contribution: one
-//    per tile, after summing the warps in shared memory, except the channel sums for C other than
-//    1 or 3: one per warp): no scratch buffer, but the float summation order is not fixed
-//    (gradients are not bitwise deterministic);
+//    add them to the per-Gaussian outputs with atomics (one per tile, after summing the warps in
+//    shared memory, except the contribution's channel sums for C other than 1 or 3: one per
+//    warp): no scratch buffer, but the float summation order is not fixed (gradients are not
+//    bitwise deterministic);
 //  * entry_slots are filled exactly as on the CPU (not used by the CUDA kernels).
 #pragma once
 

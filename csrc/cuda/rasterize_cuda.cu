@@ -1,6 +1,6 @@
 // CUDA blending stage: forward, backward and per-Gaussian contribution, one thread block per
-// 16x16 tile. Forward and backward run one thread per pixel, the contribution one thread per
-// kContribPixels pixels (see below).
+// 16x16 tile. The forward runs one thread per pixel, the contribution one thread per
+// kContribPixels pixels and the backward one per kBackwardPixels pixels (see below).
 //
 // Forward and contribution share one front-to-back traversal (traverse_tile): the tile's splats
 // are staged in shared memory in batches of one splat per thread, every thread walks the batch in
@@ -24,10 +24,26 @@
 // value.
 //
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
-// batches from the tile's largest n_contrib down, recovering T_i = T_{i+1} / (1 - alpha_i) as the
-// CPU backend does; the per-splat cotangents (splat_alpha_vjp) are summed over the warp with
-// shuffles and then added with one atomic per warp and value, skipping warps where no pixel
-// blended the splat.
+// batches from the tile's largest n_contrib down (a warp starts at its own largest), recovering
+// T_i = T_{i+1} / (1 - alpha_i) as the CPU backend does. Its cost, like the contribution's, is
+// the per-splat reduction of the ten cotangents (splat_alpha_vjp), so it has the same layout:
+// each thread owns kBackwardPixels vertically adjacent pixels of one column (a warp covers
+// 32 / TILE_SIZE * kBackwardPixels whole rows), reads the splat from shared memory once for them
+// and sums their ten cotangents in registers; a warp that blended the splat in none of its pixels
+// skips it (one vote); otherwise a transposed butterfly (warp_sum_transposed: 12 shuffles instead
+// of ten warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
+// shared-memory slot for the splat. After each batch one thread per splat adds up the warps'
+// slots and adds the tile's totals to the Gaussian's gradients: one atomic per tile and nonzero
+// value instead of one per warp and value. The alpha of each pixel is the forward's bit for bit
+// (the same gaussian_power / splat_alpha), so exactly the splats the forward blended are undone;
+// the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian), as on the CPU.
+// backward_legacy_kernel keeps the former design (one pixel per thread, one atomic per warp and
+// value) for A/B benchmarks (GSW_CUDA_BACKWARD, see rasterize_backward).
+#include <cstdlib>
+#include <cstring>
+#include <stdexcept>
+#include <string>
+
 #include "cuda/common.cuh"
 
 namespace gsw::cuda {
@@ -254,8 +270,9 @@ struct ContributionVisitor {
     const T mw = warp_max_nonneg(m);
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
     if constexpr (CT == 3) {
-      const T x = warp_sum3(sum[0], sum[1], sum[2]);
-      if ((lane & 7) == 0 && lane < 24) sh->part[warp][lane >> 3][slot] = x;  // lanes 0, 8, 16
+      int q;
+      const T x = warp_sum_transposed(sum, q);
+      if ((lane & 7) == 0 && q >= 0) sh->part[warp][q][slot] = x;  // lanes 0, 8, 16
     } else if constexpr (CT == 1) {
       const T x = warp_sum(sum[0]);
       if (lane == 0) sh->part[warp][0][slot] = x;
@@ -326,9 +343,208 @@ __global__ void __launch_bounds__(kContribBlock)
 
 // ------------------------------------------------------------------ backward
 
+// Per-splat cotangents of the blend backward, in the CPU's record order (kSplatGradSize):
+// mean2d x, y; conic a, b, c; opacity; colour r, g, b; depth.
+constexpr int kSplatGrads = 10;
+// Pixels per thread of backward_kernel unless GSW_CUDA_BACKWARD says otherwise (see
+// rasterize_backward).
+constexpr int kBackwardPixels = 4;
+
+// Back-to-front state of one pixel.
+template <typename T>
+struct BackPixel {
+  T pyc;          // pixel-centre y
+  T tr;           // transmittance behind the current splat (starts at T_final)
+  T tf, vtf;      // T_final and d(loss)/d(T_final)
+  T vi[3], vd;    // cotangents of the pixel's colour and depth
+  T behind[4];    // colour and depth behind the current splat, per unit transmittance
+  int32_t n;      // n_contrib: the splats at tile-local index >= n are not blended
+};
+
+template <typename T, int PX>
+__device__ __forceinline__ BackPixel<T> load_back_pixel(const RasterParams<T>& p,
+                                                        const RasterGradParams<T>& g,
+                                                        const PixelCtx<PX>& c, int i) {
+  BackPixel<T> q;
+  q.pyc = T(c.py + i) + T(0.5);
+  q.tr = q.tf = T(1);
+  q.vtf = q.vd = T(0);
+#pragma unroll
+  for (int ch = 0; ch < 4; ++ch) q.behind[ch] = T(0);
+#pragma unroll
+  for (int ch = 0; ch < 3; ++ch) q.vi[ch] = T(0);
+  q.n = 0;
+  if (!c.inside(i)) return q;
+  const int64_t P = int64_t(p.width) * p.height, pix = c.pix + int64_t(i) * p.width;
+  q.n = p.n_contrib[pix];
+  q.tr = q.tf = p.final_T[pix];
+#pragma unroll
+  for (int ch = 0; ch < 3; ++ch) q.vi[ch] = g.v_image[ch * P + pix];
+  q.vd = g.v_depth ? g.v_depth[pix] : T(0);
+  // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
+  q.vtf = q.vi[0] * p.background[0] + q.vi[1] * p.background[1] + q.vi[2] * p.background[2] -
+          (g.v_alpha ? g.v_alpha[pix] : T(0));
+  return q;
+}
+
+// Shared memory of backward_kernel: the staged batch (one splat per thread) and, per warp and
+// staged splat, the warp's ten cotangent sums.
+template <typename T, int PX>
+struct BackwardShared {
+  static constexpr int kThreads = kTilePixels / PX, kWarps = kThreads / 32;
+  SplatGeo<T> geo[kThreads];
+  SplatColor<T> col[kThreads];
+  int32_t gid[kThreads];
+  // part[w][q][k]: warp w's sum of cotangent q of staged splat k, valid where hit[w][k] != 0.
+  // The + 1 puts the ten values a warp stores for one splat into ten different banks.
+  T part[kWarps][kSplatGrads][kThreads + 1];
+  int32_t hit[kWarps][kThreads];
+  int max_n;
+};
+
+// Steps the thread's pixels back over staged splat k (tile-local index j) and, if any pixel of
+// the warp blended it, stores the warp's sums of its cotangents in the warp's shared slot.
+template <typename T, int PX>
+__device__ __forceinline__ void backward_splat(BackwardShared<T, PX>& sh, int k, int j, T pxc,
+                                               BackPixel<T> (&px)[PX]) {
+  const SplatGeo<T> s = sh.geo[k];
+  const Sym2<T> conic{s.ca, s.cb, s.cc};
+  // The forward's alpha (alpha_at, bit for bit: gaussian_power has fixed roundings on the
+  // device), so a > 0 exactly for the splats the forward blended in front of n_contrib.
+  T a[PX], G[PX];
+  bool any = false;
+#pragma unroll
+  for (int i = 0; i < PX; ++i) {
+    const T power = gaussian_power(conic, s.mx, s.my, pxc, px[i].pyc);
+    G[i] = splat_gaussian(power);
+    a[i] = j < px[i].n ? splat_alpha_from_gaussian(s.opacity, power, G[i]) : T(0);
+    any |= a[i] > T(0);
+  }
+  if (!__any_sync(kFullMask, any)) return;  // warp-uniform: no pixel of the warp blended it
+  const SplatColor<T> col = sh.col[k];
+  T v[kSplatGrads];  // this thread's sums over its pixels
+#pragma unroll
+  for (int q = 0; q < kSplatGrads; ++q) v[q] = T(0);
+#pragma unroll
+  for (int i = 0; i < PX; ++i) {
+    if (!(a[i] > T(0))) continue;
+    BackPixel<T>& pp = px[i];
+    const T om = T(1) - a[i];
+    const T inv_om = T(1) / om;
+    const T t = pp.tr * inv_om;  // transmittance in front of splat j
+    pp.tr = t;
+    const T w = a[i] * t;
+    const T v_alpha = t * ((col.r - pp.behind[0]) * pp.vi[0] + (col.g - pp.behind[1]) * pp.vi[1] +
+                           (col.b - pp.behind[2]) * pp.vi[2] + (col.depth - pp.behind[3]) * pp.vd) -
+                      pp.tf * inv_om * pp.vtf;
+    const SplatGrad<T> sg = splat_alpha_vjp_from_gaussian(conic, s.mx - pxc, s.my - pp.pyc, G[i],
+                                                          s.opacity, v_alpha);
+    v[0] += sg.mean2d.x;
+    v[1] += sg.mean2d.y;
+    v[2] += sg.conic.a;
+    v[3] += sg.conic.b;
+    v[4] += sg.conic.c;
+    v[5] += sg.opacity;
+    v[6] += w * pp.vi[0];
+    v[7] += w * pp.vi[1];
+    v[8] += w * pp.vi[2];
+    v[9] += w * pp.vd;
+    pp.behind[0] = a[i] * col.r + om * pp.behind[0];
+    pp.behind[1] = a[i] * col.g + om * pp.behind[1];
+    pp.behind[2] = a[i] * col.b + om * pp.behind[2];
+    pp.behind[3] = a[i] * col.depth + om * pp.behind[3];
+  }
+  // The ten warp sums in 12 shuffles; each lands in a pair of lanes (2l, 2l + 1).
+  int q;
+  const T x = warp_sum_transposed(v, q);
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  if ((lane & 1) == 0 && q >= 0) sh.part[warp][q][k] = x;
+  if (lane == 0) sh.hit[warp][k] = 1;
+}
+
+// Cotangent q of Gaussian gid in the outputs.
+template <typename T>
+__device__ __forceinline__ T* splat_grad_ptr(const RasterGradParams<T>& g, int q, int32_t gid) {
+  if (q < 2) return g.v_means2d + 2 * int64_t(gid) + q;
+  if (q < 5) return g.v_conics + 3 * int64_t(gid) + (q - 2);
+  if (q == 5) return g.v_opacities + gid;
+  if (q < 9) return g.v_colors + 3 * int64_t(gid) + (q - 6);
+  return g.v_depths + gid;
+}
+
+// After a batch: the block's totals of staged splat k (the warps' slots, in warp order) added to
+// the outputs with one atomic per nonzero value.
+template <typename T, int PX>
+__device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
+                                            const BackwardShared<T, PX>& sh, int k) {
+  T v[kSplatGrads];
+#pragma unroll
+  for (int q = 0; q < kSplatGrads; ++q) v[q] = T(0);
+  bool hit = false;
+#pragma unroll
+  for (int w = 0; w < BackwardShared<T, PX>::kWarps; ++w) {
+    if (sh.hit[w][k] == 0) continue;
+    hit = true;
+#pragma unroll
+    for (int q = 0; q < kSplatGrads; ++q) v[q] += sh.part[w][q][k];
+  }
+  if (!hit) return;
+  const int32_t gid = sh.gid[k];
+#pragma unroll
+  for (int q = 0; q < kSplatGrads; ++q)
+    if (v[q] != T(0)) atomicAdd(splat_grad_ptr(g, q, gid), v[q]);
+}
+
+// Blend backward with PX vertically adjacent pixels per thread (see the file comment).
+template <typename T, int PX>
+__global__ void __launch_bounds__(kTilePixels / PX)
+    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g) {
+  using Shared = BackwardShared<T, PX>;
+  static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
+  constexpr int kThreads = Shared::kThreads;
+  __shared__ Shared sh;
+  const PixelCtx<PX> c = pixel_ctx<PX>(p);
+  const T pxc = T(c.px) + T(0.5);
+  BackPixel<T> px[PX];
+  int n_max = 0;
+#pragma unroll
+  for (int i = 0; i < PX; ++i) {
+    px[i] = load_back_pixel(p, g, c, i);
+    n_max = max(n_max, static_cast<int>(px[i].n));
+  }
+  // The block walks the batches from the tile's largest n_contrib down; a warp visits only the
+  // splats in front of its own largest.
+  const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
+  if (threadIdx.x == 0) sh.max_n = 0;
+  __syncthreads();
+  if ((threadIdx.x & 31) == 0 && warp_n > 0) atomicMax(&sh.max_n, warp_n);
+  __syncthreads();
+  const int max_n = sh.max_n;
+  const int t = static_cast<int>(threadIdx.x);
+  for (int hi = max_n; hi > 0; hi -= kThreads) {
+    const int lo = hi > kThreads ? hi - kThreads : 0;
+    __syncthreads();  // the previous batch is consumed and flushed
+    if (lo + t < hi) {
+      const int32_t gid = p.bins.gauss_ids[c.start + lo + t];
+      sh.gid[t] = gid;
+      sh.geo[t] = load_geo(p, gid);
+      sh.col[t] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2], p.depths[gid]};
+#pragma unroll
+      for (int w = 0; w < Shared::kWarps; ++w) sh.hit[w][t] = 0;
+    }
+    __syncthreads();
+    for (int k = min(hi, warp_n) - lo - 1; k >= 0; --k) backward_splat(sh, k, lo + k, pxc, px);
+    __syncthreads();  // every warp has stored its sums of the batch
+    if (lo + t < hi) flush_splat(g, sh, t);
+  }
+}
+
+// The former backward (GSW_CUDA_BACKWARD=legacy, for A/B benchmarks): one pixel per thread, the
+// ten cotangents summed over the warp with ten warp_sum()s and added with one atomic per warp and
+// value.
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
-    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g) {
+    backward_legacy_kernel(const RasterParams<T> p, const RasterGradParams<T> g) {
   __shared__ SplatGeo<T> s_geo[kBatch];
   __shared__ SplatColor<T> s_col[kBatch];
   __shared__ int32_t s_id[kBatch];
@@ -430,6 +646,23 @@ int64_t num_tiles(const RasterParams<T>& p) {
   return int64_t(p.bins.tiles_x) * p.bins.tiles_y;
 }
 
+// Which blend backward runs: a benchmarking switch, read at every call from the environment
+// variable GSW_CUDA_BACKWARD: "px4" / "px2" (backward_kernel with 4 / 2 pixels per thread; float64
+// runs px4 for px2, whose shared memory would not fit) or "legacy" (backward_legacy_kernel, the
+// former design); unset or empty: kBackwardPixels. Anything else is an error.
+enum class BackwardVariant { kLegacy, kPx2, kPx4 };
+static_assert(kBackwardPixels == 2 || kBackwardPixels == 4, "the variants are px2 and px4");
+
+BackwardVariant backward_variant() {
+  const char* e = std::getenv("GSW_CUDA_BACKWARD");
+  if (e == nullptr || *e == '\0')
+    return kBackwardPixels == 2 ? BackwardVariant::kPx2 : BackwardVariant::kPx4;
+  if (std::strcmp(e, "px4") == 0) return BackwardVariant::kPx4;
+  if (std::strcmp(e, "px2") == 0) return BackwardVariant::kPx2;
+  if (std::strcmp(e, "legacy") == 0) return BackwardVariant::kLegacy;
+  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be px4, px2 or legacy (or unset), not '") + e + "'");
+}
+
 }  // namespace
 
 template <typename T>
@@ -451,7 +684,21 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) 
   GSW_CUDA_CHECK(cudaMemsetAsync(g.v_depths, 0, n, stream));
   const int64_t tiles = num_tiles(p);
   if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
-  backward_kernel<T><<<static_cast<unsigned>(tiles), kBlock, 0, stream>>>(p, g);
+  const unsigned grid = static_cast<unsigned>(tiles);
+  switch (backward_variant()) {
+    case BackwardVariant::kLegacy:
+      backward_legacy_kernel<T><<<grid, kBlock, 0, stream>>>(p, g);
+      break;
+    case BackwardVariant::kPx2:
+      if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024) {
+        backward_kernel<T, 2><<<grid, kTilePixels / 2, 0, stream>>>(p, g);
+        break;
+      }
+      [[fallthrough]];  // float64: px2's shared memory would not fit
+    case BackwardVariant::kPx4:
+      backward_kernel<T, 4><<<grid, kTilePixels / 4, 0, stream>>>(p, g);
+      break;
+  }
   GSW_KERNEL_CHECK();
 }
 
