@@ -21,7 +21,8 @@ what it measured):
    for a CHOSEN message (``known_size`` / ``search``: the calibrated null model, weighted Bonferroni over
    the readings; sets: Hommel) and the search with equal weights (``search_equal_weights``, the rule
    before 2026-11-25); sets of 10 views = every cyclic window of 10 consecutive held-out views; the
-   detection rate at 1e-6 of each, the median and largest p-values, per-view matches, chosen factors and
+   detection rate at 1e-6 of each (and of the exact test with unit weights, ``exact_sign_known_size``:
+   the number of matching bits), the median and largest p-values, per-view matches, chosen factors and
    a summary of each view's logits at the known size (median |logit|, the |logit| ranks of the wrong
    bits, the logits themselves to 2 decimals).
 
@@ -152,12 +153,13 @@ def rates(p_values: np.ndarray, set_p: np.ndarray | None = None) -> dict:
             "max_set_p": float(sets.max())}
 
 
-def exact(readings, message: np.ndarray) -> dict:
+def exact(readings, message: np.ndarray, weighting: str = "rank") -> dict:
     """The random-message rule (:mod:`gsw.mark.randomization`): views and pooled windows of views."""
     from gsw.mark.evidence import score_messages
 
-    views = score_messages(readings, message[None]).p_values[:, 0]
-    sets = [score_messages([readings[i] for i in w], message[None]).combined[0] for w in windows(len(readings))]
+    views = score_messages(readings, message[None], weighting=weighting).p_values[:, 0]
+    sets = [score_messages([readings[i] for i in w], message[None], weighting=weighting).combined[0]
+            for w in windows(len(readings))]
     return rates(views, np.array(sets)) | {"p": views.tolist()}
 
 
@@ -194,6 +196,7 @@ def evaluate(imgs, decoder, null, message: np.ndarray, embed_size: tuple[int, in
         "bit_accuracy_known_size": float(known.matches[:, 0].mean() / k),
         "bit_accuracy_search": float(search.matches[:, 0].mean() / k),
         "exact_known_size": exact(known_r, message), "exact_search": exact(search_r, message),
+        "exact_sign_known_size": exact(known_r, message, "sign"),  # the count of matching bits, exact for random
         "known_size": rates(known.p_values[:, 0]), "search": rates(search.p_values[:, 0]),
         "search_equal_weights": rates(equal), "logits_known_size": logit_summary(known_r, message),
         "search_factors": [round(f, 4) for f in search_r[0].factors],
