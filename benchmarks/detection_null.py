@@ -216,16 +216,22 @@ def singles(readings: list[Reading], msgs: np.ndarray, null, k: int, *, exact: b
     return out
 
 
-def match_bias_test(readings: list[Reading], msgs: np.ndarray) -> dict:
+def match_bias_test(readings: list[Reading], count: int) -> dict:
     """What the exact test relies on: over random messages, each bit of the (most confident) reading matches
-    the message's bit with probability 1/2. Per bit, the match rate over all (image, message) pairs vs
-    1/2: given the images, the pairs' matches are independent fair coins, so ``max_dev_p_value`` with
-    n = pairs is the right reference."""
+    the message's bit with probability 1/2. Each image is paired with ``count`` FRESH messages from gsw's own
+    generator (:func:`gsw.mark.message.random_message`, OS entropy), so that, given the images, every
+    (image, message, bit) match is an independent fair coin and ``max_dev_p_value`` with n = pairs is the
+    right reference. (With one message pool shared by all images the per-bit match counts of biased bits
+    are not binomial: one message bit decides the match for every image at once.)"""
+    from gsw.mark.message import random_message
+
     bits = np.stack([r.bits[int(r.confidence.argmax())].numpy().astype(np.int8) for r in readings])  # [N, k]
-    match = (bits[:, None, :] == msgs[None, :, :]).reshape(-1, bits.shape[1])  # [N * M, k]
+    k = bits.shape[1]
+    msgs = np.stack([random_message(k).numpy().astype(np.int8) for _ in range(len(bits) * count)])
+    match = (np.repeat(bits, count, axis=0) == msgs)  # [N * count, k]
     dev = float(np.abs(match.mean(0) - 0.5).max())
     return {"pairs": int(match.shape[0]), "max_abs_dev_from_half": dev,
-            "fair_p_value": max_dev_p_value(dev, match.shape[0], bits.shape[1])}
+            "fair_p_value": max_dev_p_value(dev, match.shape[0], k)}
 
 
 def bias_test(bits: np.ndarray, stratum) -> dict:
@@ -379,14 +385,14 @@ def main() -> None:
         for kind in sorted(set(kinds)):
             stratum = next(s for s in null.strata if s.name == f"{kind}/down")
             r[f"bias_{kind}"] = bias_test(first_bits([rd for rd, kd in zip(pb, kinds) if kd == kind]), stratum)
-        r["match_bias_photos"] = match_bias_test(pb, msgs)
+        r["match_bias_photos"] = match_bias_test(pb, args.messages)
         if k == 32:
             rb = readings_of(holdout_renders(args.data), decoder)
             r["renders"] = singles(rb, msgs, null, k)
             r["renders_aligned_messages"] = aligned_singles(rb, ["render"] * len(rb), null, gen, k)["render"]
             r["bias_render"] = bias_test(first_bits(rb),
                                          next(s for s in null.strata if s.name == "render/down"))
-            r["match_bias_renders"] = match_bias_test(rb, msgs)
+            r["match_bias_renders"] = match_bias_test(rb, args.messages)
             rsets = [readings_of(fr, decoder, embed_size=(256, 256))
                      for fr in render_sets(args.data, args.render_sets, 40)]
             psets = [readings_of(fr, decoder) for fr in photo_sets(photos, args.photo_sets, 40)]
