@@ -1,4 +1,4 @@
-"""False positives and power of the detector, old (fair coin + Fisher) vs new (:func:`gsw.mark.evidence.assess`).
+"""False positives and power of the detector: old (fair coin + Fisher), calibrated (chosen messages) and exact (random).
 
 HOLD-OUT data only (never used by ``benchmarks/calibrate_null.py``):
 
@@ -12,9 +12,14 @@ HOLD-OUT data only (never used by ``benchmarks/calibrate_null.py``):
 
 Each image (set) is decoded once and tested against a pool of random messages (the same pool for every
 image), so one run holds tens of thousands of (image set, message) pairs.  Old: binomial(k, 1/2) p-value
-at the image as given, Fisher over frames.  New: :func:`gsw.mark.evidence.score_messages` -- the scoring
-rule of ``gsw.verify`` itself (null model with the reading direction of each reading, the scale search as
-a weighted Bonferroni unless the size is known, Hommel over frames) -- on the same readings.
+at the image as given, Fisher over frames.  New (``new_*``, the rule for CHOSEN messages):
+:func:`gsw.mark.evidence.score_messages` with ``origin="chosen"`` (null model with the reading direction of
+each reading, the scale search as a weighted Bonferroni unless the size is known, Hommel over frames).
+Exact (``exact_*``, the rule of ``gsw.verify`` for RANDOM messages, ``origin="random"``: signed-rank
+randomization test of the most confident reading, pooled logits over frames) on the same readings and
+the same message pool, and (``exact_*_fresh``) with fresh messages for every image (set), so that
+pairs are independent given the images; ``exact_*_one`` tests one fresh message per image (set): the
+rate over independent images.  ``--skip-calibrated`` leaves the (unchanged, slow) ``new_*`` rows out.
 
 Power: the built-in scene watermarked with the ``gsw demo`` defaults (256 px, 24 views, 8 epochs, 32 bits,
 AlexNet LPIPS, seed 0; cached in ``--cache``), 24 held-out views rendered at 0.5x-3x the size (intrinsics
@@ -166,25 +171,67 @@ def rates(p: np.ndarray) -> dict:
     return out
 
 
+#: Skip the calibrated (chosen-message) rows (set by ``--skip-calibrated``).
+SKIP_CALIBRATED = False
+#: Messages drawn afresh for every image (set) in the ``*_fresh`` rows.
+FRESH = np.random.default_rng(12345)
+
+
+def exact_rows(groups: list[list[Reading]], msgs: np.ndarray, prefix: str) -> dict:
+    """The exact test (random messages) of each group of readings (one image, or a set's frames):
+    the shared message pool, fresh messages per group, one fresh message per group."""
+    shared, fresh, one = [], [], []
+    for group in groups:
+        shared.append(score_messages(group, msgs).combined)
+        fresh.append(score_messages(group, FRESH.integers(0, 2, msgs.shape).astype(np.int8)).combined)
+        one.append(score_messages(group, FRESH.integers(0, 2, (1, msgs.shape[1])).astype(np.int8)).combined)
+    return {prefix: rates(np.concatenate(shared)), f"{prefix}_fresh": rates(np.concatenate(fresh)),
+            f"{prefix}_one": rates(np.concatenate(one))}
+
+
 def set_results(sets: list[list[Reading]], msgs: np.ndarray, null, k: int, size: int) -> dict:
     """sets: per set, its frames' readings. Sets of ``size`` frames: the disjoint consecutive groups of each
     set."""
-    old, new = [], []
-    for frames in sets:
-        for start in range(0, len(frames) - size + 1, size):
-            group = frames[start : start + size]
-            old.append(fisher_sets(old_p(match_counts(first_bits(group), msgs), k)))
-            new.append(score_messages(group, msgs, null).combined)
-    return {"sets": len(old), "old": rates(np.concatenate(old)), "new": rates(np.concatenate(new))}
+    groups = [frames[start : start + size] for frames in sets for start in range(0, len(frames) - size + 1, size)]
+    out = {"sets": len(groups), "old": rates(np.concatenate([fisher_sets(old_p(match_counts(first_bits(g), msgs), k))
+                                                             for g in groups]))}
+    if not SKIP_CALIBRATED:
+        out["new"] = rates(np.concatenate([score_messages(g, msgs, null, origin="chosen").combined for g in groups]))
+    return out | exact_rows(groups, msgs, "exact")
 
 
-def singles(readings: list[Reading], msgs: np.ndarray, null, k: int) -> dict:
+def singles(readings: list[Reading], msgs: np.ndarray, null, k: int, *, exact: bool = True) -> dict:
     """readings: per image (reading 0 = the image as given; renders: their known size)."""
-    out = {"images": len(readings), "old": rates(old_p(match_counts(first_bits(readings), msgs), k)),
-           "new_known_size": rates(score_messages([as_given(r) for r in readings], msgs, null).p_values)}
+    known = [as_given(r) for r in readings]
+    out = {"images": len(readings), "old": rates(old_p(match_counts(first_bits(readings), msgs), k))}
+    if not SKIP_CALIBRATED:
+        out["new_known_size"] = rates(score_messages(known, msgs, null, origin="chosen").p_values)
+    if exact:
+        out |= exact_rows([[r] for r in known], msgs, "exact_known_size")
     if max(len(r.factors) for r in readings) > 1:
-        out["new_search"] = rates(score_messages(readings, msgs, null).p_values)
+        if not SKIP_CALIBRATED:
+            out["new_search"] = rates(score_messages(readings, msgs, null, origin="chosen").p_values)
+        if exact:
+            out |= exact_rows([[r] for r in readings], msgs, "exact_search")
     return out
+
+
+def match_bias_test(readings: list[Reading], count: int) -> dict:
+    """What the exact test relies on: over random messages, each bit of the (most confident) reading matches
+    the message's bit with probability 1/2. Each image is paired with ``count`` FRESH messages from gsw's own
+    generator (:func:`gsw.mark.message.random_message`, OS entropy), so that, given the images, every
+    (image, message, bit) match is an independent fair coin and ``max_dev_p_value`` with n = pairs is the
+    right reference. (With one message pool shared by all images the per-bit match counts of biased bits
+    are not binomial: one message bit decides the match for every image at once.)"""
+    from gsw.mark.message import random_message
+
+    bits = np.stack([r.bits[int(r.confidence.argmax())].numpy().astype(np.int8) for r in readings])  # [N, k]
+    k = bits.shape[1]
+    msgs = np.stack([random_message(k).numpy().astype(np.int8) for _ in range(len(bits) * count)])
+    match = (np.repeat(bits, count, axis=0) == msgs)  # [N * count, k]
+    dev = float(np.abs(match.mean(0) - 0.5).max())
+    return {"pairs": int(match.shape[0]), "max_abs_dev_from_half": dev,
+            "fair_p_value": max_dev_p_value(dev, match.shape[0], k)}
 
 
 def bias_test(bits: np.ndarray, stratum) -> dict:
@@ -221,7 +268,10 @@ def aligned_singles(readings: list[Reading], kinds: list[str], null, gen, k: int
     for kind in sorted(set(kinds)):
         stratum = next(s for s in null.strata if s.name == f"{kind}/down")
         msgs = aligned_messages(stratum.p1, 100, gen)
-        out[kind] = singles([r for r, kd in zip(readings, kinds) if kd == kind], msgs, null, k)
+        out[kind] = singles([r for r, kd in zip(readings, kinds) if kd == kind], msgs, null, k, exact=False)
+        # what the exact test would say about these (NOT random) messages: it is not valid for them
+        out[kind] |= {"exact_not_valid_for_chosen": rates(score_messages(
+            [as_given(r) for r, kd in zip(readings, kinds) if kd == kind], msgs).p_values)}
     return out
 
 
@@ -263,7 +313,9 @@ def power(decoder, null, cache: Path) -> dict:
         known = readings_of(imgs, decoder, embed_size=(256, 256))
         mt_s = np.stack([match_counts(r.bits.numpy().astype(np.int8), m[None])[:, 0] for r in rs])  # [V, S]
         p_old = old_p(mt_s[:, 0], 32)
-        sc_known, sc_search = score_messages(known, m[None], null), score_messages(rs, m[None], null)
+        sc_known = score_messages(known, m[None], null, origin="chosen")
+        sc_search = score_messages(rs, m[None], null, origin="chosen")
+        ex_known, ex_search = score_messages(known, m[None]).p_values[:, 0], score_messages(rs, m[None]).p_values[:, 0]
         p_known, p_search = sc_known.p_values[:, 0], sc_search.p_values[:, 0]
         conf = [int(r.confidence.argmax()) for r in rs]
         best = [int(np.argmax(mt)) for mt in mt_s]
@@ -274,10 +326,15 @@ def power(decoder, null, cache: Path) -> dict:
             "bit_acc_as_given": float(mt_s[:, 0].mean() / 32),
             "bit_acc_known_size": float(sc_known.matches[:, 0].mean() / 32),
             "bit_acc_search_best": float(mt_s.max(1).mean() / 32),
-            "single": {"old": det(p_old), "new_known_size": det(p_known), "new_search": det(p_search)},
+            "single": {"old": det(p_old), "new_known_size": det(p_known), "new_search": det(p_search),
+                       "exact_known_size": det(ex_known), "exact_search": det(ex_search)},
             "sets_of_10": {"old": det([fisher_combined_p_value(p_old[st]) for st in sets]),
                            "new_known_size": det([hommel_combined_p_value(p_known[st]) for st in sets]),
-                           "new_search": det([hommel_combined_p_value(p_search[st]) for st in sets])},
+                           "new_search": det([hommel_combined_p_value(p_search[st]) for st in sets]),
+                           "exact_known_size": det([score_messages([known[i] for i in st], m[None]).combined[0]
+                                                    for st in sets]),
+                           "exact_search": det([score_messages([rs[i] for i in st], m[None]).combined[0]
+                                                for st in sets])},
             "median_p": {"old": float(np.median(p_old)), "new_known_size": float(np.median(p_known)),
                          "new_search": float(np.median(p_search))},
             "factor_most_matches": {f"{rs[0].factors[i]:.3g}": best.count(i) for i in sorted(set(best))},
@@ -302,7 +359,11 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--limit-photos", type=int, default=None, help="smoke test: only the first N held-out photos")
     ap.add_argument("--no-power", action="store_true", help="skip the power measurement")
+    ap.add_argument("--skip-calibrated", action="store_true",
+                    help="leave out the calibrated (chosen-message) rows (unchanged rule, slow)")
     args = ap.parse_args()
+    global SKIP_CALIBRATED
+    SKIP_CALIBRATED = args.skip_calibrated
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     gen = np.random.default_rng(0)
@@ -324,12 +385,14 @@ def main() -> None:
         for kind in sorted(set(kinds)):
             stratum = next(s for s in null.strata if s.name == f"{kind}/down")
             r[f"bias_{kind}"] = bias_test(first_bits([rd for rd, kd in zip(pb, kinds) if kd == kind]), stratum)
+        r["match_bias_photos"] = match_bias_test(pb, args.messages)
         if k == 32:
             rb = readings_of(holdout_renders(args.data), decoder)
             r["renders"] = singles(rb, msgs, null, k)
             r["renders_aligned_messages"] = aligned_singles(rb, ["render"] * len(rb), null, gen, k)["render"]
             r["bias_render"] = bias_test(first_bits(rb),
                                          next(s for s in null.strata if s.name == "render/down"))
+            r["match_bias_renders"] = match_bias_test(rb, args.messages)
             rsets = [readings_of(fr, decoder, embed_size=(256, 256))
                      for fr in render_sets(args.data, args.render_sets, 40)]
             psets = [readings_of(fr, decoder) for fr in photo_sets(photos, args.photo_sets, 40)]

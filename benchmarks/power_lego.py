@@ -15,11 +15,16 @@ what it measured):
    budget ``--max-seconds`` allows (a scale is skipped when the previous one's time says it would not fit,
    a later bit length when its embedding would not);
 5. per view, the evidence of :func:`gsw.verify` (:func:`gsw.mark.evidence.score_messages`, decoded on the
-   GPU) with the embedding size known (one reading at that size) and unknown (the scale search,
-   weighted Bonferroni over the readings), and for comparison the search with equal weights (plain
-   Bonferroni, the rule before 2026-11-25); sets of 10 views (every cyclic window of 10 consecutive
-   held-out views, Hommel's combination as in ``gsw.verify``); the detection rate at 1e-6 of each, the
-   median and largest p-values, per-view matches and chosen factors.
+   GPU) with the embedding size known (one reading at that size) and unknown (the scale search), by the
+   rule for a RANDOM message (``exact_*``, the default since 2026-11-25: the signed-rank randomization
+   test of the most confident reading; sets: the pooled logits tested once) and, for comparison, the rule
+   for a CHOSEN message (``known_size`` / ``search``: the calibrated null model, weighted Bonferroni over
+   the readings; sets: Hommel) and the search with equal weights (``search_equal_weights``, the rule
+   before 2026-11-25); sets of 10 views = every cyclic window of 10 consecutive held-out views; the
+   detection rate at 1e-6 of each (and of the exact test with unit weights, ``exact_sign_known_size``:
+   the number of matching bits), the median and largest p-values, per-view matches, chosen factors and
+   a summary of each view's logits at the known size (median |logit|, the |logit| ranks of the wrong
+   bits, the logits themselves to 2 decimals).
 
 Writes JSON to ``--out`` (default ``benchmarks/results/power_lego.json``) and, when ``$OUT`` is set, a copy
 there.
@@ -127,30 +132,61 @@ def train_lego(args, data: Path, dev):
 
 
 # ------------------------------------------------------------------------------------------- scoring
-def rates(p_values: np.ndarray) -> dict:
+def windows(n: int) -> list[list[int]]:
+    """Every cyclic window of :data:`SET_SIZE` consecutive views (all views when fewer)."""
+    size = min(SET_SIZE, n)
+    return [[(i + j) % n for j in range(size)] for i in range(n)]
+
+
+def rates(p_values: np.ndarray, set_p: np.ndarray | None = None) -> dict:
     """Detection rate at :data:`FPR` of single views and of every cyclic window of :data:`SET_SIZE` views
-    (Hommel's combination, the rule of ``gsw.verify`` for several images)."""
+    (``set_p``; default: Hommel's combination of the views' p-values, the rule for chosen messages)."""
     from gsw.stats import hommel_combined_p_value
 
     p = np.asarray(p_values, dtype=np.float64)
     n = len(p)
-    size = min(SET_SIZE, n)
-    sets = np.array([float(hommel_combined_p_value(p[[(i + j) % n for j in range(size)]])) for i in range(n)])
+    sets = (np.array([float(hommel_combined_p_value(p[w])) for w in windows(n)]) if set_p is None
+            else np.asarray(set_p, dtype=np.float64))
     return {"single": float((p <= FPR).mean()), "single_detected": int((p <= FPR).sum()), "views": n,
             "sets_of_10": float((sets <= FPR).mean()), "sets_detected": int((sets <= FPR).sum()), "sets": n,
             "median_p": float(np.median(p)), "max_p": float(p.max()), "median_set_p": float(np.median(sets)),
             "max_set_p": float(sets.max())}
 
 
+def exact(readings, message: np.ndarray, weighting: str = "rank") -> dict:
+    """The random-message rule (:mod:`gsw.mark.randomization`): views and pooled windows of views."""
+    from gsw.mark.evidence import score_messages
+
+    views = score_messages(readings, message[None], weighting=weighting).p_values[:, 0]
+    sets = [score_messages([readings[i] for i in w], message[None], weighting=weighting).combined[0]
+            for w in windows(len(readings))]
+    return rates(views, np.array(sets)) | {"p": views.tolist()}
+
+
+def logit_summary(readings, message: np.ndarray) -> dict:
+    """Per view (one reading each): median |logit|, the |logit| ranks (1 = least confident) of the wrong
+    bits, and the logits (2 decimals)."""
+    from gsw.mark.randomization import bit_weights
+
+    logits = np.stack([r.logits[0].numpy() for r in readings])  # [V, k]
+    ranks = bit_weights(logits, "rank")
+    wrong = (logits > 0) != (message[None] == 1)
+    return {"median_abs_logit": np.round(np.median(np.abs(logits), 1), 3).tolist(),
+            "wrong_bit_ranks": [ranks[v][wrong[v]].tolist() for v in range(len(logits))],
+            "logits": np.round(logits, 2).tolist()}
+
+
 def evaluate(imgs, decoder, null, message: np.ndarray, embed_size: tuple[int, int]) -> dict:
-    """Known size, search (weighted Bonferroni) and search with equal weights, for views and sets."""
+    """The exact (random-message) rule, and for comparison the calibrated (chosen-message) rule with the known
+    size, the weighted search and the equal-weight search, for views and sets."""
     from gsw.mark.evidence import score_messages
     from gsw.mark.scales import read_images
     from gsw.stats import bonferroni_p_value
 
     known_r = read_images(imgs, decoder, embed_size=embed_size)
     search_r = read_images(imgs, decoder)
-    known, search = score_messages(known_r, message[None], null), score_messages(search_r, message[None], null)
+    known = score_messages(known_r, message[None], null, origin="chosen")
+    search = score_messages(search_r, message[None], null, origin="chosen")
     k = len(message)
     per_reading = [null.p_values(r.bits.numpy().astype(np.int8), message, np.asarray(r.factors)) for r in search_r]
     equal = np.array([float(bonferroni_p_value(p)) for p in per_reading])
@@ -159,8 +195,10 @@ def evaluate(imgs, decoder, null, message: np.ndarray, embed_size: tuple[int, in
         "render_size": list(imgs[0].shape[-2:]),
         "bit_accuracy_known_size": float(known.matches[:, 0].mean() / k),
         "bit_accuracy_search": float(search.matches[:, 0].mean() / k),
+        "exact_known_size": exact(known_r, message), "exact_search": exact(search_r, message),
+        "exact_sign_known_size": exact(known_r, message, "sign"),  # the count of matching bits, exact for random
         "known_size": rates(known.p_values[:, 0]), "search": rates(search.p_values[:, 0]),
-        "search_equal_weights": rates(equal),
+        "search_equal_weights": rates(equal), "logits_known_size": logit_summary(known_r, message),
         "search_factors": [round(f, 4) for f in search_r[0].factors],
         "most_confident_reads_most_bits": float(np.mean([m[int(r.confidence.argmax())] == m.max()
                                                          for m, r in zip(matches, search_r)])),
@@ -173,7 +211,10 @@ def evaluate(imgs, decoder, null, message: np.ndarray, embed_size: tuple[int, in
 
 
 def summary(res: dict) -> str:
-    return (f"bits {res['bit_accuracy_known_size']:.4f} | single known/search/equal "
+    ex_k, ex_s = res["exact_known_size"], res["exact_search"]
+    return (f"bits {res['bit_accuracy_known_size']:.4f} | EXACT single known/search {ex_k['single_detected']}/"
+            f"{ex_s['single_detected']} of {ex_k['views']}, sets {ex_k['sets_detected']}/{ex_s['sets_detected']}, "
+            f"max p {ex_k['max_p']:.2g}/{ex_s['max_p']:.2g} | CALIBRATED single known/search/equal "
             f"{res['known_size']['single_detected']}/{res['search']['single_detected']}/"
             f"{res['search_equal_weights']['single_detected']} of {res['known_size']['views']} | sets "
             f"{res['known_size']['sets_detected']}/{res['search']['sets_detected']}/"

@@ -13,7 +13,9 @@ defaulting to ``~/.local/share``); every command takes ``--registry FILE`` inste
 (:func:`default_registry_path`).
 
 Storage: one table ``marks``; the schema version is SQLite's ``PRAGMA user_version``
-(:data:`SCHEMA_VERSION`): a file from a newer gsw is refused rather than misread. Every write is one
+(:data:`SCHEMA_VERSION`): a file from a newer gsw is refused rather than misread.  Schema 2 added each
+message's ``origin`` (:data:`gsw.stats.ORIGINS`); a schema-1 file is migrated when opened (or, read-only,
+read as if it were), its marks ``"chosen"``: the conservative test, since nothing says how they were made. Every write is one
 ``BEGIN IMMEDIATE`` transaction, so concurrent writers (several processes) queue instead of losing rows;
 a lock held longer than the busy timeout raises :class:`RegistryError` instead of hanging.
 
@@ -50,14 +52,15 @@ __all__ = ["SCHEMA_VERSION", "BUSY_TIMEOUT_S", "Mark", "Registry", "RegistryErro
            "default_registry_path", "open_registry", "hash_gaussians", "hash_model_file",
            "record_mark", "shipped_decoder_sha256"]
 
-#: Version of the table layout, stored as ``PRAGMA user_version``.
-SCHEMA_VERSION = 1
+#: Version of the table layout, stored as ``PRAGMA user_version`` (2: the ``origin`` column).
+SCHEMA_VERSION = 2
 #: Seconds a read or write waits for another process's lock before :class:`RegistryError`.
 BUSY_TIMEOUT_S = 10.0
 
 _TABLE = "marks"
 _COLUMNS = ("id", "label", "message_hex", "num_bits", "decoder_sha256", "model_hash", "width", "height",
-            "background", "created", "gsw_version")
+            "background", "created", "gsw_version", "origin")
+_ORIGIN_COLUMN = "origin TEXT NOT NULL DEFAULT 'chosen' CHECK (origin IN ('random', 'chosen'))"
 _SCHEMA = f"""
 CREATE TABLE IF NOT EXISTS {_TABLE} (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -71,6 +74,7 @@ CREATE TABLE IF NOT EXISTS {_TABLE} (
     background TEXT,
     created TEXT NOT NULL,
     gsw_version TEXT NOT NULL,
+    {_ORIGIN_COLUMN},
     UNIQUE (decoder_sha256, message_hex)
 )"""
 _LABEL_MAX = 200
@@ -100,6 +104,7 @@ class Mark:
         background: render background RGB in [0, 1], or None.
         created: UTC time of registration, ISO 8601.
         gsw_version: gsw version that registered it.
+        origin: ``"random"`` (gsw's secret messages, ``key:``) or ``"chosen"`` (:data:`gsw.stats.ORIGINS`).
     """
 
     id: int
@@ -113,6 +118,7 @@ class Mark:
     background: tuple[float, float, float] | None
     created: str
     gsw_version: str
+    origin: str = "chosen"
 
     @property
     def message(self) -> Tensor:
@@ -167,10 +173,6 @@ def shipped_decoder_sha256(num_bits: int) -> str:
     return sha256_file(weights_path(num_bits))
 
 
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
 def _check_label(label: str) -> str:
     if not isinstance(label, str) or not label.strip():
         raise ValueError("a mark's recipient label must be a non-empty string")
@@ -184,29 +186,23 @@ def _check_label(label: str) -> str:
 
 def _message_hex(message: MessageLike, num_bits: int | None) -> tuple[str, int]:
     """(hex, bit length) of a message given as hex, ``key:<secret>``, bits or a tensor."""
-    import torch
-
+    from gsw.mark.detect import message_num_bits
     from gsw.mark.message import as_message, message_to_hex
 
     if message is None:
         raise ValueError("a mark needs a message (hex, key:<secret> or bits)")
-    if num_bits is None:
-        if isinstance(message, str):
-            if message.startswith("key:"):
-                raise ValueError("num_bits is required for a key:<secret> message")
-            num_bits = 4 * len(message.lower().removeprefix("0x"))
-        else:
-            num_bits = int(torch.as_tensor(message).numel())
-    bits = as_message(message, num_bits)
-    return message_to_hex(bits), num_bits
+    num_bits = message_num_bits(message) if num_bits is None else num_bits
+    return message_to_hex(as_message(message, num_bits)), num_bits
 
 
 def _row(label: str, message: MessageLike, *, num_bits: int | None = None, decoder_sha256: str,
          model_hash: str | None = None, width: int | None = None, height: int | None = None,
-         background: Sequence[float] | None = None) -> tuple[Any, ...]:
+         background: Sequence[float] | None = None, origin: str = "chosen") -> tuple[Any, ...]:
     """The checked table row (without id) of :meth:`Registry.add`'s arguments."""
     from gsw import __version__
+    from gsw.stats import check_origin
 
+    check_origin(origin)
     label = _check_label(label)
     hex_message, k = _message_hex(message, num_bits)
     if not isinstance(decoder_sha256, str) or not re.fullmatch(r"[0-9a-f]{64}", decoder_sha256):
@@ -220,7 +216,8 @@ def _row(label: str, message: MessageLike, *, num_bits: int | None = None, decod
         if len(values) != 3:
             raise ValueError(f"background must be 3 values (RGB), got {len(values)}")
         bg = json.dumps(values)
-    return (label, hex_message, k, decoder_sha256, model_hash, width, height, bg, _now(), __version__)
+    created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return (label, hex_message, k, decoder_sha256, model_hash, width, height, bg, created, __version__, origin)
 
 
 def _row_to_mark(row: Sequence[Any]) -> Mark:
@@ -249,6 +246,7 @@ class Registry:
         self.path = path
         self._conn = conn
         self._timeout = timeout
+        self._select = ", ".join(_COLUMNS)  # a schema-1 file that cannot be migrated reads origin as "chosen"
 
     # -- plumbing ---------------------------------------------------------------------------------------
     @contextmanager
@@ -301,19 +299,37 @@ class Registry:
         if version > SCHEMA_VERSION:
             raise RegistryError(f"registry {self.path} was written by a newer gsw (schema {version}; this gsw "
                                 f"reads up to {SCHEMA_VERSION}): upgrade gsw")
-        if version < SCHEMA_VERSION:  # no older layout exists yet
+        if version == 1:
+            version = self._migrate_from_1()
+        if version != SCHEMA_VERSION:
             raise RegistryError(f"registry {self.path} has an unknown schema version {version}")
         with self._errors("reading the schema"):
             cols = [r[1] for r in self._conn.execute(f"PRAGMA table_info({_TABLE})")]
-        missing = [c for c in _COLUMNS if c not in cols]
-        if missing:
+        legacy = "'chosen' AS origin" in self._select  # an unmigrated schema-1 file has no origin column
+        if missing := [c for c in _COLUMNS if c not in cols and not (legacy and c == "origin")]:
             what = f"table {_TABLE!r} is missing" if not cols else f"table {_TABLE!r} lacks {', '.join(missing)}"
             raise RegistryError(f"registry {self.path} is corrupt: {what}")
+
+    def _migrate_from_1(self) -> int:
+        """Schema 1 -> 2 in one transaction (a read-only file: origin read as "chosen"). Returns the version."""
+        try:
+            with self._write("migrating schema 1 to 2") as conn:
+                version = conn.execute("PRAGMA user_version").fetchone()[0]  # another process may have done it
+                if version == 1:
+                    conn.execute(f"ALTER TABLE {_TABLE} ADD COLUMN {_ORIGIN_COLUMN}")
+                    conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+                    version = SCHEMA_VERSION
+            return version
+        except RegistryError as err:
+            if "cannot be written" not in str(err):
+                raise
+        self._select = ", ".join(c if c != "origin" else "'chosen' AS origin" for c in _COLUMNS)
+        return SCHEMA_VERSION
 
     # -- API --------------------------------------------------------------------------------------------
     def add(self, label: str, message: MessageLike, *, num_bits: int | None = None, decoder_sha256: str,
             model_hash: str | None = None, width: int | None = None, height: int | None = None,
-            background: Sequence[float] | None = None) -> int:
+            background: Sequence[float] | None = None, origin: str = "chosen") -> int:
         """Registers a mark in one transaction and returns its id.
 
         Args:
@@ -324,14 +340,16 @@ class Registry:
             model_hash: :func:`hash_model_file` / :func:`hash_gaussians` of the watermarked model.
             width, height: embedding resolution in pixels.
             background: render background RGB.
+            origin: ``"random"`` (drawn at random: gsw's messages, ``key:``) or ``"chosen"`` (default).
 
         Raises:
-            ValueError: bad label or message, a label already registered, or the same message already
+            ValueError: bad label, message or origin, a label already registered, or the same message already
                 issued for this decoder (two recipients would be indistinguishable).
             RegistryError: the file cannot be written (locked past the busy timeout, read-only, corrupt).
         """
         return self.add_many([dict(label=label, message=message, num_bits=num_bits, decoder_sha256=decoder_sha256,
-                                   model_hash=model_hash, width=width, height=height, background=background)])[0]
+                                   model_hash=model_hash, width=width, height=height, background=background,
+                                   origin=origin)])[0]
 
     def add_many(self, marks: Iterable[Mapping[str, Any]]) -> list[int]:
         """Registers several marks in ONE transaction (all or none); returns their ids in order.
@@ -355,7 +373,7 @@ class Registry:
 
     def list(self, *, num_bits: int | None = None) -> list[Mark]:
         """Every mark (or those of one message length), by id."""
-        query = f"SELECT {', '.join(_COLUMNS)} FROM {_TABLE}"
+        query = f"SELECT {self._select} FROM {_TABLE}"
         args: tuple[Any, ...] = ()
         if num_bits is not None:
             query, args = query + " WHERE num_bits = ?", (int(num_bits),)
@@ -372,7 +390,7 @@ class Registry:
         by_id = isinstance(ref, int) or (isinstance(ref, str) and ref.strip().isdigit())
         column, value = ("id", int(ref)) if by_id else ("label", str(ref).strip())
         with self._errors("reading a mark"):
-            row = self._conn.execute(f"SELECT {', '.join(_COLUMNS)} FROM {_TABLE} WHERE {column} = ?",
+            row = self._conn.execute(f"SELECT {self._select} FROM {_TABLE} WHERE {column} = ?",
                                      (value,)).fetchone()
         if row is None:
             raise UnknownMarkError(f"no mark with {column} {value!r} in registry {self.path}")
@@ -440,13 +458,13 @@ def open_registry(path: str | os.PathLike | None = None, *, create: bool = True,
 def record_mark(registry: Registry | str | os.PathLike | None, label: str, message: MessageLike, *,
                 num_bits: int | None = None, gaussians: Gaussians | None = None, model_hash: str | None = None,
                 size: tuple[int, int] | None = None, background: Sequence[float] | None = None,
-                decoder_sha256: str | None = None) -> Mark:
+                decoder_sha256: str | None = None, origin: str | None = None) -> Mark:
     """Records an issued mark (what ``gsw embed --label`` / ``gsw embed-image --label`` do), in one transaction.
 
     Example (``res`` from :func:`gsw.embed`, cameras of one size)::
 
         record_mark("marks.sqlite", "alice", res.message, gaussians=res.gaussians,
-                    size=(cams[0].width, cams[0].height), background=(1.0, 1.0, 1.0))
+                    size=(cams[0].width, cams[0].height), background=(1.0, 1.0, 1.0), origin="random")
 
     Args:
         registry: an open :class:`Registry`, or its file (None: :func:`default_registry_path`), opened
@@ -459,6 +477,7 @@ def record_mark(registry: Registry | str | os.PathLike | None, label: str, messa
         size: ``(width, height)`` of the embedding renders (None when they had several sizes).
         background: render background RGB.
         decoder_sha256: the decoder file's sha256; default: the shipped ``num_bits`` decoder's.
+        origin: ``"random"`` or ``"chosen"``; default ``"random"`` for ``key:<secret>``, else ``"chosen"``.
 
     Returns:
         The :class:`Mark` as stored.
@@ -471,8 +490,10 @@ def record_mark(registry: Registry | str | os.PathLike | None, label: str, messa
     if gaussians is not None:
         model_hash = hash_gaussians(gaussians)
     width, height = (None, None) if size is None else (int(size[0]), int(size[1]))
+    if origin is None:
+        origin = "random" if isinstance(message, str) and message.startswith("key:") else "chosen"
     fields = dict(num_bits=k, decoder_sha256=decoder_sha256 or shipped_decoder_sha256(k), model_hash=model_hash,
-                  width=width, height=height, background=background)
+                  width=width, height=height, background=background, origin=origin)
     if isinstance(registry, Registry):
         return registry.get(registry.add(label, message, **fields))
     with open_registry(registry) as reg:

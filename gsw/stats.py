@@ -7,6 +7,13 @@ Two kinds of tail:
 
 * :func:`binomial_p_value` -- the fair coin: exact when the message is uniformly random and drawn
   independently of the image (a key the image was not made with).
+* :func:`weighted_sign_sf` -- the exact randomization (key) test on soft outputs: each bit carries an
+  integer weight ``w_i >= 0`` that depends on the decoder's output only (not on the message), and the
+  statistic is the total weight of the matching bits.  For a uniformly random message drawn independently
+  of the image, the bits match independently with probability 1/2 *whatever* the image and the decoder
+  (bias, correlated bits, correlated frames), so the tail ``P(sum_i w_i B_i >= s)`` with ``B_i`` iid
+  Bernoulli(1/2) is the exact null distribution given the decoder's output; dynamic programme over the
+  integer sums, in float64.  Unit weights give :func:`binomial_p_value`.
 * :func:`poisson_binomial_sf` -- bit ``i`` matches with its own probability ``q_i`` (a decoder whose bits
   are biased on unmarked content, :mod:`gsw.decoder.null`); exact dynamic programme in float64, summed
   over the upper tail only (no ``1 - cdf`` cancellation), so tails down to ``1e-300`` keep their relative
@@ -34,6 +41,19 @@ from numpy.typing import ArrayLike
 
 #: The false-positive rate at which a copy counts as watermarked (``gsw verify``, ``Verdict.detected``).
 DETECTION_FPR = 1e-6
+
+#: Where a claimed message came from, which decides its test: ``"random"`` (drawn uniformly at random,
+#: independently of any image: gsw's default messages, ``key:<secret>``; the exact randomization test,
+#: :func:`weighted_sign_sf`) or ``"chosen"`` (picked by someone, e.g. a hex message typed by a user: it may
+#: line up with a decoder's biases, so it is tested against the decoder's calibrated null model).
+ORIGINS = ("random", "chosen")
+
+
+def check_origin(origin: str) -> str:
+    """``origin`` if it is one of :data:`ORIGINS`, else a ValueError naming them."""
+    if origin not in ORIGINS:
+        raise ValueError(f"message origin must be one of {', '.join(ORIGINS)}, got {origin!r}")
+    return origin
 
 
 def binomial_p_value(matches: int, num_bits: int) -> float:
@@ -71,6 +91,83 @@ def bootstrap_ci95(values: Sequence[float], n: int = 10000, seed: int = 0) -> li
     a = np.asarray(values, dtype=np.float64)
     boot = np.random.default_rng(seed).choice(a, (n, len(a))).mean(1)
     return [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))]
+
+
+# ------------------------------------------------------------------------------- randomly signed sums
+
+
+def _integer_weights(weights: ArrayLike) -> np.ndarray:
+    w = np.asarray(weights)
+    if w.ndim == 0 or w.shape[-1] == 0:
+        raise ValueError(f"expected per-bit weights of shape [..., k] with k >= 1, got shape {w.shape}")
+    if not np.issubdtype(w.dtype, np.integer):
+        if not np.all(np.isfinite(w)) or not np.all(w == np.round(w)):
+            raise ValueError("per-bit weights must be integers")
+    w = w.astype(np.int64)
+    if w.min() < 0:
+        raise ValueError("per-bit weights must be >= 0")
+    return w
+
+
+def weighted_sign_tail(weights: ArrayLike) -> np.ndarray:
+    """Exact tail of the total weight of the bits a uniformly random message matches.
+
+    With ``B_i`` iid Bernoulli(1/2) (bit ``i`` of a random message agrees with the reading or not) and
+    integer weights ``w_i >= 0``: entry ``s`` is ``P(sum_i w_i B_i >= s)``.  In terms of the signed sum
+    ``T = sum_i w_i eps_i`` (``eps_i = 2 B_i - 1`` Rademacher, ``S = sum_i w_i``): ``P(T >= 2 s - S)``.
+    Dynamic programme over the integer sums (``O(k S)`` per row; rows with the same multiset of weights
+    are computed once); every entry is a sum of non-negative terms, so tails down to ``2^-k`` keep their
+    relative accuracy.
+
+    Args:
+        weights: [..., k] non-negative integers.
+
+    Returns:
+        [..., S_max + 2] float64, ``S_max`` the largest row total: entry 0 is 1, entries above a row's
+        own total are 0.
+    """
+    w = _integer_weights(weights)
+    lead, k = w.shape[:-1], w.shape[-1]
+    rows, inverse = np.unique(np.sort(w.reshape(-1, k), axis=1), axis=0, return_inverse=True)
+    total = int(rows.sum(axis=1).max())
+    pmf = np.zeros((rows.shape[0], total + 1))
+    pmf[:, 0] = 1.0
+    cols = np.arange(total + 1)
+    for i in range(k):
+        src = cols[None, :] - rows[:, i : i + 1]
+        moved = np.where(src >= 0, np.take_along_axis(pmf, np.maximum(src, 0), axis=1), 0.0)
+        pmf = 0.5 * (pmf + moved)
+    tail = np.cumsum(pmf[:, ::-1], axis=1)[:, ::-1]
+    tail = np.concatenate([np.minimum(tail, 1.0), np.zeros((rows.shape[0], 1))], axis=1)
+    return tail[inverse.reshape(-1)].reshape(lead + (total + 2,))
+
+
+def weighted_sign_sf(weights: ArrayLike, matched: ArrayLike) -> np.ndarray:
+    """p-values of the exact randomization test: ``P(sum_i w_i B_i >= matched)`` (:func:`weighted_sign_tail`).
+
+    Args:
+        weights: [k] or [R, k] non-negative integer weights (one row per reading).
+        matched: the observed total weight of the matching bits: any shape for 1-D ``weights``, else
+            [R, ...] (row ``r`` tested with weights ``r``), e.g. [R, M] for M messages.
+
+    Returns:
+        float64 p-values of ``matched``'s shape (1 for ``matched <= 0``, 0 above the row's total).
+    """
+    table = weighted_sign_tail(weights)
+    x = np.asarray(matched)
+    if not np.issubdtype(x.dtype, np.integer):
+        if not np.all(x == np.round(x)):
+            raise ValueError("matched (a total of integer weights) must hold integers")
+        x = x.astype(np.int64)
+    idx = np.clip(x, 0, table.shape[-1] - 1)
+    if table.ndim == 1:
+        return table[idx]
+    lead = table.shape[:-1]
+    if x.shape[: len(lead)] != lead:
+        raise ValueError(f"matched has shape {list(x.shape)}; expected [{', '.join(map(str, lead))}, ...] "
+                         "(one row per row of weights)")
+    flat = np.take_along_axis(table, idx.reshape(lead + (-1,)), axis=-1)
+    return flat.reshape(x.shape)
 
 
 # ------------------------------------------------------------------------------------ Poisson-binomial

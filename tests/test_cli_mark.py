@@ -154,6 +154,26 @@ def test_extract_and_verify_images(model_dir, tmp_path, capsys) -> None:
     assert _verify_json([*pngs[:1], "--message", "0123456789abcdef"])["num_bits"] == 64
 
 
+def test_verify_chosen_message_flag_selects_the_calibrated_test(tmp_path, capsys) -> None:
+    img = tmp_path / "a.png"
+    write_image(img, torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(3)))
+    from gsw.data.images import read_image
+
+    image = read_image(img)
+    for flag, origin in (([], "random"), (["--chosen-message"], "chosen")):
+        report = _verify_json([str(img), "--message", "0123abcd", *flag])
+        expected = verify([image], "0123abcd", origin=origin)
+        assert report["origin"] == origin and report["p_value"] == pytest.approx(expected.p_value)
+    assert (verify([image], "0123abcd", origin="chosen").p_value
+            != pytest.approx(verify([image], "0123abcd").p_value))  # two different tests
+    assert main(["verify", str(img), "--message", "0123abcd", "--device", "cpu"]) == 1
+    assert "random message: exact test" in capsys.readouterr().out
+    assert main(["verify", str(img), "--message", "0123abcd", "--device", "cpu", "--chosen-message"]) == 1
+    assert "chosen message: calibrated null model" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="origin must be one of random, chosen"):
+        verify([image], "0123abcd", origin="typed")
+
+
 @pytest.mark.parametrize("argv, match", [
     (["verify", "x.png", "--message", "0123abcd", "--key", "k"], "not both"),
     (["verify", "x.png", "--key", ""], "--key is empty"),

@@ -197,6 +197,7 @@ def test_embed_records_the_issued_mark(model_dir, tmp_path, capsys) -> None:
     assert (mark.num_bits, mark.decoder_sha256) == (48, shipped_decoder_sha256(48))
     assert mark.model_hash == hash_gaussians(load_inria_model(out).gaussians)
     assert (mark.width, mark.height, mark.background) == (48, 48, (1.0, 1.0, 1.0))
+    assert mark.origin == "random"  # a fresh secret message: the exact test applies
     assert mark.message_hex not in json.dumps(summary)
     _assert_no_file_holds(out, [mark.message_hex])
     # refused before any embedding: a label already registered, --registry without --label, a bad label
@@ -218,10 +219,11 @@ def test_embed_image_records_the_mark_and_identify_names_the_recipient(setup, tm
     args = ["--bits", str(BITS), "--message", message, "--steps", "5", "--psnr", "40", "--device", "cpu",
             "--no-progress", "--registry", str(reg)]
     assert main(["embed-image", str(src), "--output", str(out), *args, "--label", "bob"]) == 0
-    text = capsys.readouterr().out
+    text, err = capsys.readouterr()
     with open_registry(reg, create=False) as r:
         bob = r.get("bob")
     assert "recorded as mark" in text and message not in text and bob.message_hex == message
+    assert bob.origin == "chosen" and "--chosen-message" in err  # a typed message: tested as chosen
     assert (bob.width, bob.height, bob.num_bits, bob.model_hash) == (64, 64, BITS, None)
     assert main(["identify", str(out), "--registry", str(reg), "--device", "cpu", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["recipients"] == ["bob"]

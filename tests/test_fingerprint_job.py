@@ -57,6 +57,7 @@ def test_copies_registered_and_marked(job) -> None:
         ply = out / name / "point_cloud" / "iteration_0" / "point_cloud.ply"
         assert mark.model_hash == hash_model_file(ply)
         assert mark.decoder_sha256 == shipped_decoder_sha256(32) and (mark.width, mark.height) == (32, 32)
+        assert mark.origin == "random"  # drawn with `secrets`: tested with the exact randomization test
         assert (out / name / DONE_FILE).is_file() and (out / name / "watermark.json").is_file()
         for f in out.rglob("*"):  # the secret message is in the registry only
             if f.is_file():
@@ -75,6 +76,11 @@ def test_rerun_skips_finished_and_adds_new(job, tmp_path) -> None:
     assert ply.stat().st_mtime_ns == before
     again = _run(scene, ["alice", "dave"], out, reg)
     assert again.runner == "none" and again.names("skipped") == ["alice", "dave"]
+    from gsw.fingerprint.plan import Recipient
+
+    _run(scene, [Recipient("erin", message="0123abcd"), Recipient("fay", key="k")], out, reg)
+    with open_registry(reg) as r:  # a message given in the recipients file is a chosen one
+        assert (r.get("erin").origin, r.get("fay").origin, r.get("dave").origin) == ("chosen", "random", "random")
 
 
 def test_half_written_recipients(job, tmp_path) -> None:

@@ -37,12 +37,13 @@ class _CoinDecoder(torch.nn.Module):
         return torch.randn(ll.shape[0], self.k, generator=self.gen)
 
 
-def test_family_wise_false_positive_rate_holds_under_the_null() -> None:
+@pytest.mark.parametrize("origin", ["chosen", "random"])
+def test_family_wise_false_positive_rate_holds_under_the_null(origin) -> None:
     """Unmarked sources (coin-flip bits) against 50 marks: P(anyone identified) stays <= fpr."""
     k, fpr, trials, sha = 16, 0.05, 300, "ee" * 32
     messages = random.Random(0).sample(range(2**k), 50)
     marks = [Mark(id=i + 1, label=f"m{i}", message_hex=f"{m:04x}", num_bits=k, decoder_sha256=sha, model_hash=None,
-                  width=None, height=None, background=None, created="t", gsw_version="v")
+                  width=None, height=None, background=None, created="t", gsw_version="v", origin=origin)
              for i, m in enumerate(messages)]
     decoders = {sha: _CoinDecoder(k, seed=1)}
     image = torch.zeros(3, 32, 32)
@@ -80,7 +81,7 @@ def test_marked_image_names_its_recipient_and_no_one_else(marked) -> None:
     best = found.identified[0]
     assert best.matches == [BITS] and best.adjusted_p_value <= found.fpr and best.exact
     # the calibrated evidence of gsw.verify at the registered embedding size, Holm over 5 marks
-    claim = gsw.mark.verify([image], best.mark.message, num_bits=BITS, embed_size=(64, 64))
+    claim = gsw.mark.verify([image], best.mark.message, num_bits=BITS, embed_size=(64, 64), origin="chosen")
     assert best.p_value == pytest.approx(claim.p_value) and best.p_value >= binomial_p_value(BITS, BITS)
     assert best.adjusted_p_value == pytest.approx(5 * claim.p_value)
     assert all(not r.identified and r.adjusted_p_value > found.fpr for r in found.results[1:])
@@ -140,7 +141,7 @@ def test_a_thousand_marks_decode_once_and_stay_correct(marked, tmp_path, monkeyp
         nobody = identify([cover], reg)
     assert calls == [(BITS, None)] * 2  # one decoding pass of the images per call, not one per mark
     assert found.recipients == ["carol"] and len(found.results) == 1000
-    claim = gsw.mark.verify([image, cover], carol.message, num_bits=BITS)  # no size registered: scale search
+    claim = gsw.mark.verify([image, cover], carol.message, num_bits=BITS, origin="chosen")  # no size: scale search
     assert found.identified[0].adjusted_p_value == pytest.approx(1000 * claim.p_value)
     assert sum(r.exact for r in found.results) >= 10
     assert nobody.recipients == []
@@ -191,3 +192,28 @@ def test_bad_arguments(marked) -> None:
             identify([], reg)
         with pytest.raises(ValueError, match="expected a \\[3,H,W\\]"):
             identify([torch.rand(1, 64, 64)], reg)
+
+
+def test_each_mark_is_tested_by_its_message_origin(marked) -> None:
+    """Random marks get the exact test of gsw.verify (no screening), chosen marks the calibrated one; Holm over all."""
+    from dataclasses import replace
+
+    path, cover, image = marked
+    with open_registry(path, create=False) as reg:
+        marks = reg.list()
+    mixed = [replace(m, origin="random" if i % 2 else "chosen") for i, m in enumerate(marks)]  # carol: chosen
+    for source in ([image], [image, cover]):
+        found = identify(source, mixed, exact=0)
+        assert found.recipients == ["carol"]
+        for r in found.results:
+            if r.exact:
+                claim = gsw.mark.verify(source, r.mark.message, num_bits=BITS, embed_size=(64, 64),
+                                        origin=r.mark.origin)
+                assert r.p_value == pytest.approx(claim.p_value)
+            assert r.exact or r.mark.origin == "chosen"  # only chosen marks are screened
+            assert r.to_dict()["origin"] == r.mark.origin
+    carol = next(m for m in marks if m.label == "carol")
+    found = identify([image], [replace(carol, origin="random")])
+    claim = gsw.mark.verify([image], carol.message, num_bits=BITS, embed_size=(64, 64))  # origin random
+    assert found.recipients == ["carol"] and found.results[0].p_value == pytest.approx(claim.p_value)
+    assert claim.p_value == pytest.approx(2.0**-BITS)  # every bit read: the exact test's smallest p-value

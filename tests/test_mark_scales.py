@@ -70,14 +70,14 @@ def test_scale_search_picks_the_embedding_scale_and_pays_for_the_search():
     for confident, weight in ((True, CONFIDENT_SHARE + (1 - CONFIDENT_SHARE) / s), (False, (1 - CONFIDENT_SHARE) / s)):
         # the decoder's confidence points at the right reading (weight 0.6 of 5 readings) or at another one
         dec, null = ScaleToy(MSG, 128, confident), NullModel.fair(32)
-        ev = assess([img], MSG, num_bits=32, decoder=dec, null=null)
+        ev = assess([img], MSG, num_bits=32, decoder=dec, null=null, origin="chosen")
         (e,) = ev.images
         assert e.factor == 0.5 and e.read_size == (128, 128) and e.matches == 32 and e.readings == s
         assert e.p_value == pytest.approx(2.0**-32 / weight)
     dec, null = ScaleToy(MSG, 128), NullModel.fair(32)
-    known = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(128, 128))
+    known = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(128, 128), origin="chosen")
     assert known.images[0].readings == 1 and known.p_value == pytest.approx(2.0**-32)
-    wrong = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(256, 256))
+    wrong = assess([img], MSG, num_bits=32, decoder=dec, null=null, embed_size=(256, 256), origin="chosen")
     assert wrong.images[0].matches == 0 and wrong.p_value == 1.0 and not wrong.detected()
 
 
@@ -86,7 +86,7 @@ def test_identical_frames_are_not_counted_as_independent_evidence():
     msg = MSG.clone()
     msg[:3] = 1 - msg[:3]  # 29 of 32 bits at the right scale
     frames = [torch.full((3, 64, 64), 0.5)] * 10
-    ev = assess(frames, msg, num_bits=32, decoder=dec, null=null, embed_size=(64, 64))
+    ev = assess(frames, msg, num_bits=32, decoder=dec, null=null, embed_size=(64, 64), origin="chosen")
     harmonic = sum(1 / i for i in range(1, 11))
     assert ev.matches == [29] * 10
     assert ev.p_value == pytest.approx(harmonic * binomial_p_value(29, 32))
@@ -105,13 +105,20 @@ def test_assess_errors():
     other.decoder_fingerprint = "0" * 64
     with pytest.raises(NullModelError, match="not for this decoder"):
         assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec, null=other)
-    ev = assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec)  # custom decoder, no null model
-    assert ev.null_model == "fair"
+    ev = assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec, origin="chosen")  # custom, no null model
+    assert ev.null_model == "fair" and ev.origin == "chosen"
+    with pytest.raises(ValueError, match="origin must be one of random, chosen"):
+        assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec, origin="picked")
+    with pytest.raises(ValueError, match="weighting must be one of"):
+        assess([torch.rand(3, 64, 64)], MSG, num_bits=32, decoder=dec, weighting="fancy")
 
 
 def test_shipped_decoder_on_noise_is_not_detected():
-    ev = assess([torch.rand(3, 96, 96), torch.rand(3, 96, 96)], np.ones(32, dtype=int), num_bits=32)
+    imgs = [torch.rand(3, 96, 96), torch.rand(3, 96, 96)]
+    ev = assess(imgs, np.ones(32, dtype=int), num_bits=32, origin="chosen")
     assert ev.null_model == "calibrated" and len(ev.images) == 2 and not ev.detected()
+    ev = assess(imgs, np.ones(32, dtype=int), num_bits=32)
+    assert ev.null_model == "exact" and ev.origin == "random" and len(ev.images) == 2 and not ev.detected()
 
 
 def test_extract_reads_at_the_embedding_size_when_known(tmp_path, capsys):
@@ -136,7 +143,7 @@ def test_extract_reads_at_the_embedding_size_when_known(tmp_path, capsys):
     assert exc.value.code == 2 and "WIDTHxHEIGHT" in capsys.readouterr().err
 
 
-def test_score_messages_is_the_null_model_p_value_of_every_message():
+def test_score_messages_of_a_chosen_message_is_the_null_model_p_value():
     from gsw.decoder.null import load_null_model
     from gsw.mark.evidence import score_messages
     from gsw.mark.scales import Reading
@@ -145,7 +152,7 @@ def test_score_messages_is_the_null_model_p_value_of_every_message():
     null = load_null_model(32)
     readings = [Reading([1.0, 0.5, 2.0], [(64, 64), (32, 32), (128, 128)], torch.randn(3, 32)) for _ in range(4)]
     msgs = gen.integers(0, 2, (6, 32)).astype(np.int8)
-    sc = score_messages(readings, msgs, null)
+    sc = score_messages(readings, msgs, null, origin="chosen")
     for j, m in enumerate(msgs):
         per = [null.p_values(r.bits.numpy().astype(np.int8), m, np.asarray(r.factors)) / reading_weights(r.confidence)
                for r in readings]
@@ -175,7 +182,7 @@ def test_a_set_of_frames_read_enlarged_is_detected_with_the_scale_search():
         logits = 0.3 * torch.randn(len(plan), 32, generator=gen)  # the other scales read noise
         logits[-1] = 3.0 * (2 * torch.from_numpy(msg).float() - 1)  # factor 2: the message, confidently
         readings.append(Reading([f for f, _ in plan], [s for _, s in plan], logits))
-    sc = score_messages(readings, msg[None], null)
+    sc = score_messages(readings, msg[None], null, origin="chosen")
     weight = CONFIDENT_SHARE + (1 - CONFIDENT_SHARE) / len(plan)
     perfect = null.tail_table(msg, "up")[32]
     harmonic = sum(1 / i for i in range(1, 11))

@@ -216,3 +216,74 @@ def test_shipped_decoder_sha256_matches_the_manifest() -> None:
         assert shipped_decoder_sha256(k) == manifest[f"hidden_k{k}.pt"]["sha256"]
     with pytest.raises(RuntimeError, match="no shipped decoder for 40 bits"):
         shipped_decoder_sha256(40)
+
+
+_SCHEMA_1 = """CREATE TABLE marks (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, label TEXT NOT NULL UNIQUE, message_hex TEXT NOT NULL,
+    num_bits INTEGER NOT NULL CHECK (num_bits > 0), decoder_sha256 TEXT NOT NULL, model_hash TEXT, width INTEGER,
+    height INTEGER, background TEXT, created TEXT NOT NULL, gsw_version TEXT NOT NULL,
+    UNIQUE (decoder_sha256, message_hex))"""
+
+
+def _schema_1_file(path: Path) -> Path:
+    """A registry as gsw wrote it before the message origin existed (schema 1), with one mark."""
+    with sqlite3.connect(path) as conn:
+        conn.execute(_SCHEMA_1)
+        conn.execute("INSERT INTO marks (label, message_hex, num_bits, decoder_sha256, created, gsw_version) "
+                     "VALUES ('old', '0123abcd', 32, ?, 't', '0.1')", (SHA,))
+        conn.execute("PRAGMA user_version = 1")
+    return path
+
+
+def test_message_origin_round_trip_and_errors(tmp_path) -> None:
+    with open_registry(tmp_path / "reg.sqlite") as reg:
+        reg.add("typed", "0123abcd", decoder_sha256=SHA)  # the conservative default
+        reg.add("drawn", "89abcdef", decoder_sha256=SHA, origin="random")
+        assert [m.origin for m in reg.list()] == ["chosen", "random"]
+        assert reg.get("drawn").to_dict()["origin"] == "random"
+        with pytest.raises(ValueError, match="origin must be one of random, chosen, got 'typed'"):
+            reg.add("bad", "00000000", decoder_sha256=SHA, origin="typed")
+        assert len(reg) == 2
+    from gsw.registry import record_mark
+
+    key = record_mark(tmp_path / "reg.sqlite", "keyed", "key:s3cret", num_bits=32, decoder_sha256=SHA)
+    hexed = record_mark(tmp_path / "reg.sqlite", "hexed", "fedcba98", decoder_sha256=SHA)
+    assert (key.origin, hexed.origin) == ("random", "chosen")
+
+
+def test_schema_1_registry_is_migrated_with_chosen_origins(tmp_path) -> None:
+    path = _schema_1_file(tmp_path / "v1.sqlite")
+    with open_registry(path) as reg:
+        (old,) = reg.list()
+        assert old.label == "old" and old.origin == "chosen" and old.message_hex == "0123abcd"
+        reg.add("new", "89abcdef", decoder_sha256=SHA, origin="random")
+    with sqlite3.connect(path) as conn:
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION == 2
+        rows = conn.execute("SELECT label, origin FROM marks ORDER BY id").fetchall()
+    assert rows == [("old", "chosen"), ("new", "random")]
+    with open_registry(path) as reg:  # a migrated file opens as is
+        assert [m.origin for m in reg.list()] == ["chosen", "random"]
+
+
+def test_schema_1_registry_that_cannot_be_written_is_read_as_chosen(tmp_path, monkeypatch) -> None:
+    from gsw.registry import Registry
+
+    path = _schema_1_file(tmp_path / "v1.sqlite")
+
+    def readonly(self, doing):
+        raise RegistryError(f"registry {self.path} cannot be written (attempt to write a readonly database)")
+
+    monkeypatch.setattr(Registry, "_write", readonly)
+    with open_registry(path) as reg:
+        assert [(m.label, m.origin) for m in reg.list()] == [("old", "chosen")] and reg.get("old").origin == "chosen"
+    with sqlite3.connect(path) as conn:
+        assert conn.execute("PRAGMA user_version").fetchone()[0] == 1  # left as it was
+
+
+def test_unknown_older_schema_is_refused(tmp_path) -> None:
+    path = tmp_path / "odd.sqlite"
+    with sqlite3.connect(path) as conn:
+        conn.execute(_SCHEMA_1)
+        conn.execute("PRAGMA user_version = -3")
+    with pytest.raises(RegistryError, match="unknown schema version -3"):
+        open_registry(path)

@@ -122,3 +122,69 @@ def test_weighted_bonferroni_values_and_validity():
     w[np.arange(trials), rng.integers(0, m, trials)] += 0.5
     se = math.sqrt(level * (1 - level) / trials)
     assert _rate(bonferroni_p_value(p, weights=w), level) <= level + 3 * se
+
+
+# ------------------------------------------------------------------------- the exact randomization test
+
+
+def _enumerated_weighted_sums(w: np.ndarray) -> np.ndarray:
+    """sum_i w_i B_i for every one of the 2^k outcomes of k fair bits."""
+    k = len(w)
+    outcomes = (np.arange(2**k)[:, None] >> np.arange(k)[None, :]) & 1
+    return outcomes @ w
+
+
+def test_weighted_sign_tail_matches_enumeration():
+    from gsw.stats import weighted_sign_sf, weighted_sign_tail
+
+    rng = np.random.default_rng(1)
+    for k in (1, 5, 11, 16):
+        for w in (np.ones(k, dtype=int), np.arange(1, k + 1), rng.integers(0, 25, k)):
+            tail = weighted_sign_tail(w)
+            assert tail.shape == (int(w.sum()) + 2,) and tail[0] == 1.0 and tail[-1] == 0.0
+            sums = np.sort(_enumerated_weighted_sums(w))
+            s = np.arange(-1, int(w.sum()) + 3)
+            expected = 1.0 - np.searchsorted(sums, s, side="left") / len(sums)  # P(sum >= s), exact in float64
+            assert np.array_equal(weighted_sign_sf(w, s), expected)
+    # unit weights: the fair-coin binomial tail; rows with permuted weights share their table
+    assert weighted_sign_sf(np.ones(32, int), 30) == pytest.approx(binomial_p_value(30, 32), rel=1e-14)
+    rows = np.stack([rng.permutation(np.arange(1, 21)) for _ in range(3)] + [rng.integers(0, 9, 20)])
+    tails = weighted_sign_tail(rows)
+    assert tails.shape == (4, 212) and np.array_equal(tails[0], tails[2])
+    obs = rng.integers(0, 211, (4, 6))
+    assert np.array_equal(weighted_sign_sf(rows, obs), np.take_along_axis(tails, obs, axis=1))
+
+
+def test_weighted_sign_tail_matches_simulation_and_keeps_tiny_tails():
+    from gsw.stats import weighted_sign_sf
+
+    rng = np.random.default_rng(2)
+    w = rng.integers(0, 30, 48)
+    sums = (rng.integers(0, 2, (200_000, 48)) * w).sum(1)
+    for s in (int(np.quantile(sums, q)) for q in (0.5, 0.9, 0.99)):
+        expected = float((sums >= s).mean())
+        assert float(weighted_sign_sf(w, s)) == pytest.approx(expected, abs=4 * (expected / 200_000) ** 0.5 + 1e-4)
+    ranks = np.arange(1, 65)
+    assert float(weighted_sign_sf(ranks, int(ranks.sum()))) == 2.0**-64  # all 64 bits: exactly 2^-64
+    assert float(weighted_sign_sf(ranks, int(ranks.sum()) - 1)) == 2 * 2.0**-64  # all, or all but bit 1
+
+
+def test_weighted_sign_errors():
+    from gsw.stats import weighted_sign_sf, weighted_sign_tail
+
+    for bad, match in ((np.zeros(0), "shape"), (np.array([1.5, 2.0]), "integers"), (np.array([1, -1]), ">= 0"),
+                       (np.array([np.nan, 1.0]), "integers")):
+        with pytest.raises(ValueError, match=match):
+            weighted_sign_tail(bad)
+    with pytest.raises(ValueError, match="one row per row"):
+        weighted_sign_sf(np.ones((3, 4), int), np.zeros((2, 5), int))
+    with pytest.raises(ValueError, match="integers"):
+        weighted_sign_sf(np.ones(4, int), 1.5)
+
+
+def test_check_origin():
+    from gsw.stats import ORIGINS, check_origin
+
+    assert [check_origin(o) for o in ORIGINS] == ["random", "chosen"]
+    with pytest.raises(ValueError, match="origin must be one of random, chosen, got 'fixed'"):
+        check_origin("fixed")

@@ -261,7 +261,7 @@ def split_views(num_views: int, every: int) -> tuple[list[int], list[int], bool]
 
 def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence[int], held_out: bool,
                          message: Tensor, *, num_bits: int, background: Sequence[float], fpr: float,
-                         device: Any) -> dict[str, Any]:
+                         device: Any, origin: str = "random") -> dict[str, Any]:
     """Reads a written INRIA model folder back and tests it for ``message`` on the views ``checked`` (the
     calibrated :func:`gsw.mark.detect.verify`, at the common size of ``cameras`` when they share one).
 
@@ -274,6 +274,7 @@ def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence
         background: RGB render background of the embedding.
         fpr: false-positive rate of the decision.
         device: where to render.
+        origin: the message's origin (``"random"`` or ``"chosen"``, :func:`gsw.mark.detect.verify`).
 
     Returns:
         JSON-able ``views, held_out, where`` (a phrase), ``bit_accuracy`` (mean), ``p_value``, ``fpr``, ``detected``.
@@ -285,7 +286,7 @@ def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence
     sizes = {(c.height, c.width) for c in cameras}
     r, g, b = (float(v) for v in background)
     v = verify((model.gaussians.to(device), [cameras[i] for i in checked]), message, num_bits=num_bits,
-               background=(r, g, b), embed_size=next(iter(sizes)) if len(sizes) == 1 else None)
+               background=(r, g, b), embed_size=next(iter(sizes)) if len(sizes) == 1 else None, origin=origin)
     where = (f"{len(checked)} held-out view(s) (cameras not used for embedding)" if held_out else
              f"the {len(checked)} embedding view(s) (fewer than --holdout-every cameras: none held out)")
     return dict(views=[cameras[i].name or f"view {i}" for i in checked], held_out=held_out, where=where,

@@ -32,6 +32,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ver.add_argument("--model", help="INRIA model folder to render instead of images (its watermark.json gives the "
                                      "bit length, background and resolution)")
     add_message_options(ver, claim=True)
+    ver.add_argument("--chosen-message", action="store_true",
+                     help="the message was chosen by someone (e.g. embedded with --message HEX), not drawn at random "
+                          "by gsw or derived from a key: test it against the decoder's calibrated null model instead "
+                          "of the exact test for random messages")
     add_background_options(ver, "default: the model's watermark.json, else black")
     ver.add_argument("--fpr", type=float, default=DETECTION_FPR, help="false-positive rate of the decision")
     add_device_option(ver)
@@ -97,6 +101,16 @@ def _add_embed_image_parser(subparsers: argparse._SubParsersAction) -> None:
 # ------------------------------------------------------------------------------------------------ embed
 
 
+def chosen_message_note(args: argparse.Namespace, command: str) -> str:
+    """The origin of the message an embedding command issues: ``"chosen"`` for ``--message HEX`` (with a one-line
+    note on stderr that its verification must say so), else ``"random"`` (a fresh secret message, or ``--key``)."""
+    if args.message is None:
+        return "random"
+    print(f"gsw {command}: note: --message HEX is a chosen message; verify it with `gsw verify --chosen-message` "
+          "(the exact test assumes a random message: omit --message, or use --key)", file=sys.stderr)
+    return "chosen"
+
+
 def embed_config(args: argparse.Namespace):
     """The :class:`~gsw.mark.embed.EmbedConfig` of `gsw embed`'s options."""
     from gsw.mark.embed import EmbedConfig
@@ -146,6 +160,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
 
     message, num_bits = message_from_args(args, required=False)
     check_record(args, message, num_bits)
+    origin = chosen_message_note(args, "embed")
     config = embed_config(args)
     device = resolve_device(args.device)
     output, inputs = Path(args.output), input_paths(args, "input", "cameras", "images", "registry")
@@ -169,9 +184,10 @@ def cmd_embed(args: argparse.Namespace) -> int:
                                   decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats)
         write_watermark_json(tmp, record)
         size = record["resolution"] and (record["resolution"]["width"], record["resolution"]["height"])
-        recorded = record_issued(args, res.message, gaussians=res.gaussians, size=size, background=config.background)
+        recorded = record_issued(args, res.message, gaussians=res.gaussians, size=size, background=config.background,
+                                 origin=origin)
     check = verify_written_model(output, cams, checked, held_out, res.message, num_bits=num_bits,
-                                 background=config.background, fpr=args.fpr, device=device)
+                                 background=config.background, fpr=args.fpr, device=device, origin=origin)
     issued, note = issued_summary(recorded, res.message_hex, res.message.int().tolist())
     if args.json:
         print_json(dict(**issued, output=str(output), verification=check, **record))
@@ -218,6 +234,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     message, num_bits = message_from_args(args, required=False)
     targets = _image_targets(sources, output)
     check_record(args, message, num_bits)
+    origin = chosen_message_note(args, "embed-image")
     images = read_images(sources)
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
 
@@ -227,7 +244,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
 
     def record():  # before the outputs appear: a registry error leaves no unrecorded watermarked image
         sizes = {tuple(r.image.shape[:0:-1]) for r in results}
-        return record_issued(args, results[0].message, size=sizes.pop() if len(sizes) == 1 else None)
+        return record_issued(args, results[0].message, size=sizes.pop() if len(sizes) == 1 else None, origin=origin)
 
     inputs = [*sources, *input_paths(args, "registry")]
     with (output_file if len(sources) == 1 else output_folder)(output, inputs, args.force) as tmp:
@@ -330,16 +347,18 @@ def cmd_verify(args: argparse.Namespace) -> int:
         source, names = [img.to(device) for _, img in named], [n for n, _ in named]
     _warn_if_other_decoder(info, num_bits)
     embed_size = None if info is None or info.resolution is None else (info.resolution[1], info.resolution[0])
-    v = verify(source, message, num_bits=num_bits, background=background, embed_size=embed_size)
+    origin = "chosen" if args.chosen_message else "random"
+    v = verify(source, message, num_bits=num_bits, background=background, embed_size=embed_size, origin=origin)
     detected = v.detected(args.fpr)
     if args.json:
-        print_json(dict(detected=detected, p_value=v.p_value, fpr=args.fpr, num_bits=num_bits,
+        print_json(dict(detected=detected, p_value=v.p_value, fpr=args.fpr, num_bits=num_bits, origin=origin,
                         background=list(background) if args.model else None,
                         views=[dict(name=n, bit_accuracy=a, p_value=p)
                                for n, a, p in zip(names, v.bit_accuracy, v.p_values)]))
     else:
         for n, a, p in zip(names, v.bit_accuracy, v.p_values):
             print(f"{100 * a:6.2f} %  p={p:.2e}  {n}")
+        test = "chosen message: calibrated null model" if args.chosen_message else "random message: exact test"
         print(f"{'DETECTED' if detected else 'not detected'}: combined p-value {v.p_value:.2e} "
-              f"(threshold {args.fpr:g})")
+              f"(threshold {args.fpr:g}; {test})")
     return 0 if detected else 1

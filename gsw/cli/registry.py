@@ -41,7 +41,7 @@ def _describe(mark, show_secret: bool) -> list[tuple[str, str]]:
     rows = [("id", str(mark.id)), ("label", mark.label), ("bits", str(mark.num_bits)),
             ("decoder sha256", mark.decoder_sha256), ("model hash", mark.model_hash or "-"),
             ("resolution", size), ("background", bg), ("created (UTC)", mark.created),
-            ("gsw version", mark.gsw_version)]
+            ("gsw version", mark.gsw_version), ("message origin", mark.origin)]
     if show_secret:
         rows.insert(3, ("message", mark.message_hex))
     return rows

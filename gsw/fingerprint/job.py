@@ -128,6 +128,7 @@ class _Writer:
         self.folder, self.registry, self.shared, self.record, self.reports, self.bar = (
             folder, registry, shared, record, reports, bar)
         self.messages: dict[str, str] = {}
+        self.origins: dict[str, str] = {}  # "random" (drawn, or from a key) / "chosen" (given in the file)
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gsw-fingerprint-writer")
         self.pending: list = []  # (result, future of its model hash)
 
@@ -163,7 +164,8 @@ class _Writer:
         results = [r for r, _ in ready]
         ids = self.registry.add_many([dict(label=r.name, message=self.messages[r.name], num_bits=k,
                                            decoder_sha256=self.shared.decoder_sha256, model_hash=h, width=width,
-                                           height=height, background=cfg.background)
+                                           height=height, background=cfg.background,
+                                           origin=self.origins.get(r.name, "chosen"))
                                       for r, h in zip(results, hashes)])
         for r, h, mark_id in zip(results, hashes, ids):
             self.folder.mark_done(r.name, h, mark_id)
@@ -279,6 +281,7 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
             writer = _Writer(folder, reg, shared, {"decoder": _decoder_fingerprint(num_bits, decoder)}, reports,
                              bar)
             writer.messages = {r.name: r.message for r in todo}
+            writer.origins = {p.name: "chosen" if p.message is not None else "random" for p in people}
             t0 = time.perf_counter()
             try:
                 if runner == "ray":

@@ -1,8 +1,10 @@
 """`gsw.extract` and `gsw.verify`: reading the 3D-GSW watermark from images or renders of a model.
 
 :func:`extract` decodes the bits of images with the frozen decoder; :func:`verify` tests images (or the renders of a
-model) for a claimed message: per image the binomial p-value of the matching bits, combined over the images with
-Fisher's method (:mod:`gsw.stats`). :func:`message_num_bits` is the one rule that infers a message's length.
+model) for a claimed message with :func:`gsw.mark.evidence.assess`: for a random message (gsw's default, or
+``key:<secret>``) the exact randomization test of :mod:`gsw.mark.randomization` (exact over the random draw of the
+message, for any image and any number of correlated frames); for a message someone chose (``origin="chosen"``) the
+decoder's calibrated null model. :func:`message_num_bits` is the one rule that infers a message's length.
 """
 
 from __future__ import annotations
@@ -135,8 +137,9 @@ class Verdict:
     Attributes:
         bit_accuracy: per image, fraction of matching bits.
         matches: per image, number of matching bits.
-        p_values: per image, P(an unmarked image matches at least as many bits) under the decoder's
-            calibrated null model (:mod:`gsw.decoder.null`), the scale search counted in.
+        p_values: per image, the p-value of its evidence (random message: the exact randomization test of
+            its most confident reading; chosen message: the decoder's calibrated null model, the scale search
+            counted in).
         p_value: combined over images, valid for correlated frames (:func:`gsw.mark.evidence.assess`).
     """
 
@@ -154,7 +157,7 @@ class Verdict:
 def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: MessageLike, *,
            num_bits: int | None = None, decoder: torch.nn.Module | None = None,
            background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-           embed_size: tuple[int, int] | None = None) -> Verdict:
+           embed_size: tuple[int, int] | None = None, origin: str = "random") -> Verdict:
     """Tests images (or renders of a model) for a given message.
 
     Args:
@@ -166,6 +169,10 @@ def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: Mess
         background: render background for a model source.
         embed_size: ``(height, width)`` of the embedding renders when known (read at that size only);
             otherwise a documented set of scales is searched, counted in the p-value.
+        origin: ``"random"`` (default): the message was drawn uniformly at random independently of the
+            images (gsw's default messages, ``key:<secret>``), and the p-value is exact over that draw;
+            ``"chosen"``: someone picked it (e.g. ``gsw embed --message HEX``), tested against the
+            decoder's calibrated null model instead (:func:`gsw.mark.evidence.assess`).
 
     Returns:
         A :class:`Verdict`.
@@ -181,5 +188,5 @@ def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: Mess
     from gsw.mark.evidence import assess
 
     ev = assess([img[0] for img in _as_images(images)], bits, num_bits=num_bits, decoder=decoder,
-                embed_size=embed_size)
+                embed_size=embed_size, origin=origin)
     return Verdict(ev.bit_accuracy, ev.matches, ev.p_values, ev.p_value)

@@ -1,24 +1,25 @@
-"""Calibrated evidence that images carry a message: :func:`assess`.
+"""Evidence that images carry a message: :func:`assess`, the scoring rule of ``gsw verify`` and ``gsw identify``.
 
-For each image: read it at its scales (:func:`gsw.mark.scales.read_images`), the p-value of each reading
-under the decoder's null model (:meth:`gsw.decoder.null.NullModel.p_values`: Poisson-binomial with the
-measured per-bit rates, an upper confidence bound for their estimation error, never below the fair coin),
-the smallest p-value over the readings in a weighted Bonferroni (:func:`reading_weights`: half of the
-level on the most confident reading, chosen without the message, the other half split over all readings;
-1 reading and no factor when the embedding size is known).  Over images: Simes' combination with Hommel's
-correction (:func:`gsw.stats.hommel_combined_p_value`), valid for any dependence between the images, e.g.
-near-duplicate frames of one scene.
+Two tests, by where the message came from (``origin``):
 
-Why the weights: the decoder's confidence (mean |logit|, :attr:`gsw.mark.scales.Reading.confidence`)
-peaks at the embedding scale on marked images, so the reading it picks usually carries the mark; giving
-it half of the level costs a factor ``1 / (1/2 + 1/(2S))`` (1.7 for 5 readings) instead of ``S`` when it
-is right and ``2S`` when it is wrong.  With ``S`` equal weights (plain Bonferroni), sets of frames that
-each read every bit at an enlarged scale could fall short of 1e-6 although each frame alone passed
-(``S`` x Hommel's factor x the null model's p-value of a perfect reading).  Validity: the weights are a
-function of the logits alone, not of the message, so for a uniformly random message (a key) every
-reading's matches stay Binomial(k, 1/2) whatever the weights; for a fixed message the null model has to
-describe the reading the confidence picks -- the same empirical claim as for any reading, checked on
-hold-out data (``benchmarks/detection_null.py``, BENCHMARKS.md).
+* ``"random"`` (default: gsw's own messages from ``os.urandom`` and ``key:<secret>`` messages): the exact
+  randomization test of :mod:`gsw.mark.randomization`.  The probability is taken over the random draw of
+  the message, with the images and the decoder's outputs fixed, so the p-value is exact for any image,
+  any decoder bias and any dependence between frames.  Per image: its most confident reading (chosen
+  without the message, so no multiple-testing factor), the signed-rank statistic of its logits.  Over
+  images: the readings' logits pooled per bit and tested once.
+* ``"chosen"`` (a message someone picked, e.g. ``gsw embed --message HEX``: it may line up with the
+  decoder's biases on unmarked content): the calibrated null model.  For each image: read it at its scales
+  (:func:`gsw.mark.scales.read_images`), the p-value of each reading's matching bits under the decoder's
+  null model (:meth:`gsw.decoder.null.NullModel.p_values`: Poisson-binomial with the measured per-bit
+  rates, an upper confidence bound for their estimation error, never below the fair coin), the smallest
+  p-value over the readings in a weighted Bonferroni (:func:`reading_weights`: half of the level on the
+  most confident reading, the other half split over all readings; 1 reading and no factor when the
+  embedding size is known).  Over images: Simes' combination with Hommel's correction
+  (:func:`gsw.stats.hommel_combined_p_value`), valid for any dependence between the images.  Its
+  validity is an empirical claim about the null model, checked on hold-out data
+  (``benchmarks/detection_null.py``, BENCHMARKS.md); it is conservative, so random messages use the exact
+  test instead.
 
 Example:
     >>> import torch
@@ -37,11 +38,12 @@ import torch
 from torch import Tensor
 
 from gsw.decoder.null import NullModel, NullModelError, decoder_fingerprint, load_null_model, reading_direction
+from gsw.mark.randomization import DEFAULT_WEIGHTING, check_weighting, choose_reading, exact_p_values, pooled_logits
 from gsw.mark.scales import SEARCH_FACTORS, Reading, read_images
-from gsw.stats import DETECTION_FPR, bonferroni_p_value, hommel_combined_p_value
+from gsw.stats import DETECTION_FPR, ORIGINS, bonferroni_p_value, check_origin, hommel_combined_p_value
 
-__all__ = ["CONFIDENT_SHARE", "Evidence", "ImageEvidence", "Scores", "assess", "message_bits", "reading_weights",
-           "resolve_null_model", "score_messages", "shipped_null_model"]
+__all__ = ["CONFIDENT_SHARE", "ORIGINS", "Evidence", "ImageEvidence", "Scores", "assess", "check_origin",
+           "message_bits", "reading_weights", "resolve_null_model", "score_messages", "shipped_null_model"]
 
 #: Share of an image's level given to its most confident reading in the scale search (:func:`reading_weights`).
 CONFIDENT_SHARE = 0.5
@@ -56,7 +58,8 @@ class ImageEvidence:
         matches: number of matching bits there.
         factor: resize factor of the chosen reading (1.0: the image as given).
         read_size: (height, width) the image was read at.
-        readings: number of readings tried (weighted Bonferroni over them, :func:`reading_weights`).
+        readings: number of readings tried (random message: the most confident one is tested; chosen
+            message: weighted Bonferroni over them, :func:`reading_weights`).
         p_value: the image's p-value, the scale search included.
     """
 
@@ -76,14 +79,16 @@ class Evidence:
         images: per image, in input order.
         p_value: one p-value for all images together (valid for correlated frames).
         num_bits: message length.
-        null_model: "calibrated" (the decoder's null model) or "fair" (fair coin: a custom decoder without
-            a null model).
+        null_model: "exact" (random message: the randomization test), "calibrated" (chosen message: the
+            decoder's null model) or "fair" (chosen message, fair coin: a custom decoder without a null model).
+        origin: the message's origin (:data:`ORIGINS`).
     """
 
     images: list[ImageEvidence]
     p_value: float
     num_bits: int
     null_model: str
+    origin: str = "random"
 
     @property
     def p_values(self) -> list[float]:
@@ -140,11 +145,13 @@ class Scores:
     """Images scored against M messages at once (:func:`score_messages`).
 
     Attributes:
-        p_values: [F, M] per image and message: the weighted Bonferroni over the image's readings
-            (``min_s p_s / w_s``, :func:`reading_weights`).
+        p_values: [F, M] per image and message (random: the exact test of the chosen reading; chosen: the
+            weighted Bonferroni over the image's readings, ``min_s p_s / w_s``, :func:`reading_weights`).
         matches: [F, M] matching bits at the chosen reading.
-        chosen: [F, M] index of the chosen reading (the smallest ``p_s / w_s``, the first among ties).
-        combined: [M] Hommel combination over the F images, valid under any dependence between them.
+        chosen: [F, M] index of the chosen reading (random: the most confident one; chosen: the smallest
+            ``p_s / w_s``, the first among ties).
+        combined: [M] one p-value for the F images together, valid under any dependence between them
+            (random: the exact test of the pooled logits; chosen: Hommel's combination).
     """
 
     p_values: np.ndarray
@@ -153,20 +160,53 @@ class Scores:
     combined: np.ndarray
 
 
-def score_messages(readings: Sequence[Reading], messages: np.ndarray, model: NullModel) -> Scores:
+def score_messages(readings: Sequence[Reading], messages: np.ndarray, model: NullModel | None = None, *,
+                   origin: str = "random", weighting: str = DEFAULT_WEIGHTING) -> Scores:
     """The p-values of decoded readings against M messages: the one scoring rule of :func:`assess` and
     :func:`gsw.mark.identify.identify`.
 
     Args:
         readings: per image, its readings (:func:`gsw.mark.scales.read_images`).
         messages: [M, k] message bits (int8 0/1).
-        model: the decoder's null model (:meth:`NullModel.tail_table` per message and reading direction).
+        model: the decoder's null model (``origin="chosen"`` only: :meth:`NullModel.tail_table` per message
+            and reading direction).
+        origin: ``"random"`` (the exact randomization test, :mod:`gsw.mark.randomization`) or ``"chosen"``.
+        weighting: per-bit weights of the exact test (:data:`gsw.mark.randomization.WEIGHTINGS`).
 
     Returns:
         :class:`Scores`.
+
+    Raises:
+        ValueError: a bad origin or weighting, ``origin="chosen"`` without a model, a reading of another
+            bit length than the messages.
     """
     msgs = np.asarray(messages, dtype=np.int8)
-    k, cols = msgs.shape[1], np.arange(msgs.shape[0])
+    if msgs.ndim != 2:
+        raise ValueError(f"messages must have shape [M, k], got {list(msgs.shape)}")
+    k = msgs.shape[1]
+    for r in readings:
+        if r.logits.shape[-1] != k:
+            raise ValueError(f"the decoder returned {r.logits.shape[-1]} bits, num_bits={k}")
+    if check_origin(origin) == "random":
+        check_weighting(weighting)
+        return _score_random(readings, msgs, weighting)
+    if model is None:
+        raise ValueError("a chosen message is scored with the decoder's null model: pass model")
+    return _score_chosen(readings, msgs, model)
+
+
+def _score_random(readings: Sequence[Reading], msgs: np.ndarray, weighting: str) -> Scores:
+    """The exact test: each image's most confident reading, the pooled logits for all images together."""
+    chosen = np.array([choose_reading(r.confidence) for r in readings])
+    logits = torch.stack([r.logits[c] for r, c in zip(readings, chosen)])  # [F, k]
+    p, matches = exact_p_values(logits, msgs, weighting)
+    combined = p[0] if len(readings) == 1 else exact_p_values(pooled_logits(logits), msgs, weighting)[0][0]
+    return Scores(p, matches, np.repeat(chosen[:, None], msgs.shape[0], axis=1), combined)
+
+
+def _score_chosen(readings: Sequence[Reading], msgs: np.ndarray, model: NullModel) -> Scores:
+    """The calibrated null model: weighted Bonferroni over each image's readings, Hommel over images."""
+    cols = np.arange(msgs.shape[0])
     tables: dict[str, np.ndarray] = {}
 
     def table(direction: str) -> np.ndarray:  # [M, k + 2], built only for the directions read
@@ -177,8 +217,6 @@ def score_messages(readings: Sequence[Reading], messages: np.ndarray, model: Nul
     p_rows, match_rows, chosen_rows = [], [], []
     for r in readings:
         bits = r.bits.numpy().astype(np.int32)  # [S, k]
-        if bits.shape[-1] != k:
-            raise ValueError(f"the decoder returned {bits.shape[-1]} bits, num_bits={k}")
         matches = bits @ msgs.T.astype(np.int32) + (1 - bits) @ (1 - msgs.T.astype(np.int32))  # [S, M]
         p = np.stack([table(reading_direction(f))[cols, row] for f, row in zip(r.factors, matches)])  # [S, M]
         w = reading_weights(r.confidence)[:, None]  # [S, 1]
@@ -231,29 +269,37 @@ def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel 
 def assess(images: Tensor | Sequence[Tensor], message: Tensor | Sequence[int] | np.ndarray, *, num_bits: int,
            decoder: torch.nn.Module | None = None, null: NullModel | None = None,
            embed_size: tuple[int, int] | None = None, factors: Sequence[float] = SEARCH_FACTORS,
-           batch_size: int = 16) -> Evidence:
+           batch_size: int = 16, origin: str = "random", weighting: str = DEFAULT_WEIGHTING) -> Evidence:
     """Tests images for a message with p-values that hold for biased decoders, any number of correlated
     frames and an unknown display scale.
+
+    With ``origin="random"`` the p-value is exact over the random draw of the message (the images fixed);
+    a message someone chose must be tested with ``origin="chosen"`` (see the module docstring).
 
     Args:
         images: [3, H, W] RGB images in [0, 1] (a list, sizes may differ, or a [B, 3, H, W] batch).
         message: [k] claimed message bits.
         num_bits: k.
         decoder: default: the shipped ``num_bits`` decoder.
-        null: the decoder's null model (default: :func:`resolve_null_model`).
+        null: the decoder's null model (chosen messages; default: :func:`resolve_null_model`); checked
+            against the decoder when given with a random message, not used for it.
         embed_size: ``(height, width)`` of the embedding renders, when known: every image is read at
             that size only (no search, no multiple-testing factor).
         factors: scale-search factors (:data:`gsw.mark.scales.SEARCH_FACTORS`).
         batch_size: images of one shape decoded together.
+        origin: ``"random"`` (default: gsw's own and ``key:`` messages) or ``"chosen"`` (:data:`ORIGINS`).
+        weighting: per-bit weights of the exact test (random messages; :mod:`gsw.mark.randomization`).
 
     Returns:
         :class:`Evidence`.
 
     Raises:
-        ValueError: wrong message length / values, bad images.
+        ValueError: wrong message length / values, bad images, a bad origin or weighting.
         gsw.decoder.null.NullModelError: a null model of another decoder or bit length.
     """
     m = message_bits(message, num_bits)
+    check_origin(origin)
+    check_weighting(weighting)
     shipped = decoder is None
     if shipped:
         from gsw.decoder.zoo import load_decoder
@@ -264,11 +310,14 @@ def assess(images: Tensor | Sequence[Tensor], message: Tensor | Sequence[int] | 
     out_bits = getattr(decoder, "num_bits", num_bits)
     if out_bits != num_bits:
         raise ValueError(f"the decoder reads {out_bits} bits, num_bits={num_bits}")
-    model, label = resolve_null_model(num_bits, decoder, null, shipped)
+    if origin == "chosen" or null is not None:
+        model, label = resolve_null_model(num_bits, decoder, null, shipped)
+    if origin == "random":
+        model, label = None, "exact"
     readings = read_images(images, decoder, embed_size=embed_size, factors=factors, batch_size=batch_size)
-    sc = score_messages(readings, m[None], model)
+    sc = score_messages(readings, m[None], model, origin=origin, weighting=weighting)
     per_image = []
     for r, p, matches, best in zip(readings, sc.p_values[:, 0], sc.matches[:, 0], sc.chosen[:, 0]):
         per_image.append(ImageEvidence(int(matches) / num_bits, int(matches), r.factors[best], tuple(r.sizes[best]),
                                        len(r.factors), float(p)))
-    return Evidence(per_image, float(sc.combined[0]), num_bits, label)
+    return Evidence(per_image, float(sc.combined[0]), num_bits, label, origin)

@@ -2,18 +2,20 @@
 
 :func:`identify` reads the images once per decoder and embedding size found in the registry (a mark that
 records its embedding resolution is read at that size, the others with the scale search), then scores
-every registered mark with the calibrated evidence of :func:`gsw.verify`
-(:func:`gsw.mark.evidence.score_messages`: the decoder's null model, the scale search counted in,
-Hommel's combination over the images, valid for near-duplicate frames), and applies Holm's step-down
+every registered mark with the evidence of :func:`gsw.verify` (:func:`gsw.mark.evidence.score_messages`)
+for the mark's message origin (:attr:`gsw.registry.Mark.origin`): a random message (gsw's default, a key)
+with the exact randomization test, exact over the random draw of that mark's message whatever the images;
+a chosen message with the decoder's calibrated null model (Hommel over the images).  Then Holm's step-down
 correction over the marks tested, so the chance that an unmarked source names *anyone* stays at or below
-``fpr`` however many marks are registered (family-wise error control under any dependence). A recipient
-is identified when their adjusted p-value is at or below ``fpr``.
+``fpr`` however many marks are registered (family-wise error control under any dependence between the
+marks' tests). A recipient is identified when their adjusted p-value is at or below ``fpr``.
 
-Screening (speed, same decisions): a calibrated p-value is never below the fair-coin one computed from the
-same readings, and Holm's decisions depend only on the p-values at or below ``fpr`` (and on the number of
-marks). So the calibrated value (one tail table per message) is computed for every mark whose fair-coin
-value is at or below ``fpr``, and for the ``exact`` best others; the remaining marks keep their fair-coin
-value, a lower bound already above ``fpr`` (``MarkResult.exact`` is False).
+Screening of chosen messages (speed, same decisions): a calibrated p-value is never below the fair-coin
+one computed from the same readings, and Holm's decisions depend only on the p-values at or below ``fpr``
+(and on the number of marks). So the calibrated value (one tail table per message) is computed for every
+chosen mark whose fair-coin value is at or below ``fpr``, and for the ``exact`` best others; the remaining
+marks keep their fair-coin value, a lower bound already above ``fpr`` (``MarkResult.exact`` is False).
+Random messages need no screening: their exact p-values cost one matrix product for all marks.
 
 The price of the correction: with M marks the best one must reach about ``fpr / M``. With one image at
 the default 1e-6 and 1,000 marks, a 32-bit mark needs all 32 bits right; 48 and 64 bits leave room for
@@ -41,7 +43,7 @@ from gsw.decoder.null import NullModel
 from gsw.mark.evidence import resolve_null_model, score_messages
 from gsw.mark.scales import read_images
 from gsw.registry import Mark, Registry, shipped_decoder_sha256
-from gsw.stats import DETECTION_FPR
+from gsw.stats import DETECTION_FPR, ORIGINS
 
 __all__ = ["MarkResult", "Identification", "identify"]
 
@@ -65,12 +67,12 @@ class MarkResult:
 
     Attributes:
         mark: the registry entry (its message stays out of ``repr`` and of :meth:`to_dict` by default).
-        p_value: the calibrated p-value of all images together (as :func:`gsw.verify` computes it), or,
-            when ``exact`` is False, its fair-coin lower bound (then above ``fpr``).
+        p_value: the p-value of all images together (as :func:`gsw.verify` computes it for the mark's
+            origin), or, when ``exact`` is False, its fair-coin lower bound (then above ``fpr``).
         adjusted_p_value: Holm-adjusted over every mark tested.
         matches: per image, the number of message bits read correctly at the chosen scale.
         identified: ``adjusted_p_value <= fpr``.
-        exact: whether ``p_value`` is the calibrated value (see the module docstring).
+        exact: whether ``p_value`` is the value itself rather than a screening bound (module docstring).
     """
 
     mark: Mark
@@ -89,7 +91,7 @@ class MarkResult:
         """JSON-ready: id, label, bits, p-values, per-image matches (the message only with ``show_secret``)."""
         out = {"id": self.mark.id, "label": self.mark.label, "num_bits": self.mark.num_bits,
                "p_value": self.p_value, "adjusted_p_value": self.adjusted_p_value, "identified": self.identified,
-               "p_value_exact": self.exact, "best_bit_accuracy": self.best_bit_accuracy, "matches": self.matches}
+               "p_value_exact": self.exact, "origin": self.mark.origin, "best_bit_accuracy": self.best_bit_accuracy, "matches": self.matches}
         if show_secret:
             out["message_hex"] = self.mark.message_hex
         return out
@@ -122,7 +124,8 @@ class Identification:
         """JSON-ready summary (messages only with ``show_secret``)."""
         return {"identified": [r.to_dict(show_secret) for r in self.identified],
                 "recipients": self.recipients, "fpr": self.fpr, "correction": "holm",
-                "null_model": "calibrated (per decoder; fair coin for custom decoders without one)",
+                "null_model": "random messages: exact randomization test; chosen messages: calibrated (per "
+                              "decoder; fair coin for custom decoders without one)",
                 "num_images": self.num_images, "marks_tested": len(self.results),
                 "skipped": [{"id": m.id, "label": m.label, "decoder_sha256": m.decoder_sha256} for m in self.skipped],
                 "results": [r.to_dict(show_secret) for r in self.results]}
@@ -158,15 +161,35 @@ def _score_group(images: list[Tensor], group: list[Mark], decoder: torch.nn.Modu
         by_size.setdefault(size, []).append(mark)
     for size, marks in by_size.items():
         readings = read_images(images, decoder, embed_size=size)  # once per embedding size
-        messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
-        fair = score_messages(readings, messages, NullModel.fair(messages.shape[1]))
-        order = np.argsort(fair.combined, kind="stable")
-        todo = sorted(set(order[:exact].tolist()) | set(np.flatnonzero(fair.combined <= fpr).tolist()))
-        calibrated = score_messages(readings, messages[todo], model) if todo else None
-        at = {j: i for i, j in enumerate(todo)}
-        for j, mark in enumerate(marks):
-            sc, col = (calibrated, at[j]) if j in at else (fair, j)
-            out.append((mark, float(sc.combined[col]), sc.matches[:, col].tolist(), j in at))
+        for origin in ORIGINS:
+            same = [m for m in marks if m.origin == origin]
+            if same:
+                score = _score_random if origin == "random" else _score_chosen
+                out += score(readings, same, model, fpr, exact)
+    return out
+
+
+def _score_random(readings: list, marks: list[Mark], model: NullModel, fpr: float,
+                  exact: int) -> list[tuple[Mark, float, list[int], bool]]:
+    """Random messages: the exact randomization test of every mark (``model``, ``fpr``, ``exact`` unused)."""
+    messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
+    sc = score_messages(readings, messages, origin="random")
+    return [(mark, float(sc.combined[j]), sc.matches[:, j].tolist(), True) for j, mark in enumerate(marks)]
+
+
+def _score_chosen(readings: list, marks: list[Mark], model: NullModel, fpr: float,
+                  exact: int) -> list[tuple[Mark, float, list[int], bool]]:
+    """Chosen messages: the calibrated null model, screened by the fair coin (see the module docstring)."""
+    messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
+    fair = score_messages(readings, messages, NullModel.fair(messages.shape[1]), origin="chosen")
+    order = np.argsort(fair.combined, kind="stable")
+    todo = sorted(set(order[:exact].tolist()) | set(np.flatnonzero(fair.combined <= fpr).tolist()))
+    calibrated = score_messages(readings, messages[todo], model, origin="chosen") if todo else None
+    at = {j: i for i, j in enumerate(todo)}
+    out = []
+    for j, mark in enumerate(marks):
+        sc, col = (calibrated, at[j]) if j in at else (fair, j)
+        out.append((mark, float(sc.combined[col]), sc.matches[:, col].tolist(), j in at))
     return out
 
 
