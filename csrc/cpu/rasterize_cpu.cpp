@@ -443,11 +443,7 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
     for (; b + 2 <= nb; b += 2) backward_blocks<2>(sl, s, px, blocks + b, l);
     if (b < nb) backward_blocks<1>(sl, s, px, blocks + b, l);
     T* r = out + int64_t(S) * j;
-    for (int k = 0; k < S; ++k) {
-      T acc = T(0);
-      for (int q = 0; q < kLaneBlock; ++q) acc += l[k][q];
-      r[k] = acc;
-    }
+    for (int k = 0; k < S; ++k) r[k] = lane_sum(l[k]);
   }
 }
 

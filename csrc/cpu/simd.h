@@ -64,6 +64,14 @@ GSW_CPU_INLINE bool any(Lanes<double>::M m) {
   m |= __builtin_shufflevector(m, m, 1, 0, 3, 2, 5, 4, 7, 6);
   return m[0] != 0;
 }
+// Sum of a vector's lanes, in a fixed tree order ((q, q + 4), then (q, q + 2), then (q, q + 1)).
+template <typename V>
+GSW_CPU_INLINE auto lane_sum(V v) {
+  v += __builtin_shufflevector(v, v, 4, 5, 6, 7, 0, 1, 2, 3);
+  v += __builtin_shufflevector(v, v, 2, 3, 0, 1, 6, 7, 4, 5);
+  v += __builtin_shufflevector(v, v, 1, 0, 3, 2, 5, 4, 7, 6);
+  return v[0];
+}
 // An int32 lane mask as the comparison mask of T lanes.
 template <typename T>
 GSW_CPU_INLINE MaskT<T> mask_as(VecI32 m) {
