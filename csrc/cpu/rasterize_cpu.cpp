@@ -239,7 +239,11 @@ GSW_CPU_INLINE void traverse_front_to_back(const TileView& v, const std::vector<
     }
     const SplatLanes<T> sl(s);
     int b = 0;
-    for (; b + 2 <= nb; b += 2) blend_blocks<2>(sl, blocks + b, j, tr, last, pixel_fn);
+    for (; b + 4 <= nb; b += 4) blend_blocks<4>(sl, blocks + b, j, tr, last, pixel_fn);
+    if (b + 2 <= nb) {
+      blend_blocks<2>(sl, blocks + b, j, tr, last, pixel_fn);
+      b += 2;
+    }
     if (b < nb) blend_blocks<1>(sl, blocks + b, j, tr, last, pixel_fn);
     splat_end(j);
   }
