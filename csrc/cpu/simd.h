@@ -8,6 +8,7 @@
 #include <cstdint>
 
 #include "core/math.h"
+#include "cpu/parallel.h"
 
 namespace gsw::cpu {
 
