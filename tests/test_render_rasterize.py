@@ -173,6 +173,30 @@ def test_deterministic_across_runs_and_thread_counts() -> None:
         assert torch.equal(a, b) and torch.equal(a, c)
 
 
+def test_every_pixel_finishes_early_on_partial_tiles() -> None:
+    # Opaque splats covering a 37x21 image (partial tiles in both axes): most pixels reach T_MIN before the last
+    # splat, so the kernels' finished-pixel state and the per-block skips decide the results.
+    from gsw.constants import T_MIN
+
+    W, H = 37, 21
+    cam = make_camera(W, H)
+    g = random_gaussians(12, sh_degree=1, seed=21, extent=0.05, scale_range=(1.0, 1.5),
+                         opacity_range=(0.995, 0.999))
+    assert_forward_matches(g, cam)
+    out = rasterize(g, cam)
+    assert out.final_T.min().item() > 0 and out.final_T.max().item() < 1e3 * T_MIN
+    assert (out.n_contrib < 12).float().mean().item() > 0.5  # most pixels stop before the last splat
+    loss = _loss_fn(cam, 1, W, H, torch.float32)
+    bg = torch.tensor([0.2, 0.1, 0.4])
+    grads = []
+    for use_ref in (False, True):
+        inputs = [t.clone().requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+        loss(*inputs, bg, use_ref=use_ref).backward()
+        grads.append([t.grad for t in inputs])
+    for ours, ref in zip(*grads):
+        assert ((ours - ref).norm() / ref.norm().clamp_min(1e-12)).item() <= 1e-4
+
+
 def test_heavy_scene_matches_reference_and_is_deterministic() -> None:
     # Large, overlapping, partly opaque footprints: per-row chords, lane blocks that start mid-row and run
     # into the next row, finished blocks skipped, early termination; forward, backward and contribution.

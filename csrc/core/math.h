@@ -37,6 +37,16 @@ using std::log;
 using std::sqrt;
 #endif
 
+// Element type of T: T itself for scalars. The CPU backend specialises it for GCC vector types
+// (cpu/simd.h), so the per-pixel blending functions below (written with Scalar<T> constants and
+// ternaries, which GCC applies lane by lane to vectors) also run on whole lane blocks.
+template <typename T>
+struct ScalarOf {
+  using type = T;
+};
+template <typename T>
+using Scalar = typename ScalarOf<T>::type;
+
 // ------------------------------------------------------------------ small linear algebra
 
 template <typename T>
@@ -608,41 +618,63 @@ GSW_HD T gaussian_power(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py) {
 #if defined(__CUDA_ARCH__)
   return fma(dy, fma(T(-0.5) * conic.c, dy, -conic.b * dx), T(-0.5) * conic.a * dx * dx);
 #else
-  return T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
+  return Scalar<T>(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
 #endif
 }
 
+// Bit reinterpretation float <-> int32 of host_blend_exp (specialised for the CPU backend's lane
+// vectors in cpu/simd.h).
+template <typename F>
+struct FloatBits;
+template <>
+struct FloatBits<float> {
+  using I = int32_t;
+  static I to_bits(float f) {
+    I i;
+    __builtin_memcpy(&i, &f, sizeof(float));
+    return i;
+  }
+  static float from_bits(I i) {
+    float f;
+    __builtin_memcpy(&f, &i, sizeof(float));
+    return f;
+  }
+};
+
 // exp() of the blending hot loop. Host float32: a branch-free Cephes-style approximation
-// (relative error ~2 ulp for arguments in [-87, 0]) that compilers vectorize across pixels;
-// host float64 and all device code use the library exp. (Separate host overloads, so every
-// translation unit sees the same definition of blend_exp.)
-inline float host_blend_exp(float x) {
-  x = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
-  const float fx = x * 1.44269504088896341f + 0.5f;
-  int n = static_cast<int>(fx);  // truncation; fix up to floor below
-  n -= (static_cast<float>(n) > fx) ? 1 : 0;
-  const float nf = static_cast<float>(n);
-  const float r = (x - nf * 0.693359375f) + nf * 2.12194440e-4f;
-  float y = 1.9875691500e-4f;
-  y = y * r + 1.3981999507e-3f;
-  y = y * r + 8.3334519073e-3f;
-  y = y * r + 4.1665795894e-2f;
-  y = y * r + 1.6666665459e-1f;
-  y = y * r + 5.0000001201e-1f;
-  y = y * r * r + r + 1.0f;
-  const int bits = (n + 127) << 23;
-  float scale;
-  __builtin_memcpy(&scale, &bits, sizeof(float));
-  return y * scale;
+// (relative error ~2 ulp for arguments in [-87, 0]) for a float or a lane vector of floats:
+// n = round(x log2 e) by the 1.5 * 2^23 shift, exp(r) of the remainder by Cephes' polynomial in
+// Estrin's form (short dependency chains: pixel loops are latency-bound), times 2^n. Host float64
+// and all device code use the library exp. (Separate host overloads, so every translation unit
+// sees the same definition of blend_exp.)
+template <typename F>
+inline F host_blend_exp_f32(F x) {
+  using B = FloatBits<F>;
+  x = x < -87.0f ? -87.0f : x;  // clamp to [-87, 0] (NaN passes through)
+  x = x > 0.0f ? 0.0f : x;
+  const F t = x * 1.44269504088896341f + 12582912.0f;  // 1.5 * 2^23 + n: n in t's low bits
+  const F nf = t - 12582912.0f;
+  const F r = (x - nf * 0.693359375f) + nf * 2.12194440e-4f;
+  const F r2 = r * r;
+  const F p = ((1.9875691500e-4f * r + 1.3981999507e-3f) * r2 + (8.3334519073e-3f * r + 4.1665795894e-2f)) * r2 +
+              (1.6666665459e-1f * r + 5.0000001201e-1f);
+  const F y = p * r2 + (r + 1.0f);
+  return y * B::from_bits((B::to_bits(t) + 127) << 23);  // 2^n (t's bits are 0x4B400000 + n)
 }
+inline float host_blend_exp(float x) { return host_blend_exp_f32(x); }
 inline double host_blend_exp(double x) { return exp(x); }
+// Host blend_exp of T (specialised for the CPU backend's lane vectors in cpu/simd.h).
+template <typename T>
+struct HostBlendExp {
+  static T apply(T x) { return host_blend_exp(x); }
+};
 
 template <typename T>
 GSW_HD T blend_exp(T x) {
 #if defined(__CUDA_ARCH__)
   return exp(x);
 #else
-  return host_blend_exp(x);
+  return HostBlendExp<T>::apply(x);
 #endif
 }
 
@@ -651,16 +683,17 @@ GSW_HD T blend_exp(T x) {
 // Gaussian factor exp(min(power, 0)).
 template <typename T>
 GSW_HD T splat_gaussian(T power) {
-  return blend_exp(power > T(0) ? T(0) : power);
+  return blend_exp(power > Scalar<T>(0) ? Scalar<T>(0) : power);
 }
 // splat_alpha for a precomputed G = splat_gaussian(power) (backward passes reuse G in
 // splat_alpha_vjp_from_gaussian instead of evaluating exp() twice).
 template <typename T>
 GSW_HD T splat_alpha_from_gaussian(T opacity, T power, T G) {
+  using S = Scalar<T>;
   const T a = opacity * G;
-  const T alpha = a < T(ALPHA_MAX) ? a : T(ALPHA_MAX);
-  const T kept = alpha < T(ALPHA_MIN) ? T(0) : alpha;
-  return power > T(0) ? T(0) : kept;
+  const T alpha = a < S(ALPHA_MAX) ? a : S(ALPHA_MAX);
+  const T kept = alpha < S(ALPHA_MIN) ? S(0) : alpha;
+  return power > S(0) ? S(0) : kept;
 }
 template <typename T>
 GSW_HD T splat_alpha(T opacity, T power) {
@@ -694,13 +727,14 @@ struct SplatGrad {
 template <typename T>
 GSW_HD SplatGrad<T> splat_alpha_vjp_from_gaussian(const Sym2<T>& conic, T dx, T dy, T G, T opacity,
                                                   T v_alpha) {
-  const T v = opacity * G < T(ALPHA_MAX) ? v_alpha : T(0);
+  using S = Scalar<T>;
+  const T v = opacity * G < S(ALPHA_MAX) ? v_alpha : S(0);
   const T v_power = opacity * G * v;
   SplatGrad<T> g;
   g.opacity = G * v;
-  g.conic.a = T(-0.5) * dx * dx * v_power;
+  g.conic.a = S(-0.5) * dx * dx * v_power;
   g.conic.b = -dx * dy * v_power;
-  g.conic.c = T(-0.5) * dy * dy * v_power;
+  g.conic.c = S(-0.5) * dy * dy * v_power;
   g.mean2d.x = -(conic.a * dx + conic.b * dy) * v_power;
   g.mean2d.y = -(conic.b * dx + conic.c * dy) * v_power;
   return g;
@@ -715,10 +749,10 @@ GSW_HD SplatGrad<T> splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T 
 }
 
 // Whether a pixel with transmittance T stops before blending a splat of opacity alpha
-// (INRIA: that splat is not blended).
+// (INRIA: that splat is not blended). A lane mask for lane vectors.
 template <typename T>
-GSW_HD bool blend_terminates(T transmittance, T alpha) {
-  return transmittance * (T(1) - alpha) < T(T_MIN);
+GSW_HD auto blend_terminates(T transmittance, T alpha) {
+  return transmittance * (Scalar<T>(1) - alpha) < Scalar<T>(T_MIN);
 }
 
 }  // namespace gsw

@@ -10,6 +10,7 @@
 
 #include "cpu/backend_cpu.h"
 #include "cpu/parallel.h"
+#include "cpu/simd.h"
 
 namespace gsw::cpu {
 
@@ -107,12 +108,12 @@ GSW_CPU_INLINE void gather_splats(const RasterParams<T>& p, const PackedSplat<T>
   }
 }
 
-// Pixels of a row evaluated together: one 8-lane block (an AVX2 float vector); blocks a splat
-// cannot reach, or whose pixels are all finished, are skipped.
-constexpr int kLaneBlock = 8;
-// A block starts at the first lane of a splat's chord, so it may run up to kLaneBlock - 1 lanes
-// past the row (into the next row, or past the tile: tile arrays are padded). Lanes past the
-// chord are masked. Per-splat sums are accumulated per lane q of the block.
+// Pixels of a row evaluated together: one aligned block of kLaneBlock = kLanes pixels (a lane
+// vector, cpu/simd.h); blocks a splat cannot reach, or whose reachable pixels are all finished,
+// are skipped. Tile rows hold TILE_SIZE / kLaneBlock whole blocks.
+constexpr int kLaneBlock = kLanes;
+static_assert(TILE_SIZE % kLaneBlock == 0, "tile rows must hold whole lane blocks");
+// Tile-local arrays hold kTileAlloc values (one spare block).
 constexpr int kTileAlloc = kTilePixels + kLaneBlock;
 // Margin (pixels) of the row chords against rounding (the chord is otherwise exact, like the box).
 constexpr double kChordMargin = 1e-2;
@@ -139,76 +140,112 @@ GSW_CPU_INLINE void row_spans(const PackedSplat<T>& s, T x_centre0, T y_centre0,
   }
 }
 
-// Whether any of a block's kLaneBlock flags is set.
-GSW_CPU_INLINE bool any_set(const int32_t* flags) {
-  int32_t any = 0;
-  for (int q = 0; q < kLaneBlock; ++q) any |= flags[q];
-  return any != 0;
-}
+// A splat's parameters broadcast to lane vectors.
+template <typename T>
+struct SplatLanes {
+  Sym2<VecT<T>> conic;
+  VecT<T> mx, my, opacity;
+  explicit GSW_CPU_INLINE SplatLanes(const PackedSplat<T>& s)
+      : conic{splat(s.conic.a), splat(s.conic.b), splat(s.conic.c)},
+        mx(splat(s.mx)),
+        my(splat(s.my)),
+        opacity(splat(s.opacity)) {}
+};
 
-// One lane block of a row for one splat, front to back (fixed trip count, so the loop becomes
-// straight-line SIMD together with `pixel_fn`); lanes from hi on are masked. Per pixel:
-// w = blending weight (0 when masked, skipped, finished or terminating here), passed to
-// pixel_fn(q, w) in the same loop, and updates of the transmittance, liveness and
-// last-contributor arrays (indexed by the lane q).
-template <typename T, typename F>
-GSW_CPU_INLINE void blend_lanes(const PackedSplat<T>& s, int j, T x_centre0, T pyc, int hi, T* tr,
-                                int32_t* alive, int32_t* last, F&& pixel_fn) {
-  for (int q = 0; q < kLaneBlock; ++q) {
-    const T power = gaussian_power(s.conic, s.mx, s.my, x_centre0 + T(q), pyc);
-    const T alpha0 = splat_alpha(s.opacity, power);
-    const bool open = (alive[q] != 0) & (q < hi);
-    const T alpha = open ? alpha0 : T(0);
-    const bool term = (alpha > T(0)) & blend_terminates(tr[q], alpha);
-    alive[q] = term ? 0 : alive[q];
-    const T a = term ? T(0) : alpha;
-    pixel_fn(q, a * tr[q]);
-    tr[q] *= T(1) - a;
-    last[q] = a > T(0) ? j + 1 : last[q];
-  }
+// Lanes [lo, hi) of a block (lane indices relative to the block).
+template <typename T>
+GSW_CPU_INLINE MaskT<T> lane_range(int lo, int hi) {
+  const VecT<T> q = iota<T>();
+  return (q >= T(lo)) & (q < T(hi));
 }
 
 // Every kAliveCheckInterval splats, a tile checks whether any of its pixels is still open.
 constexpr int kAliveCheckInterval = 16;
 
-// Front-to-back traversal of one tile, splat-major over the lane blocks each splat can reach:
-// identical decisions to a per-pixel loop. Calls pixel_fn(j, k, q, w) for every lane q of every
-// visited block of splat j (k: tile-local flat pixel index < kTileAlloc; w = 0 where it does not
-// blend) and splat_end(j) after its last row. `tr` and `last` hold kTileAlloc values.
+// One lane block of a splat's traversal: tile-local index of its first pixel, the centre of
+// that pixel and the mask of its open lanes on the splat's chord.
+template <typename T>
+struct LaneBlock {
+  MaskT<T> open;
+  T pxc, pyc;
+  int k0;
+};
+
+// Blends splat j over NB lane blocks at once (independent work the CPU can overlap: a block
+// alone is one long dependency chain, exp() included). Per lane: w = blending weight (0 where
+// masked, skipped or terminating here), passed to pixel_fn(j, k0, w), then the transmittance
+// and last-contributor updates.
+template <int NB, typename T, typename F>
+GSW_CPU_INLINE void blend_blocks(const SplatLanes<T>& sl, const LaneBlock<T>* blk, int j, T* tr,
+                                 int32_t* last, F& pixel_fn) {
+  using V = VecT<T>;
+  V t[NB], a[NB];
+  MaskT<T> term[NB];
+  for (int b = 0; b < NB; ++b) {
+    t[b] = load<V>(tr + blk[b].k0);
+    const V power = gaussian_power(sl.conic, sl.mx, sl.my, blk[b].pxc + iota<T>(), splat(blk[b].pyc));
+    const V alpha = blk[b].open ? splat_alpha(sl.opacity, power) : T(0);
+    term[b] = (alpha > T(0)) & blend_terminates(t[b], alpha);
+    a[b] = term[b] ? T(0) : alpha;
+  }
+  const VecI32 next = VecI32{} + (j + 1);
+  for (int b = 0; b < NB; ++b) {
+    const int k0 = blk[b].k0;
+    pixel_fn(j, k0, a[b] * t[b]);
+    store(tr + k0, term[b] ? -t[b] : t[b] * (T(1) - a[b]));
+    store(last + k0, mask_i32(a[b] > T(0)) ? next : load<VecI32>(last + k0));
+  }
+}
+
+// Front-to-back traversal of one tile, splat-major over the aligned lane blocks each splat can
+// reach: identical decisions to a per-pixel loop. Calls pixel_fn(j, k0, w) for every visited
+// block of splat j (k0: tile-local flat index of the block's first pixel; w: the lane vector of
+// blending weights, 0 where the splat does not blend) and splat_end(j) after its last block.
+// `tr` and `last` hold kTileAlloc values: on return, tr holds each pixel's transmittance,
+// negated once the pixel has finished (pixels outside the image: -1), and last its n_contrib.
 template <typename T, typename F, typename G>
 GSW_CPU_INLINE void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, T* tr,
                             int32_t* last, F&& pixel_fn, G&& splat_end) {
-  int32_t alive[kTileAlloc];
+  using V = VecT<T>;
+  // Open pixels hold tr > 0, finished ones -tr (tr >= T_MIN > 0 while open).
   for (int k = 0; k < kTileAlloc; ++k) {
-    tr[k] = T(1);
-    last[k] = alive[k] = 0;
+    const int lx = k % TILE_SIZE, ly = k / TILE_SIZE;
+    tr[k] = (lx < v.x1 - v.x0 && ly < v.y1 - v.y0) ? T(1) : T(-1);
+    last[k] = 0;
   }
-  // Pixels outside the image (partial tiles) are never open.
-  for (int ly = 0; ly < TILE_SIZE; ++ly)
-    for (int lx = 0; lx < TILE_SIZE; ++lx)
-      alive[ly * TILE_SIZE + lx] = (lx < v.x1 - v.x0 && ly < v.y1 - v.y0) ? 1 : 0;
   const int n = static_cast<int>(splats.size());
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
+  LaneBlock<T> blocks[kTilePixels / kLaneBlock];
   for (int j = 0; j < n; ++j) {
     if (j % kAliveCheckInterval == 0) {
       int open = 0;
-      for (int k = 0; k < kTilePixels; ++k) open |= alive[k];
+      for (int k = 0; k < kTilePixels; ++k) open |= tr[k] > T(0);
       if (!open) break;
     }
     const PackedSplat<T>& s = splats[j];
+    if (s.by1 <= s.by0) continue;
     row_spans(s, x_centre0, y_centre0, span_lo, span_hi);
+    // The blocks with an open pixel on the splat's chord.
+    int nb = 0;
     for (int ly = s.by0; ly < s.by1; ++ly) {
-      const T pyc = y_centre0 + T(ly);
       const int lo = span_lo[ly], hi = span_hi[ly];
-      for (int b0 = lo; b0 < hi; b0 += kLaneBlock) {
+      for (int b0 = lo - lo % kLaneBlock; b0 < hi; b0 += kLaneBlock) {
         const int k0 = ly * TILE_SIZE + b0;
-        if (!any_set(alive + k0)) continue;
-        blend_lanes(s, j, x_centre0 + T(b0), pyc, hi - b0, tr + k0, alive + k0, last + k0,
-                    [&](int q, T w) { pixel_fn(j, ly * TILE_SIZE + b0 + q, q, w); });
+        const MaskT<T> open = (load<V>(tr + k0) > T(0)) & lane_range<T>(lo - b0, hi - b0);
+        if (!any(open)) continue;
+        blocks[nb++] = LaneBlock<T>{open, x_centre0 + T(b0), y_centre0 + T(ly), k0};
       }
     }
-    if (s.by1 > s.by0) splat_end(j);
+    const SplatLanes<T> sl(s);
+    int b = 0;
+    for (; b + 4 <= nb; b += 4) blend_blocks<4>(sl, blocks + b, j, tr, last, pixel_fn);
+    if (b + 2 <= nb) {
+      blend_blocks<2>(sl, blocks + b, j, tr, last, pixel_fn);
+      b += 2;
+    }
+    if (b < nb) blend_blocks<1>(sl, blocks + b, j, tr, last, pixel_fn);
+    splat_end(j);
   }
 }
 
@@ -232,6 +269,7 @@ GSW_CPU_INLINE void flush_lanes(int k_sums, T* __restrict lanes, T* __restrict r
 template <typename T, int CC>
 GSW_CPU_KERNEL void contribution_tile(const TileView& v, const std::vector<PackedSplat<T>>& splats, int C,
                        const T* __restrict wmap, T* __restrict lane, T* out) {
+  using V = VecT<T>;
   const int nc = CC > 0 ? CC : C;
   const int S = nc + 2;
   T* __restrict hits = lane + nc * kLaneBlock;
@@ -240,16 +278,12 @@ GSW_CPU_KERNEL void contribution_tile(const TileView& v, const std::vector<Packe
   int32_t last[kTileAlloc];
   traverse_front_to_back(
       v, splats, tr, last,
-      [&](int, int k, int q, T w) {
-        if constexpr (CC >= 1) lane[q] += wmap[k] * w;  // unrolled: the loop stays vectorizable
-        if constexpr (CC >= 2) lane[kLaneBlock + q] += wmap[kTileAlloc + k] * w;
-        if constexpr (CC >= 3) lane[2 * kLaneBlock + q] += wmap[2 * kTileAlloc + k] * w;
-        if constexpr (CC == 0)
-          for (int ch = 0; ch < nc; ++ch) lane[ch * kLaneBlock + q] += wmap[ch * kTileAlloc + k] * w;
-        // Select-free forms (selects here stop the vectorizer): w is in [0, 1], so ceil(w) is
-        // the hit indicator; max(a, b) = (a + b + |a - b|) / 2 (exact up to one rounding).
-        hits[q] += ceil(w);
-        mx[q] = T(0.5) * (mx[q] + w + std::abs(mx[q] - w));
+      [&](int, int k0, V w) {
+        for (int ch = 0; ch < nc; ++ch)
+          store(lane + ch * kLaneBlock, load<V>(lane + ch * kLaneBlock) + load<V>(wmap + ch * kTileAlloc + k0) * w);
+        store(hits, load<V>(hits) + (w > T(0) ? T(1) : T(0)));
+        const V m = load<V>(mx);
+        store(mx, m < w ? w : m);
       },
       [&](int j) { flush_lanes(nc + 1, lane, out + int64_t(S) * j); });
 }
@@ -258,6 +292,7 @@ GSW_CPU_KERNEL void contribution_tile(const TileView& v, const std::vector<Packe
 template <typename T>
 GSW_CPU_KERNEL void forward_tile(const RasterParams<T>& p, const PackedSplat<T>* recs, int64_t tile,
                                  std::vector<PackedSplat<T>>& splats) {
+  using V = VecT<T>;
   const int64_t P = int64_t(p.width) * p.height;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
@@ -265,21 +300,20 @@ GSW_CPU_KERNEL void forward_tile(const RasterParams<T>& p, const PackedSplat<T>*
   int32_t last[kTileAlloc];
   for (int k = 0; k < kTileAlloc; ++k) col[0][k] = col[1][k] = col[2][k] = dep[k] = T(0);
   const PackedSplat<T>* sp = splats.data();  // no TLS lookup in the lambda
-  traverse_front_to_back(v, splats, tr, last, [&](int j, int k, int, T w) {
+  traverse_front_to_back(v, splats, tr, last, [&](int j, int k0, V w) {
     const PackedSplat<T>& s = sp[j];
-    col[0][k] += w * s.color[0];
-    col[1][k] += w * s.color[1];
-    col[2][k] += w * s.color[2];
-    dep[k] += w * s.depth;
+    for (int c = 0; c < 3; ++c) store(col[c] + k0, load<V>(col[c] + k0) + w * s.color[c]);
+    store(dep + k0, load<V>(dep + k0) + w * s.depth);
   }, [](int) {});
   for (int py = v.y0; py < v.y1; ++py) {
     for (int px = v.x0; px < v.x1; ++px) {
       const int k = (py - v.y0) * TILE_SIZE + (px - v.x0);
       const int64_t pix = int64_t(py) * p.width + px;
-      for (int c = 0; c < 3; ++c) p.image[c * P + pix] = col[c][k] + tr[k] * p.background[c];
-      p.alpha[pix] = T(1) - tr[k];
+      const T t = std::abs(tr[k]);
+      for (int c = 0; c < 3; ++c) p.image[c * P + pix] = col[c][k] + t * p.background[c];
+      p.alpha[pix] = T(1) - t;
       p.depth[pix] = dep[k];
-      p.final_T[pix] = tr[k];
+      p.final_T[pix] = t;
       p.n_contrib[pix] = last[k];
     }
   }
@@ -331,50 +365,47 @@ GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterG
   }
 }
 
-// Backward of splat j over the aligned lane block at tile-local pixel k0 (pixel centres pxc0 + q,
-// pyc; lanes outside [qlo, qhi) masked): steps the block's pixels back over splat j and adds the
-// splat's cotangents per lane slot to l (rows in kSplatGradSize record order).
-template <typename T>
-GSW_CPU_INLINE void backward_block(const PackedSplat<T>& s, int j, BackwardPixels<T>& px, int k0, T pxc0,
-                                   T pyc, int qlo, int qhi, T (&l)[kSplatGradSize][kLaneBlock]) {
-  T* trr = px.tr + k0;
-  const T* tf = px.t_final + k0;
-  const T* vtf = px.v_tfinal + k0;
-  const T *v0 = px.vi[0] + k0, *v1 = px.vi[1] + k0, *v2 = px.vi[2] + k0, *vdr = px.vd + k0;
-  T *b0r = px.behind[0] + k0, *b1r = px.behind[1] + k0, *b2r = px.behind[2] + k0;
-  T* bd = px.behind_d + k0;
-  const int32_t* np = px.n_pix + k0;
-  for (int q = 0; q < kLaneBlock; ++q) {  // fixed trip count; lanes outside [qlo, qhi) masked
-    const T pxc = pxc0 + T(q);
-    const T power = gaussian_power(s.conic, s.mx, s.my, pxc, pyc);
-    const T G = splat_gaussian(power);
-    const T alpha0 = splat_alpha_from_gaussian(s.opacity, power, G);
-    const bool open = (j < np[q]) & (q >= qlo) & (q < qhi);
-    const T a = open ? alpha0 : T(0);
-    const T om = T(1) - a;
-    const T inv_om = T(1) / om;
-    const T t = trr[q] * inv_om;  // transmittance in front of splat j (unchanged if a = 0)
-    trr[q] = t;
-    const T w = a * t;
-    l[6][q] += w * v0[q];
-    l[7][q] += w * v1[q];
-    l[8][q] += w * v2[q];
-    l[9][q] += w * vdr[q];
-    T v_alpha = t * ((s.color[0] - b0r[q]) * v0[q] + (s.color[1] - b1r[q]) * v1[q] +
-                     (s.color[2] - b2r[q]) * v2[q] + (s.depth - bd[q]) * vdr[q]) -
-                tf[q] * inv_om * vtf[q];
-    v_alpha = a > T(0) ? v_alpha : T(0);
-    const SplatGrad<T> sg = splat_alpha_vjp_from_gaussian(s.conic, s.mx - pxc, s.my - pyc, G, s.opacity, v_alpha);
-    l[0][q] += sg.mean2d.x;
-    l[1][q] += sg.mean2d.y;
-    l[2][q] += sg.conic.a;
-    l[3][q] += sg.conic.b;
-    l[4][q] += sg.conic.c;
-    l[5][q] += sg.opacity;
-    b0r[q] = a * s.color[0] + om * b0r[q];
-    b1r[q] = a * s.color[1] + om * b1r[q];
-    b2r[q] = a * s.color[2] + om * b2r[q];
-    bd[q] = a * s.depth + om * bd[q];
+// Backward of splat j over NB aligned lane blocks at once (blk[b].open: lanes on the splat's
+// chord whose pixel blended splat j or a splat behind it): steps the blocks' pixels back over
+// splat j and adds the splat's cotangents per lane to l (rows in kSplatGradSize record order).
+template <int NB, typename T>
+GSW_CPU_INLINE void backward_blocks(const SplatLanes<T>& sl, const PackedSplat<T>& s, BackwardPixels<T>& px,
+                                    const LaneBlock<T>* blk, VecT<T>* l) {
+  using V = VecT<T>;
+  for (int b = 0; b < NB; ++b) {
+    const int k0 = blk[b].k0;
+    const V pxc = blk[b].pxc + iota<T>(), pyc = splat(blk[b].pyc);
+    const V v0 = load<V>(px.vi[0] + k0), v1 = load<V>(px.vi[1] + k0), v2 = load<V>(px.vi[2] + k0);
+    const V vd = load<V>(px.vd + k0);
+    const V power = gaussian_power(sl.conic, sl.mx, sl.my, pxc, pyc);
+    const V G = splat_gaussian(power);
+    const V a = blk[b].open ? splat_alpha_from_gaussian(sl.opacity, power, G) : T(0);
+    const V om = T(1) - a;
+    const V inv_om = T(1) / om;
+    const V t = load<V>(px.tr + k0) * inv_om;  // transmittance in front of splat j (unchanged if a = 0)
+    store(px.tr + k0, t);
+    const V w = a * t;
+    l[6] += w * v0;
+    l[7] += w * v1;
+    l[8] += w * v2;
+    l[9] += w * vd;
+    const V b0 = load<V>(px.behind[0] + k0), b1 = load<V>(px.behind[1] + k0), b2 = load<V>(px.behind[2] + k0);
+    const V bd = load<V>(px.behind_d + k0);
+    const V v_alpha = t * ((s.color[0] - b0) * v0 + (s.color[1] - b1) * v1 + (s.color[2] - b2) * v2 +
+                           (s.depth - bd) * vd) -
+                      load<V>(px.t_final + k0) * inv_om * load<V>(px.v_tfinal + k0);
+    const SplatGrad<V> sg = splat_alpha_vjp_from_gaussian(sl.conic, sl.mx - pxc, sl.my - pyc, G, sl.opacity,
+                                                          a > T(0) ? v_alpha : T(0));
+    l[0] += sg.mean2d.x;
+    l[1] += sg.mean2d.y;
+    l[2] += sg.conic.a;
+    l[3] += sg.conic.b;
+    l[4] += sg.conic.c;
+    l[5] += sg.opacity;
+    store(px.behind[0] + k0, a * s.color[0] + om * b0);
+    store(px.behind[1] + k0, a * s.color[1] + om * b1);
+    store(px.behind[2] + k0, a * s.color[2] + om * b2);
+    store(px.behind_d + k0, a * s.depth + om * bd);
   }
 }
 
@@ -383,6 +414,7 @@ template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
                                   std::vector<PackedSplat<T>>& splats, T* scratch) {
+  using V = VecT<T>;
   constexpr int S = kSplatGradSize;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
@@ -393,26 +425,29 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
   std::fill(out + int64_t(S) * px.max_n, out + int64_t(S) * (v.end - v.start), T(0));
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
-  T l[S][kLaneBlock];  // per-lane-slot partial sums of one splat's cotangents
+  LaneBlock<T> blocks[kTilePixels / kLaneBlock];
   for (int j = px.max_n - 1; j >= 0; --j) {
     const PackedSplat<T>& s = splats[j];
-    for (int k = 0; k < S; ++k)
-      for (int q = 0; q < kLaneBlock; ++q) l[k][q] = T(0);
+    V l[S];  // per-lane partial sums of the splat's cotangents
+    for (int k = 0; k < S; ++k) l[k] = V{};
     row_spans(s, x_centre0, y_centre0, span_lo, span_hi);
+    const VecI32 jv = VecI32{} + j;
+    int nb = 0;
     for (int ly = s.by0; ly < s.by1; ++ly) {
       const int lo = span_lo[ly], hi = span_hi[ly];
       for (int b0 = lo - lo % kLaneBlock; b0 < hi; b0 += kLaneBlock) {
         const int k0 = ly * TILE_SIZE + b0;
-        if (j < px.blk_n[k0 / kLaneBlock])
-          backward_block(s, j, px, k0, x_centre0 + T(b0), y_centre0 + T(ly), lo - b0, hi - b0, l);
+        if (j >= px.blk_n[k0 / kLaneBlock]) continue;
+        const MaskT<T> open = mask_as<T>(jv < load<VecI32>(px.n_pix + k0)) & lane_range<T>(lo - b0, hi - b0);
+        blocks[nb++] = LaneBlock<T>{open, x_centre0 + T(b0), y_centre0 + T(ly), k0};
       }
     }
+    const SplatLanes<T> sl(s);
+    int b = 0;
+    for (; b + 2 <= nb; b += 2) backward_blocks<2>(sl, s, px, blocks + b, l);
+    if (b < nb) backward_blocks<1>(sl, s, px, blocks + b, l);
     T* r = out + int64_t(S) * j;
-    for (int k = 0; k < S; ++k) {
-      T acc = T(0);
-      for (int q = 0; q < kLaneBlock; ++q) acc += l[k][q];
-      r[k] = acc;
-    }
+    for (int k = 0; k < S; ++k) r[k] = lane_sum(l[k]);
   }
 }
 
