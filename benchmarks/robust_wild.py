@@ -21,9 +21,16 @@ or a ``.spz`` with its camera files written by ``--prepare``; white background) 
 built-in scene at ``--size``). No photos are used (FGD phase 1 weighs the original renders). Writes
 ``<out>/robust_wild_<tag>.json`` after every cell (so a stopped run keeps what it measured) and a markdown table.
 
+Messages are reproducible (``--message-seed`` + the cell's seed), the same for every method. Subsets for quick
+comparisons: ``--image-attacks`` / ``--model-attacks`` / ``--sizes`` (an empty list skips them), ``--eval-views``;
+``--embed '{"field": value}'`` adds EmbedConfig overrides to every method.
+
 Usage:
     python benchmarks/robust_wild.py --scene builtin --size 256 --methods paper wild --device cuda
     python benchmarks/robust_wild.py --scene lego --model build/train_lego/train_lego_model --methods paper wild
+    python benchmarks/robust_wild.py --scene lego --data LEGO_WEBP --train-seconds 75 --methods paper freeze-rest
+    python benchmarks/robust_wild.py --size 128 --device cpu --methods paper freeze-rest --image-attacks \
+        --model-attacks reduce_sh export_splat --sizes
 """
 
 from __future__ import annotations
