@@ -21,9 +21,16 @@ or a ``.spz`` with its camera files written by ``--prepare``; white background) 
 built-in scene at ``--size``). No photos are used (FGD phase 1 weighs the original renders). Writes
 ``<out>/robust_wild_<tag>.json`` after every cell (so a stopped run keeps what it measured) and a markdown table.
 
+Messages are reproducible (``--message-seed`` + the cell's seed), the same for every method. Subsets for quick
+comparisons: ``--image-attacks`` / ``--model-attacks`` / ``--sizes`` (an empty list skips them), ``--eval-views``;
+``--embed '{"field": value}'`` adds EmbedConfig overrides to every method.
+
 Usage:
     python benchmarks/robust_wild.py --scene builtin --size 256 --methods paper wild --device cuda
     python benchmarks/robust_wild.py --scene lego --model build/train_lego/train_lego_model --methods paper wild
+    python benchmarks/robust_wild.py --scene lego --data LEGO_WEBP --train-seconds 75 --methods paper freeze-rest
+    python benchmarks/robust_wild.py --size 128 --device cpu --methods paper freeze-rest --image-attacks \
+        --model-attacks reduce_sh export_splat --sizes
 """
 
 from __future__ import annotations
@@ -55,17 +62,34 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--prepare", type=Path, default=None,
                     help="lego: write the model through .spz (lego.spz) and its views (train/eval_cameras.json) "
                          "into this folder, and measure on that .spz-decoded model (so later runs can reuse it)")
+    ap.add_argument("--train-seconds", type=float, default=None,
+                    help="lego: train a model from --data for this long (benchmarks/power_lego.py's recipe; PNG or "
+                         "WebP photos, WebP converted under --work) instead of loading --model")
+    ap.add_argument("--work", type=Path, default=ROOT / "build" / "robust_wild_png",
+                    help="where WebP photos are converted to PNG (with --train-seconds)")
     ap.add_argument("--size", type=int, default=256, help="built-in scene render size")
     ap.add_argument("--methods", nargs="+", default=["paper", "wild"])
     ap.add_argument("--bits", nargs="+", type=int, default=[32])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--epochs", type=int, default=8)
+    ap.add_argument("--message-seed", type=int, default=1000, help="messages are drawn reproducibly from this seed "
+                    "+ the cell's seed, the same for every method (a fair comparison)")
     ap.add_argument("--message-weight", type=float, default=None)
     ap.add_argument("--bare", action="store_true", help="embed the SH-0 model without cameras (see docstring)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     ap.add_argument("--tag", default=None)
     ap.add_argument("--deadline-s", type=float, default=None, help="start no new cell after this many seconds")
+    ap.add_argument("--image-attacks", nargs="*", default=list(PAPER_IMAGE), choices=PAPER_IMAGE, metavar="NAME",
+                    help=f"subset of the image attacks (default all: {' '.join(PAPER_IMAGE)}; none: no value)")
+    ap.add_argument("--model-attacks", nargs="*", default=list(MODEL), choices=MODEL, metavar="NAME",
+                    help=f"subset of the model attacks (default all: {' '.join(MODEL)})")
+    ap.add_argument("--sizes", nargs="*", type=float, default=list(SIZES), help="render-size factors (default: "
+                    "0.5 1.5 2 3)")
+    ap.add_argument("--eval-views", type=int, default=None, help="evaluate on this many evenly spaced held-out "
+                    "views (default: all)")
+    ap.add_argument("--embed", default=None, help="further EmbedConfig overrides for every method, as JSON "
+                    "(applied after the method's own, e.g. '{\"novel_views\": 1.0}')")
     return ap.parse_args()
 
 
@@ -79,6 +103,12 @@ def _scene(args, dev):
         s = default_grid_scene(size=args.size, views=24)
         return s.gaussians.to(dev), s.cameras, s.eval_cameras, s.background
     white = (1.0, 1.0, 1.0)
+    if args.train_seconds is not None:
+        from power_lego import png_dataset, train_lego  # benchmarks/power_lego.py, beside this script
+
+        opts = argparse.Namespace(size=800, iterations=12000, train_seconds=args.train_seconds)
+        g, train_set, test_set, args.trained = train_lego(opts, png_dataset(args.data, args.work), dev)
+        return g.to(dev), train_set.cameras, test_set.cameras, white
     if args.model.suffix == ".spz":
         return (load_spz(args.model).to(dev), load_inria_cameras(args.cameras), load_inria_cameras(args.eval_cameras),
                 white)
@@ -125,14 +155,15 @@ def _psnr(a, b) -> float:
     return sum(float(psnr(x, y)) for x, y in zip(a, b)) / len(a)
 
 
-def _evaluate(res, g, eval_cams, novel, bg, bits_n, dec) -> dict:
+def _evaluate(res, g, eval_cams, novel, bg, bits_n, dec, args) -> dict:
     from gsw.attacks.presets import IMAGE_ATTACKS, MODEL_ATTACKS
     from gsw.eval.report import evaluate_watermark
     from gsw.mark.detect import verify
 
     rep = evaluate_watermark(res.gaussians, g, eval_cams, res.message, num_bits=bits_n, background=bg,
-                             image_attacks={n: IMAGE_ATTACKS[n] for n in PAPER_IMAGE},
-                             model_attacks={n: MODEL_ATTACKS[n] for n in MODEL}, lpips_net="alex", decoder=dec)
+                             image_attacks={n: IMAGE_ATTACKS[n] for n in args.image_attacks},
+                             model_attacks={n: MODEL_ATTACKS[n] for n in args.model_attacks}, lpips_net="alex",
+                             decoder=dec)
     out = dict(psnr=rep.psnr, ssim=rep.ssim, lpips=rep.lpips, clean=rep.clean.bit_accuracy,
                clean_detected=rep.clean.detected_views, unmarked=rep.unmarked.bit_accuracy,
                image={k: v.bit_accuracy for k, v in rep.image_attacks.items()},
@@ -140,7 +171,7 @@ def _evaluate(res, g, eval_cams, novel, bg, bits_n, dec) -> dict:
                clean_raw=_bit_acc(dec, _renders(res.gaussians, eval_cams, bg), res.message))
     embed_size = (eval_cams[0].height, eval_cams[0].width)
     out["sizes"] = {}
-    for s in SIZES:
+    for s in args.sizes:
         imgs = _renders(res.gaussians, [c.scaled(s) for c in eval_cams], bg)
         v = verify(imgs, res.message, num_bits=bits_n, decoder=dec, embed_size=embed_size)
         out["sizes"][f"{s:g}x"] = dict(raw=_bit_acc(dec, imgs, res.message), read=sum(v.bit_accuracy) / len(imgs))
@@ -172,10 +203,15 @@ def _config(args, method: str, seed: int, bg):
     from gsw.mark.embed import EmbedConfig
     from gsw.mark.loss import LossWeights, lpips_weights
 
+    from gsw.eval.grid import apply_overrides
+
     weights = lpips_weights("alex") if args.message_weight is None else lpips_weights(
         "alex", LossWeights(message=args.message_weight))
     base = EmbedConfig(lpips_net="alex", weights=weights)
-    return dataclasses.replace(method_config(method, base), epochs=args.epochs, seed=seed, background=bg)
+    cfg = method_config(method, base)
+    if args.embed:
+        cfg = apply_overrides(cfg, json.loads(args.embed))
+    return dataclasses.replace(cfg, epochs=args.epochs, seed=seed, background=bg)
 
 
 def main() -> int:
@@ -184,17 +220,21 @@ def main() -> int:
     from gsw.device import resolve_device
     from gsw.mark.detect import load_decoder_for
     from gsw.mark.embed import embed
+    from gsw.mark.message import as_message
 
     args = parse_args()
     start = time.perf_counter()
     dev = resolve_device(args.device)
     g, cams, eval_cams, bg = _scene(args, dev)
+    if args.eval_views is not None:
+        eval_cams = [eval_cams[i * len(eval_cams) // args.eval_views] for i in range(args.eval_views)]
     if args.bare:
         g = reduce_sh(g, 0)
     novel = None if args.bare else _novel_cameras(g, cams)
     tag = args.tag or f"{args.scene}{'_bare' if args.bare else ''}"
     results = dict(scene=args.scene, bare=args.bare, gaussians=len(g), train_views=len(cams), eval_views=len(eval_cams),
-                   size=[cams[0].width, cams[0].height], settings={k: str(v) for k, v in vars(args).items()},
+                   size=[cams[0].width, cams[0].height], trained=getattr(args, "trained", None),
+                   settings={k: str(v) for k, v in vars(args).items()},
                    machine=dict(device=str(dev), gpu=torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
                                 torch=torch.__version__, python=platform.python_version(), gsw=gsw.__version__),
                    cells=[])
@@ -210,14 +250,17 @@ def main() -> int:
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
                 t0 = time.perf_counter()
-                res = embed(g, None if args.bare else cams, num_bits=bits_n, config=cfg, progress=False)
+                message = as_message(None, bits_n, seed=args.message_seed + seed)  # public: the same for every method
+                res = embed(g, None if args.bare else cams, message=message, num_bits=bits_n, config=cfg,
+                            progress=False)
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
                 cell = dict(method=method, bits=bits_n, seed=seed, embed_s=time.perf_counter() - t0,
                             timings=res.timings, gaussians_after=len(res.gaussians),
                             train_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
                             train_psnr=sum(res.psnr) / len(res.psnr))
-                cell.update(_bare(res, g, bg, dec) if args.bare else _evaluate(res, g, eval_cams, novel, bg, bits_n, dec))
+                cell.update(_bare(res, g, bg, dec) if args.bare
+                            else _evaluate(res, g, eval_cams, novel, bg, bits_n, dec, args))
                 results["cells"].append(cell)
                 (args.out / f"robust_wild_{tag}.json").write_text(json.dumps(results, indent=1) + "\n")
                 print(json.dumps(cell), flush=True)

@@ -47,6 +47,8 @@ def test_methods_are_the_intended_embedder_configurations() -> None:
     expected = {
         "3d-gsw": {},
         "paper": {},
+        "freeze-rest": {"freeze": ("f_rest",), "mask": "none"},
+        "freeze-rest+views": {"freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
         "wild": {"novel_views": 0.5, "render_scales": (0.5, 2.0), "attacks": 0.5, "attack_ranges": "matched",
                  "model_attacks": 0.5, "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
         "no-fgd": {"fgd": False},

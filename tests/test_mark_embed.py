@@ -187,3 +187,18 @@ def test_extract_reads_images_of_different_sizes_one_by_one() -> None:
         extract([a, torch.rand(4, 64, 64)])
     with pytest.raises(ValueError, match="no images"):
         extract([])
+
+
+def test_freeze_keeps_the_frozen_groups_and_is_deterministic(scene) -> None:
+    cfg = _quick(scene, freeze=("f_rest", "scaling"), novel_views=0.5, max_render_side=128)
+    a = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=cfg, progress=False)
+    g = scene.gaussians
+    assert torch.equal(a.gaussians.sh[:, 1:], g.sh[:, 1:]) and torch.equal(a.gaussians.log_scales, g.log_scales)
+    assert not torch.equal(a.gaussians.sh[:, :1], g.sh[:, :1])  # the others still learn
+    assert not torch.equal(a.gaussians.opacity_logits, g.opacity_logits)
+    b = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=cfg, progress=False)
+    for name, t in a.gaussians.parameters().items():
+        assert torch.equal(t, b.gaussians.parameters()[name]), name
+    for bad in (("f_rst",), ("f_dc", "f_rest", "opacity", "scaling", "rotation")):
+        with pytest.raises(ValueError, match="freeze"):
+            embed(scene.gaussians, scene.cameras, config=_quick(scene, freeze=bad), progress=False)

@@ -37,7 +37,10 @@ from gsw.metrics.image import psnr
 from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
-__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "embed", "prepare_embedding"]
+__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PARAMETER_GROUPS", "embed", "prepare_embedding"]
+
+#: Fine-tuned parameter groups of :func:`embed` (:attr:`EmbedConfig.freeze` names; positions: ``lr_position``).
+PARAMETER_GROUPS: tuple[str, ...] = ("f_dc", "f_rest", "opacity", "scaling", "rotation")
 
 
 @dataclass
@@ -49,6 +52,9 @@ class EmbedConfig:
         epochs: passes over the shuffled training views.
         lr_f_dc, lr_f_rest, lr_opacity, lr_scaling, lr_rotation, lr_position: Adam learning rates
             (position 0 = frozen, as in the paper).
+        freeze: parameter groups kept at their (post-FGD) values, names of :data:`PARAMETER_GROUPS`
+            (``f_dc``, ``f_rest``, ``opacity``, ``scaling``, ``rotation``); e.g. ``("f_rest",)`` keeps the
+            view-dependent SH untouched, so the mark lives where SH-degree-0 viewers and ``.splat`` keep it.
         weights: loss weights.
         logit_scale: factor on the decoder logits inside the message BCE (the official code: 10).
         lpips_net: "vgg", "alex" or None (no LPIPS term; set weights.lpips = 0).
@@ -88,6 +94,7 @@ class EmbedConfig:
     lr_scaling: float = 5e-3
     lr_rotation: float = 1e-3
     lr_position: float = 0.0
+    freeze: tuple[str, ...] = ()
     weights: LossWeights = field(default_factory=LossWeights)
     logit_scale: float = 1.0
     lpips_net: str | None = "vgg"
@@ -282,20 +289,26 @@ def _check(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
             raise ValueError(f"EmbedConfig.{name} is a probability in [0, 1], got {getattr(cfg, name)}")
     if cfg.model_noise < 0:
         raise ValueError(f"EmbedConfig.model_noise must be >= 0, got {cfg.model_noise}")
+    unknown = set(cfg.freeze) - set(PARAMETER_GROUPS)
+    if unknown or set(cfg.freeze) == set(PARAMETER_GROUPS) and cfg.lr_position <= 0:
+        raise ValueError(f"EmbedConfig.freeze must name some (not all) of {PARAMETER_GROUPS}, got {cfg.freeze}")
 
 
 class _Trainable:
-    """The fine-tuned parameters (positions trained only with ``lr_position > 0``), Adam and the update mask."""
+    """The fine-tuned parameters (positions trained only with ``lr_position > 0``, the groups of
+    ``cfg.freeze`` not at all), Adam and the update mask."""
 
     def __init__(self, model: Gaussians, cfg: EmbedConfig) -> None:
+        train = {name: name not in cfg.freeze for name in PARAMETER_GROUPS}
         self.means = model.means.clone().requires_grad_(cfg.lr_position > 0)
-        self.dc = model.sh[:, :1].clone().requires_grad_()
-        self.rest = model.sh[:, 1:].clone().requires_grad_()
-        self.logits = model.opacity_logits.clone().requires_grad_()
-        self.log_scales = model.log_scales.clone().requires_grad_()
-        self.quats = model.quats.clone().requires_grad_()
-        groups = [(self.dc, cfg.lr_f_dc), (self.rest, cfg.lr_f_rest), (self.logits, cfg.lr_opacity),
-                  (self.log_scales, cfg.lr_scaling), (self.quats, cfg.lr_rotation)]
+        self.dc = model.sh[:, :1].clone().requires_grad_(train["f_dc"])
+        self.rest = model.sh[:, 1:].clone().requires_grad_(train["f_rest"])
+        self.logits = model.opacity_logits.clone().requires_grad_(train["opacity"])
+        self.log_scales = model.log_scales.clone().requires_grad_(train["scaling"])
+        self.quats = model.quats.clone().requires_grad_(train["rotation"])
+        groups = [(p, lr) for p, lr in ((self.dc, cfg.lr_f_dc), (self.rest, cfg.lr_f_rest),
+                                        (self.logits, cfg.lr_opacity), (self.log_scales, cfg.lr_scaling),
+                                        (self.quats, cfg.lr_rotation)) if p.requires_grad]
         if cfg.lr_position > 0:
             groups.append((self.means, cfg.lr_position))
         trainable = [p for p, _ in groups if p.numel() > 0]

@@ -23,10 +23,16 @@ __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "Gri
 #: half of them (``EmbedConfig.model_attacks``). ``paper`` pins the paper-faithful recipe (given cameras only,
 #: no train-time attacks) whatever the defaults; ``wild`` (issue 23) trains on sampled viewpoints and render
 #: sizes, with image attacks up to the evaluation's strengths and every model distortion (parameter noise,
-#: SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports).
+#: SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports). ``freeze-rest`` keeps the SH rest coefficients fixed
+#: and updates the others without the exponential mask, so the mark lives where SH-degree-0 viewers and ``.splat``
+#: keep it (the mask would all but freeze saturated DC colours); ``freeze-rest+views`` also renders every step from a
+#: fresh viewpoint sampled around the content (:mod:`gsw.mark.views`).
 METHODS: dict[str, dict[str, Any]] = {
     "3d-gsw": {},
-    "paper": {"novel_views": 0.0, "render_scales": (1.0, 1.0), "attacks": 0.0, "model_attacks": 0.0},
+    "paper": {"novel_views": 0.0, "render_scales": (1.0, 1.0), "attacks": 0.0, "model_attacks": 0.0, "freeze": (),
+              "mask": "exp"},
+    "freeze-rest": {"freeze": ("f_rest",), "mask": "none"},
+    "freeze-rest+views": {"freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
     "wild": {"novel_views": 0.5, "render_scales": (0.5, 2.0), "attacks": 0.5, "attack_ranges": "matched",
              "model_attacks": 0.5, "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
     "no-fgd": {"fgd": False},
