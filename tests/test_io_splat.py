@@ -10,7 +10,7 @@ import torch
 
 from gsw.constants import SH_C0
 from gsw.io import SplatError, load_gaussians, load_ply, load_splat, save_gaussians, save_splat
-from gsw.io.splat import SPLAT_DTYPE, splat_sort_order
+from gsw.io.splat import SCALE_RANGE, SPLAT_DTYPE, splat_sort_order
 
 DATA = SHARED_DATA
 FIXTURE_DIR = DATA / "ply" / "sh3_fixture"
@@ -135,12 +135,21 @@ def test_save_refuses_what_load_would_reject(tmp_path):
     with pytest.raises(SplatError, match="refusing to write .*zero quaternion"):
         save_splat(g, tmp_path / "z.splat")
     g = random_model(3, degree=0)
-    g.log_scales[0, 0] = -40.0  # 4e-18: below SCALE_RANGE
+    g.log_scales[0, 0] = 40.0  # 2e17: above SCALE_RANGE
     with pytest.raises(SplatError, match="refusing to write .*scale outside"):
         save_splat(g, tmp_path / "s.splat")
     with pytest.raises(SplatError, match="0 Gaussians"):
         save_splat(random_model(0, degree=0), tmp_path / "e.splat")
     assert not any(tmp_path.iterdir())
+
+
+def test_flat_splats_are_written_at_the_smallest_scale(tmp_path):
+    g = random_model(3, degree=0)
+    g.log_scales[0, 0] = -40.0  # 4e-18: a flat splat as 3DGS training leaves them
+    save_splat(g, tmp_path / "flat.splat")
+    back = load_splat(tmp_path / "flat.splat")
+    assert float(back.scales[0, 0]) == pytest.approx(SCALE_RANGE[0], rel=1e-6)
+    assert torch.allclose(back.scales[1:], g.scales[1:].float(), rtol=1e-6)
 
 
 def test_dispatch_by_extension(tmp_path):

@@ -62,7 +62,7 @@ def _logit_of_byte(b: Tensor) -> Tensor:
 def splat_st(g: Gaussians) -> Gaussians:
     """Straight-through ``.splat`` export and reload (:func:`gsw.io.splat.save_splat` / ``load_splat``).
 
-    Forward: float32 positions and linear scales, colour and alpha as bytes ``round(255 v)``, the unit
+    Forward: float32 positions and linear scales (at least ``SCALE_RANGE[0]``), colour and alpha as bytes ``round(255 v)``, the unit
     quaternion as bytes ``round(128 q + 128)``, SH degree 0 (the format keeps no SH rest).
 
     Args:
@@ -72,9 +72,10 @@ def splat_st(g: Gaussians) -> Gaussians:
         Gaussians with SH degree 0 whose values equal ``load_splat(save_splat(g))``.
     """
     from gsw.gaussians import rgb_to_sh_dc, sh_dc_to_rgb
+    from gsw.io.splat import SCALE_RANGE
 
     d = g.detach().to(dtype=torch.float64)
-    scales = d.log_scales.exp().float().double().log()
+    scales = d.log_scales.exp().float().clamp_min(SCALE_RANGE[0]).double().log()  # as save_splat writes them
     rgb = _u8(sh_dc_to_rgb(d.sh[:, 0]) * 255.0) / 255.0
     alpha = _u8(d.opacities * 255.0)
     rot = (_u8(d.rotations * 128.0 + 128.0) - 128.0) / 128.0

@@ -19,7 +19,9 @@ The format has no header or magic number, so any file of 32k bytes would decode.
 therefore apply the same sanity check (:func:`check_splat_records`): positions finite with
 ``|x| <= MAX_ABS_POSITION``, scales finite in ``SCALE_RANGE``, and rotation bytes not all 128 (a zero
 quaternion). Random bytes fail it (a random float32 is NaN, huge, tiny or negative far too often), and
-whatever :func:`save_splat` writes passes it, so a written file always loads back.
+whatever :func:`save_splat` writes passes it, so a written file always loads back. Writing raises scales
+below ``SCALE_RANGE[0]`` to it: 3DGS training leaves some splats flat, with an axis of 1e-11 or less, and a
+standard deviation of 1e-10 instead renders the same (the rasteriser's 0.3 px low-pass dominates).
 
 Quantisation uses rounding to nearest; this matches the fixture in ``shared/data/ply/sh3_fixture``
 (antimatter15's original ``convert.py`` truncates instead, at most one step of difference).
@@ -149,7 +151,8 @@ def splat_sort_order(gaussians: Gaussians) -> torch.Tensor:
 def save_splat(gaussians: Gaussians, path: str | os.PathLike, *, sort: bool = False) -> None:
     """Write a model as an antimatter15 ``.splat`` file, atomically.
 
-    Only the DC colour is kept (``f_rest`` is dropped); colours are clamped to ``[0, 1]``.
+    Only the DC colour is kept (``f_rest`` is dropped); colours are clamped to ``[0, 1]``; scales below
+    ``SCALE_RANGE[0]`` (flat splats) are written as ``SCALE_RANGE[0]`` (see the module docstring).
 
     Args:
         gaussians: the model (any device/dtype/SH degree).
@@ -176,7 +179,7 @@ def save_splat(gaussians: Gaussians, path: str | os.PathLike, *, sort: bool = Fa
     records = np.empty(g.num_gaussians, dtype=SPLAT_DTYPE)
     records["position"] = g.means.numpy()
     with np.errstate(over="ignore"):  # beyond float32: inf, reported by the check below
-        records["scale"] = g.scales.numpy()
+        records["scale"] = np.maximum(g.scales.numpy(), SCALE_RANGE[0])  # flat splats: see the module docstring
     records["rgba"] = _quantise(rgba.numpy() * 255.0)
     records["rot"] = _quantise(g.rotations.numpy() * 128.0 + 128.0)
     check_splat_records(records, f"refusing to write {path}")
