@@ -139,6 +139,19 @@ def test_verify_model_uses_the_stored_bits_background_and_resolution(marked, tmp
     assert err.startswith("gsw verify: error: ") and str(copy / "watermark.json") in err
 
 
+def test_verify_model_takes_the_message_origin_from_watermark_json(marked, tmp_path) -> None:
+    out, _, _ = marked
+    assert json.loads((out / "watermark.json").read_text())["message_origin"] == "random"  # a key: message
+    assert _verify_json(["--model", str(out), "--key", KEY])["origin"] == "random"
+    chosen = tmp_path / "chosen"
+    shutil.copytree(out, chosen)
+    record = json.loads((chosen / "watermark.json").read_text())
+    record["message_origin"] = "chosen"
+    (chosen / "watermark.json").write_text(json.dumps(record))
+    report = _verify_json(["--model", str(chosen), "--key", KEY])  # no --chosen-message needed
+    assert report["origin"] == "chosen"
+
+
 def test_extract_and_verify_images(model_dir, tmp_path, capsys) -> None:
     out = tmp_path / "renders"
     assert main(["render", str(model_dir / "point_cloud" / "iteration_100" / "point_cloud.ply"),

@@ -30,6 +30,26 @@ def test_round_trip_without_seed(tmp_path) -> None:
     assert mixed["resolution"] is None
 
 
+def test_message_origin_is_recorded_and_optional(tmp_path) -> None:
+    cams = default_cameras(2, 40, 30)
+    assert read_watermark_json(_write(tmp_path / "r", _record(cams))).message_origin == "random"
+    chosen = watermark_record(num_bits=48, background=(1.0, 1.0, 1.0), cameras=cams, decoder="f00d",
+                              config=EmbedConfig(), stats={}, message_origin="chosen")
+    assert read_watermark_json(_write(tmp_path / "c", chosen)).message_origin == "chosen"
+    old = _record(cams)
+    old.pop("message_origin")  # a file written before the field: the command line decides
+    assert read_watermark_json(_write(tmp_path / "o", old)).message_origin is None
+    with pytest.raises(ValueError, match="message origin must be one of"):
+        watermark_record(num_bits=48, background=(0, 0, 0), cameras=cams, decoder="f", config=EmbedConfig(),
+                         stats={}, message_origin="typed")
+
+
+def _write(folder, record):
+    folder.mkdir()
+    write_watermark_json(folder, record)
+    return folder
+
+
 @pytest.mark.parametrize("change, match", [
     (lambda d: d.pop("num_bits"), "missing field 'num_bits'"),
     (lambda d: d.update(num_bits=40), "num_bits must be one of"),
@@ -37,6 +57,7 @@ def test_round_trip_without_seed(tmp_path) -> None:
     (lambda d: d.update(resolution={"width": 0, "height": 3}), "resolution must be"),
     (lambda d: d.update(decoder="x"), "decoder must be"),
     (lambda d: d.update(format=99), "format 99"),
+    (lambda d: d.update(message_origin="typed"), "message_origin must be one of"),
 ])
 def test_malformed_fields_are_named(tmp_path, change, match) -> None:
     record = _record(default_cameras(2, 32, 32))

@@ -30,7 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ver = subparsers.add_parser("verify", help="test images or a model for a message (exit 0 = detected)")
     ver.add_argument("images", nargs="*")
     ver.add_argument("--model", help="INRIA model folder to render instead of images (its watermark.json gives the "
-                                     "bit length, background and resolution)")
+                                     "bit length, background, resolution and whether the message was chosen)")
     add_message_options(ver, claim=True)
     ver.add_argument("--chosen-message", action="store_true",
                      help="the message was chosen by someone (e.g. embedded with --message HEX), not drawn at random "
@@ -181,7 +181,8 @@ def cmd_embed(args: argparse.Namespace) -> int:
                      mean_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
                      mean_psnr=sum(res.psnr) / len(res.psnr), timings=res.timings)
         record = watermark_record(num_bits=num_bits, background=config.background, cameras=cams,
-                                  decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats)
+                                  decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats,
+                                  message_origin=origin)
         write_watermark_json(tmp, record)
         size = record["resolution"] and (record["resolution"]["width"], record["resolution"]["height"])
         recorded = record_issued(args, res.message, gaussians=res.gaussians, size=size, background=config.background,
@@ -347,7 +348,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
         source, names = [img.to(device) for _, img in named], [n for n, _ in named]
     _warn_if_other_decoder(info, num_bits)
     embed_size = None if info is None or info.resolution is None else (info.resolution[1], info.resolution[0])
-    origin = "chosen" if args.chosen_message else "random"
+    stored_chosen = info is not None and info.message_origin == "chosen"
+    origin = "chosen" if args.chosen_message or stored_chosen else "random"
     v = verify(source, message, num_bits=num_bits, background=background, embed_size=embed_size, origin=origin)
     detected = v.detected(args.fpr)
     if args.json:
@@ -358,7 +360,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     else:
         for n, a, p in zip(names, v.bit_accuracy, v.p_values):
             print(f"{100 * a:6.2f} %  p={p:.2e}  {n}")
-        test = "chosen message: calibrated null model" if args.chosen_message else "random message: exact test"
+        test = "chosen message: calibrated null model" if origin == "chosen" else "random message: exact test"
         print(f"{'DETECTED' if detected else 'not detected'}: combined p-value {v.p_value:.2e} "
               f"(threshold {args.fpr:g}; {test})")
     return 0 if detected else 1

@@ -22,6 +22,7 @@ from gsw._atomic import atomic_write
 from gsw.camera import Camera
 from gsw.cli.common import reading
 from gsw.decoder.zoo import AVAILABLE_BITS
+from gsw.stats import ORIGINS, check_origin
 
 __all__ = ["FORMAT", "WATERMARK_FILE", "WatermarkInfo", "at_resolution", "read_watermark_json", "watermark_record",
            "write_watermark_json"]
@@ -42,6 +43,8 @@ class WatermarkInfo:
         resolution: ``(width, height)`` of the embedding views, or None when they had several sizes.
         decoder: fingerprint of the decoder used (:func:`gsw.eval.grid.decoder_fingerprint`).
         gsw_version: the gsw version that embedded the watermark.
+        message_origin: "random" (drawn by gsw, or from a key) or "chosen" (given by the user): which test
+            ``gsw verify --model`` applies; None when the file predates the field (then the command line says).
     """
 
     path: Path
@@ -50,6 +53,7 @@ class WatermarkInfo:
     resolution: tuple[int, int] | None
     decoder: str
     gsw_version: str
+    message_origin: str | None = None
 
 
 def _resolution(cameras: Sequence[Camera]) -> dict[str, int] | None:
@@ -61,8 +65,8 @@ def _resolution(cameras: Sequence[Camera]) -> dict[str, int] | None:
 
 
 def watermark_record(*, num_bits: int, background: Sequence[float], cameras: Sequence[Camera], decoder: str,
-                     config: Any, stats: Mapping[str, Any]) -> dict[str, Any]:
-    """The content of ``watermark.json`` (no message, key or seed).
+                     config: Any, stats: Mapping[str, Any], message_origin: str = "random") -> dict[str, Any]:
+    """The content of ``watermark.json`` (no message, key or seed; only whether the message was drawn or chosen).
 
     Args:
         num_bits: message length.
@@ -71,6 +75,7 @@ def watermark_record(*, num_bits: int, background: Sequence[float], cameras: Seq
         decoder: the decoder's fingerprint.
         config: the :class:`~gsw.mark.embed.EmbedConfig` used.
         stats: results to record (Gaussian counts, mean bit accuracy and PSNR, timings).
+        message_origin: "random" or "chosen" (:func:`gsw.stats.check_origin`).
 
     Returns:
         A JSON-able dict.
@@ -81,6 +86,7 @@ def watermark_record(*, num_bits: int, background: Sequence[float], cameras: Seq
     for secret_or_elsewhere in ("seed", "background"):
         settings.pop(secret_or_elsewhere, None)
     return {"format": FORMAT, "gsw_version": gsw.__version__, "num_bits": int(num_bits),
+            "message_origin": check_origin(message_origin),
             "background": [float(v) for v in background], "resolution": _resolution(cameras),
             "decoder": {"num_bits": int(num_bits), "fingerprint": decoder}, "embedding": settings, **stats}
 
@@ -139,9 +145,12 @@ def read_watermark_json(folder: str | Path) -> WatermarkInfo | None:
     decoder = _field(data, "decoder", path)
     if not isinstance(decoder, dict) or not isinstance(decoder.get("fingerprint"), str):
         raise ValueError(f"{path}: decoder must be {{\"num_bits\": N, \"fingerprint\": \"...\"}}, got {decoder!r}")
+    origin = data.get("message_origin")
+    if origin is not None and origin not in ORIGINS:
+        raise ValueError(f"{path}: message_origin must be one of {', '.join(ORIGINS)}, got {origin!r}")
     return WatermarkInfo(path, num_bits, (float(bg[0]), float(bg[1]), float(bg[2])),
                          None if res is None else (res["width"], res["height"]), decoder["fingerprint"],
-                         str(data.get("gsw_version", "unknown")))
+                         str(data.get("gsw_version", "unknown")), origin)
 
 
 def at_resolution(cameras: Sequence[Camera], info: WatermarkInfo) -> list[Camera]:

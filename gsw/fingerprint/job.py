@@ -138,7 +138,8 @@ class _Writer:
         cams, cfg = self.shared.cameras, self.shared.config
         stats = dict(self.shared.stats, mean_bit_accuracy=r.bit_accuracy, mean_psnr=r.psnr, steps=r.steps)
         rec = watermark_record(num_bits=self.shared.num_bits, background=cfg.background, cameras=cams, config=cfg,
-                               stats=stats, decoder=self.record["decoder"])
+                               stats=stats, decoder=self.record["decoder"],
+                               message_origin=self.origins.get(r.name, "chosen"))
         return self.folder.write_copy(r.name, r.gaussians, cams, rec)
 
     def __call__(self, results: list) -> None:
