@@ -55,23 +55,28 @@ def _peak_rss_mb() -> float:
     return float("nan")
 
 
-def run_single(family: str, n: int, width: int, height: int, sh_degree: int, repeats: int,
-               reference: bool) -> dict:
-    """Times one configuration in this process."""
+def family_scene(family: str, n: int, width: int, height: int, sh_degree: int):
+    """(Gaussians, camera) of a scene family of the module docstring ("heavy", else the frustum family)."""
     import math
 
-    import torch
-
     from gsw.camera import Camera
-    from gsw.render.rasterize import contribution_from_projection, rasterize
     from gsw.scenes import frustum_scene, heavy_scene
 
     if family == "heavy":
         cam = Camera.from_fov(math.radians(60), width, height)
-        g = heavy_scene(n, cam, sh_degree=sh_degree, seed=0)
-    else:
-        cam = Camera.from_fov(0.8, width, height)
-        g = frustum_scene(n, cam, sh_degree=sh_degree, seed=0)
+        return heavy_scene(n, cam, sh_degree=sh_degree, seed=0), cam
+    cam = Camera.from_fov(0.8, width, height)
+    return frustum_scene(n, cam, sh_degree=sh_degree, seed=0), cam
+
+
+def run_single(family: str, n: int, width: int, height: int, sh_degree: int, repeats: int,
+               reference: bool) -> dict:
+    """Times one configuration in this process."""
+    import torch
+
+    from gsw.render.rasterize import contribution_from_projection, rasterize
+
+    g, cam = family_scene(family, n, width, height, sh_degree)
     params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
     weights = torch.rand(3, height, width, generator=torch.Generator().manual_seed(0))
 

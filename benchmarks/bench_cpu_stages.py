@@ -18,10 +18,11 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import math
 import os
 import sys
 import time
+
+from bench_cpu import family_scene
 
 
 def _load_extension(path: str) -> None:
@@ -51,17 +52,10 @@ def run(family: str, n: int, size: int, sh_degree: int, repeats: int) -> dict:
     import torch
 
     from gsw._ext import _C
-    from gsw.camera import Camera
     from gsw.render import _ops
     from gsw.render.rasterize import rasterize
-    from gsw.scenes import frustum_scene, heavy_scene
 
-    if family == "heavy":
-        cam = Camera.from_fov(math.radians(60), size, size)
-        g = heavy_scene(n, cam, sh_degree=sh_degree, seed=0)
-    else:
-        cam = Camera.from_fov(0.8, size, size)
-        g = frustum_scene(n, cam, sh_degree=sh_degree, seed=0)
+    g, cam = family_scene(family, n, size, size, sh_degree)
     cam_args = dict(viewmat=cam.viewmat, fx=float(cam.fx), fy=float(cam.fy), cx=float(cam.cx), cy=float(cam.cy),
                     width=size, height=size)
     inputs = (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)

@@ -109,6 +109,16 @@ def _integer_weights(weights: ArrayLike) -> np.ndarray:
     return w
 
 
+def _integers(values: ArrayLike, what: str) -> np.ndarray:
+    """``values`` as an integer array; a ValueError naming ``what`` when they are not whole numbers."""
+    x = np.asarray(values)
+    if not np.issubdtype(x.dtype, np.integer):
+        if not np.all(x == np.round(x)):
+            raise ValueError(f"{what} must hold integers")
+        x = x.astype(np.int64)
+    return x
+
+
 def weighted_sign_tail(weights: ArrayLike) -> np.ndarray:
     """Exact tail of the total weight of the bits a uniformly random message matches.
 
@@ -154,11 +164,7 @@ def weighted_sign_sf(weights: ArrayLike, matched: ArrayLike) -> np.ndarray:
         float64 p-values of ``matched``'s shape (1 for ``matched <= 0``, 0 above the row's total).
     """
     table = weighted_sign_tail(weights)
-    x = np.asarray(matched)
-    if not np.issubdtype(x.dtype, np.integer):
-        if not np.all(x == np.round(x)):
-            raise ValueError("matched (a total of integer weights) must hold integers")
-        x = x.astype(np.int64)
+    x = _integers(matched, "matched (a total of integer weights)")
     idx = np.clip(x, 0, table.shape[-1] - 1)
     if table.ndim == 1:
         return table[idx]
@@ -215,11 +221,7 @@ def poisson_binomial_sf(q: ArrayLike, x: ArrayLike) -> np.ndarray:
         0 for ``x > k``. The tail is a sum of the pmf from ``x`` up (no ``1 - cdf``).
     """
     pmf = poisson_binomial_pmf(q)
-    xs = np.asarray(x)
-    if not np.issubdtype(xs.dtype, np.integer):
-        if not np.all(xs == np.round(xs)):
-            raise ValueError("x (the number of matching bits) must hold integers")
-        xs = xs.astype(np.int64)
+    xs = _integers(x, "x (the number of matching bits)")
     k = pmf.shape[-1] - 1
     tail = np.cumsum(pmf[..., ::-1], axis=-1)[..., ::-1]  # tail[..., j] = P(X >= j)
     tail = np.concatenate([tail, np.zeros(tail.shape[:-1] + (1,))], axis=-1)
