@@ -69,6 +69,8 @@ def parse_args() -> argparse.Namespace:
                     help="where WebP photos are converted to PNG (with --train-seconds)")
     ap.add_argument("--size", type=int, default=256, help="built-in scene render size")
     ap.add_argument("--methods", nargs="+", default=["paper", "wild"])
+    ap.add_argument("--variant", nargs=3, action="append", default=[], metavar=("LABEL", "METHOD", "JSON"),
+                    help="a further row: METHOD with EmbedConfig overrides JSON (after --embed), named LABEL")
     ap.add_argument("--bits", nargs="+", type=int, default=[32])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--epochs", type=int, default=8)
@@ -196,7 +198,7 @@ def _bare(res, g, bg, dec, seed: int = 1234) -> dict:
     return out
 
 
-def _config(args, method: str, seed: int, bg):
+def _config(args, method: str, seed: int, bg, overrides: dict | None = None):
     import dataclasses
 
     from gsw.eval.grid import method_config
@@ -211,6 +213,8 @@ def _config(args, method: str, seed: int, bg):
     cfg = method_config(method, base)
     if args.embed:
         cfg = apply_overrides(cfg, json.loads(args.embed))
+    if overrides:
+        cfg = apply_overrides(cfg, overrides)
     return dataclasses.replace(cfg, epochs=args.epochs, seed=seed, background=bg)
 
 
@@ -239,13 +243,14 @@ def main() -> int:
                                 torch=torch.__version__, python=platform.python_version(), gsw=gsw.__version__),
                    cells=[])
     args.out.mkdir(parents=True, exist_ok=True)
-    for method in args.methods:
+    rows = [(m, m, None) for m in args.methods] + [(label, m, json.loads(js)) for label, m, js in args.variant]
+    for label, method, overrides in rows:
         for bits_n in args.bits:
             for seed in args.seeds:
                 if args.deadline_s and time.perf_counter() - start > args.deadline_s:
-                    results["stopped"] = f"deadline before {method} {bits_n} bits seed {seed}"
+                    results["stopped"] = f"deadline before {label} {bits_n} bits seed {seed}"
                     break
-                cfg = _config(args, method, seed, bg)
+                cfg = _config(args, method, seed, bg, overrides)
                 dec = load_decoder_for(bits_n, None, dev)
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
@@ -255,10 +260,12 @@ def main() -> int:
                             progress=False)
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
-                cell = dict(method=method, bits=bits_n, seed=seed, embed_s=time.perf_counter() - t0,
+                cell = dict(method=label, base_method=method, overrides=overrides, bits=bits_n, seed=seed,
+                            embed_s=time.perf_counter() - t0,
                             timings=res.timings, gaussians_after=len(res.gaussians),
                             train_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
-                            train_psnr=sum(res.psnr) / len(res.psnr))
+                            train_psnr=sum(res.psnr) / len(res.psnr),
+                            final_message_weight=res.history[-1]["message_weight"])
                 cell.update(_bare(res, g, bg, dec) if args.bare
                             else _evaluate(res, g, eval_cams, novel, bg, bits_n, dec, args))
                 results["cells"].append(cell)

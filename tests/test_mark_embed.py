@@ -202,3 +202,19 @@ def test_freeze_keeps_the_frozen_groups_and_is_deterministic(scene) -> None:
     for bad in (("f_rst",), ("f_dc", "f_rest", "opacity", "scaling", "rotation")):
         with pytest.raises(ValueError, match="freeze"):
             embed(scene.gaussians, scene.cameras, config=_quick(scene, freeze=bad), progress=False)
+
+
+def test_psnr_target_steers_the_message_weight(scene) -> None:
+    # a target above what the fine-tune reaches lowers the weight; one far below raises it
+    for target, sign in ((150.0, -1), (1.0, 1)):
+        res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
+                    config=_quick(scene, epochs=3, psnr_target=target), progress=False)
+        weights = [h["message_weight"] for h in res.history]
+        assert weights[0] == pytest.approx(0.15) and (weights[-1] - 0.15) * sign > 0
+        assert all(h["psnr"] > 0 for h in res.history)
+    fixed = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=_quick(scene),
+                  progress=False)
+    assert {h["message_weight"] for h in fixed.history} == {0.15}
+    for bad in ({"psnr_target": float("nan")}, {"psnr_target": -3.0}, {"psnr_weight_range": 0.5}):
+        with pytest.raises(ValueError, match="psnr"):
+            embed(scene.gaussians, scene.cameras, config=_quick(scene, **bad), progress=False)

@@ -66,3 +66,17 @@ def test_watermark_loss_bad_settings() -> None:
         WatermarkLoss(_MeanDecoder(), LossWeights(lpips=0.0), lpips_net=None, logit_scale=0.0)
     with pytest.raises(ValueError, match="LPIPS is disabled"):
         WatermarkLoss(_MeanDecoder(), LossWeights(), lpips_net=None)
+
+
+def test_weight_control_holds_the_target_within_its_range() -> None:
+    from gsw.mark.loss import WeightControl
+
+    ctl = WeightControl(0.2, target=37.0, adapt=2.0, max_factor=4.0, check_every=2, span=1)
+    assert ctl.observe(40.0) == 0.2  # no check yet
+    assert ctl.observe(40.0) == pytest.approx(0.4)  # above the target: more message
+    weights = [ctl.observe(40.0) for _ in range(10)]
+    assert max(weights) == pytest.approx(0.8)  # capped at 4x
+    weights = [ctl.observe(30.0) for _ in range(20)]
+    assert weights[-1] == pytest.approx(0.05)  # below the target: less, floored at 1/4
+    with pytest.raises(ValueError, match="adapt"):
+        WeightControl(0.2, 37.0, adapt=1.0)

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from gsw.mark.loss import steer_weight
+
 __all__ = ["EarlyStop", "SlotMonitor"]
 
 
@@ -178,5 +180,4 @@ class SlotMonitor:
         self.rejections[j] += 1
 
     def _scale(self, j: int, factor: float) -> None:
-        lo, hi = self.weight / self.rule.max_factor, self.weight
-        self.weights[j] = float(min(hi, max(lo, float(self.weights[j]) * factor)))
+        self.weights[j] = steer_weight(float(self.weights[j]), factor, self.weight / self.rule.max_factor, self.weight)

@@ -29,7 +29,7 @@ from gsw.camera import Camera
 from gsw.gaussians import Gaussians
 from gsw.mark.detect import load_decoder_for
 from gsw.mark.fgd import PRUNE_THRESHOLD, TOP_PERCENT, PruneReport, SplitReport, fgd_prune, fgd_split
-from gsw.mark.loss import LossWeights, WatermarkLoss
+from gsw.mark.loss import LossWeights, WatermarkLoss, WeightControl
 from gsw.mark.mask import UpdateMask
 from gsw.mark.message import MessageLike, as_message, message_to_hex
 from gsw.mark.views import ViewSampler, ViewSamplerConfig, scale_camera
@@ -82,6 +82,11 @@ class EmbedConfig:
         max_render_side: largest rendered side during fine-tuning, pixels.
         sampled_views: without cameras, how many sampled views stand in for them (FGD, epochs, final scores).
         sampled_view_size: without cameras, the image side of those views, pixels.
+        psnr_target: hold the fine-tune's running PSNR (its renders against the original renders, dB) at this
+            target by steering the message weight (:class:`gsw.mark.loss.WeightControl`: raised while the
+            PSNR is above the target, lowered while below, within ``psnr_weight_range`` times the configured
+            weight); None: a fixed weight.
+        psnr_weight_range: how far the steered weight may move from ``weights.message`` (factor, >= 1).
         background: render background.
         seed: RNG seed (view order, attacks, sampled views); never the message (a missing message is drawn
             secretly).
@@ -113,6 +118,8 @@ class EmbedConfig:
     max_render_side: int = 1024
     sampled_views: int = 48
     sampled_view_size: int = 512
+    psnr_target: float | None = None
+    psnr_weight_range: float = 4.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
 
@@ -289,6 +296,10 @@ def _check(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
             raise ValueError(f"EmbedConfig.{name} is a probability in [0, 1], got {getattr(cfg, name)}")
     if cfg.model_noise < 0:
         raise ValueError(f"EmbedConfig.model_noise must be >= 0, got {cfg.model_noise}")
+    if cfg.psnr_target is not None and not (math.isfinite(cfg.psnr_target) and cfg.psnr_target > 0):
+        raise ValueError(f"EmbedConfig.psnr_target must be a positive PSNR in dB or None, got {cfg.psnr_target}")
+    if not cfg.psnr_weight_range >= 1:
+        raise ValueError(f"EmbedConfig.psnr_weight_range must be >= 1, got {cfg.psnr_weight_range}")
     unknown = set(cfg.freeze) - set(PARAMETER_GROUPS)
     if unknown or set(cfg.freeze) == set(PARAMETER_GROUPS) and cfg.lr_position <= 0:
         raise ValueError(f"EmbedConfig.freeze must name some (not all) of {PARAMETER_GROUPS}, got {cfg.freeze}")
@@ -380,6 +391,9 @@ def _finetune(params: _Trainable, views: _Views, loss_fn: WatermarkLoss, target:
         attacks = {k: v for k, v in layers.items() if k != "identity"}
     rng = random.Random(cfg.seed)
     tgen = torch.Generator().manual_seed(cfg.seed)
+    control = None if cfg.psnr_target is None else WeightControl(cfg.weights.message, cfg.psnr_target,
+                                                                  max_factor=cfg.psnr_weight_range)
+    weight = cfg.weights.message
     history: list[dict[str, float]] = []
     with Progress(cfg.epochs * len(views), "embed", enabled=progress) as bar:
         for _ in range(cfg.epochs):
@@ -390,15 +404,17 @@ def _finetune(params: _Trainable, views: _Views, loss_fn: WatermarkLoss, target:
                 current = params.gaussians()
                 render = rasterize(current, cam, background=cfg.background, validate=False).image
                 attacked = _decoder_input(current, cam, render, cfg, attacks, rng, tgen)
-                loss, terms, out_logits = loss_fn(render, original, target, attacked)
+                loss, terms, out_logits = loss_fn(render, original, target, attacked, message_weight=weight)
                 params.opt.zero_grad(set_to_none=True)
                 loss.backward()
                 params.mask.step(params.opt)
                 acc = float(((out_logits > 0).float() == target).float().mean())
-                terms.update(loss=float(loss.detach()), bit_acc=acc)
+                step_psnr = float(psnr(render.detach().clamp(0, 1), original.clamp(0, 1)))
+                terms.update(loss=float(loss.detach()), bit_acc=acc, psnr=step_psnr, message_weight=weight)
+                if control is not None:
+                    weight = control.observe(step_psnr)
                 history.append(terms)
-                bar.update(loss=f"{terms['loss']:.4f}", bits=f"{acc:.3f}",
-                           psnr=f"{float(psnr(render.detach(), original)):.1f}")
+                bar.update(loss=f"{terms['loss']:.4f}", bits=f"{acc:.3f}", psnr=f"{step_psnr:.1f}")
     return history
 
 

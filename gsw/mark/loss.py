@@ -92,7 +92,8 @@ class WatermarkLoss(nn.Module):
             self.lpips = LPIPS(net=lpips_net)
 
     def forward(self, render: Tensor, original: Tensor, message: Tensor,
-                decoder_input: Tensor | None = None) -> tuple[Tensor, dict[str, float], Tensor]:
+                decoder_input: Tensor | None = None,
+                message_weight: float | None = None) -> tuple[Tensor, dict[str, float], Tensor]:
         """Loss of a watermarked render against the original render.
 
         Args:
@@ -101,6 +102,8 @@ class WatermarkLoss(nn.Module):
             message: [k] bits.
             decoder_input: optional [3, H', W'] image to decode instead of `render` (an attacked
                 copy for train-time attack sampling).
+            message_weight: the message term's weight for this call (default: ``weights.message``;
+                :class:`WeightControl` steers it).
 
         Returns:
             (total loss, {term: value}, decoder logits [k]).
@@ -113,6 +116,53 @@ class WatermarkLoss(nn.Module):
                  "message": message_loss(logits, message, self.logit_scale)}
         if self.lpips is not None:
             terms["lpips"] = self.lpips(x, y).mean()
-        total = (w.l1 * terms["l1"] + w.subband * terms["subband"] + w.message * terms["message"]
+        w_msg = w.message if message_weight is None else message_weight
+        total = (w.l1 * terms["l1"] + w.subband * terms["subband"] + w_msg * terms["message"]
                  + (w.lpips * terms["lpips"] if "lpips" in terms else 0.0))
         return total, {k: float(v.detach()) for k, v in terms.items()}, logits[0]
+
+
+def steer_weight(weight: float, factor: float, low: float, high: float) -> float:
+    """``weight * factor`` clamped to ``[low, high]``: one step of a message-weight controller."""
+    return float(min(high, max(low, weight * factor)))
+
+
+class WeightControl:
+    """Steers the message weight so the fine-tune's running PSNR holds a target (a dual-ascent-like control).
+
+    Every ``check_every`` steps the weight is multiplied by ``adapt`` while the running PSNR (an exponential
+    average over the steps' renders against the original renders, on whatever view each step used) is above
+    ``target`` and divided by it while below, within ``[weight / max_factor, weight * max_factor]`` of the
+    configured weight: the PSNR budget is spent on the message, never more of it.
+
+    Args:
+        weight: the configured message weight.
+        target: the PSNR (dB) to hold.
+        adapt: factor per check (> 1).
+        max_factor: range of the steered weight around the configured one.
+        check_every: steps between adjustments.
+        span: steps of the running PSNR's exponential average.
+    """
+
+    def __init__(self, weight: float, target: float, adapt: float = 1.25, max_factor: float = 4.0,
+                 check_every: int = 8, span: int = 16) -> None:
+        if adapt <= 1 or max_factor < 1 or check_every < 1:
+            raise ValueError(f"WeightControl needs adapt > 1, max_factor >= 1 and check_every >= 1, got "
+                             f"{adapt}, {max_factor}, {check_every}")
+        self.configured, self.weight, self.target = float(weight), float(weight), float(target)
+        self.adapt, self.max_factor, self.check_every = float(adapt), float(max_factor), int(check_every)
+        self.alpha = 2.0 / (span + 1)
+        self.psnr: float | None = None
+        self.steps = 0
+
+    def observe(self, psnr_db: float) -> float:
+        """Records one step's PSNR (dB; an identical render's infinite PSNR counts as 100 dB); returns the
+        weight for the next step."""
+        psnr_db = min(float(psnr_db), 100.0)
+        self.psnr = psnr_db if self.psnr is None else (1 - self.alpha) * self.psnr + self.alpha * psnr_db
+        self.steps += 1
+        if self.steps % self.check_every == 0:
+            factor = self.adapt if self.psnr > self.target else 1 / self.adapt
+            self.weight = steer_weight(self.weight, factor, self.configured / self.max_factor,
+                                       self.configured * self.max_factor)
+        return self.weight
