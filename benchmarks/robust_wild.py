@@ -68,9 +68,10 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "robust_wild_png",
                     help="where WebP photos are converted to PNG (with --train-seconds)")
     ap.add_argument("--size", type=int, default=256, help="built-in scene render size")
-    ap.add_argument("--methods", nargs="+", default=["paper", "wild"])
+    ap.add_argument("--methods", nargs="*", default=["paper", "wild"])
     ap.add_argument("--variant", nargs=3, action="append", default=[], metavar=("LABEL", "METHOD", "JSON"),
-                    help="a further row: METHOD with EmbedConfig overrides JSON (after --embed), named LABEL")
+                    help="a further row: METHOD with EmbedConfig overrides JSON (after --embed), named LABEL; "
+                         "the keys 'bits' and 'seeds' (lists) replace --bits / --seeds for that row")
     ap.add_argument("--bits", nargs="+", type=int, default=[32])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0])
     ap.add_argument("--epochs", type=int, default=8)
@@ -243,10 +244,11 @@ def main() -> int:
                                 torch=torch.__version__, python=platform.python_version(), gsw=gsw.__version__),
                    cells=[])
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = [(m, m, None) for m in args.methods] + [(label, m, json.loads(js)) for label, m, js in args.variant]
+    rows = [(m, m, {}) for m in args.methods] + [(label, m, json.loads(js)) for label, m, js in args.variant]
     for label, method, overrides in rows:
-        for bits_n in args.bits:
-            for seed in args.seeds:
+        row_bits, row_seeds = overrides.pop("bits", args.bits), overrides.pop("seeds", args.seeds)
+        for bits_n in row_bits:
+            for seed in row_seeds:
                 if args.deadline_s and time.perf_counter() - start > args.deadline_s:
                     results["stopped"] = f"deadline before {label} {bits_n} bits seed {seed}"
                     break

@@ -39,10 +39,14 @@ def _u8(x: Tensor) -> Tensor:
 
 def noise(g: Gaussians, sigma: float = 0.1, generator: torch.Generator | None = None) -> Gaussians:
     """``N(0, sigma^2)`` on every raw parameter but the positions (the evaluation's
-    :func:`gsw.attacks.model.parameter_noise_attributes`), drawn on the CPU from ``generator``."""
+    :func:`gsw.attacks.model.parameter_noise_attributes`), drawn on the model's device from a generator seeded by
+    one draw of the CPU ``generator`` (reproducible per device; no host-side noise tensors)."""
+    device = g.means.device
+    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+    local = torch.Generator(device=device).manual_seed(seed)
 
     def noisy(t: Tensor) -> Tensor:
-        return t + sigma * torch.randn(t.shape, generator=generator).to(device=t.device, dtype=t.dtype)
+        return t + sigma * torch.randn(t.shape, generator=local, device=device, dtype=t.dtype)
 
     return Gaussians(g.means, noisy(g.log_scales), noisy(g.quats), noisy(g.opacity_logits), noisy(g.sh))
 
@@ -164,7 +168,7 @@ def distort(g: Gaussians, kinds: tuple[str, ...], rng: random.Random, generator:
         g: the model.
         kinds: names from :data:`DISTORTIONS`.
         rng: the choice.
-        generator: the noise (CPU).
+        generator: the noise's seed (a CPU generator).
         sigma: std of ``noise``.
 
     Returns:
