@@ -218,3 +218,21 @@ def test_psnr_target_steers_the_message_weight(scene) -> None:
     for bad in ({"psnr_target": float("nan")}, {"psnr_target": -3.0}, {"psnr_weight_range": 0.5}):
         with pytest.raises(ValueError, match="psnr"):
             embed(scene.gaussians, scene.cameras, config=_quick(scene, **bad), progress=False)
+
+
+def test_lr_final_decays_the_steps(scene) -> None:
+    # with the rates decayed to 1e-3 the late steps barely move the model: it ends closer to where a
+    # constant-rate fine-tune passed than a constant-rate one ends to its own start
+    base = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=_quick(scene),
+                 progress=False)
+    decayed = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
+                    config=_quick(scene, lr_final=1e-3), progress=False)
+    again = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
+                  config=_quick(scene, lr_final=1e-3), progress=False)
+    g = scene.gaussians
+    moved = lambda r: float((r.gaussians.sh[:, :1] - g.sh[:, :1]).abs().sum())  # noqa: E731
+    assert 0 < moved(decayed) < moved(base)
+    assert torch.equal(decayed.gaussians.sh, again.gaussians.sh)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="lr_final"):
+            embed(scene.gaussians, scene.cameras, config=_quick(scene, lr_final=bad), progress=False)
