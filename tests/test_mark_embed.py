@@ -205,13 +205,13 @@ def test_freeze_keeps_the_frozen_groups_and_is_deterministic(scene) -> None:
 
 
 def test_psnr_target_steers_the_message_weight(scene) -> None:
-    # a target above what the fine-tune reaches lowers the weight; one far below raises it
-    for target, sign in ((150.0, -1), (1.0, 1)):
-        res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
-                    config=_quick(scene, epochs=3, psnr_target=target), progress=False)
-        weights = [h["message_weight"] for h in res.history]
-        assert weights[0] == pytest.approx(0.15) and (weights[-1] - 0.15) * sign > 0
-        assert all(h["psnr"] > 0 for h in res.history)
+    # a target far below the renders' PSNR (or bits that do not read yet) raises the weight; the rule itself,
+    # lowering included, is tested in test_mark_loss.py
+    res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
+                config=_quick(scene, epochs=3, psnr_target=1.0), progress=False)
+    weights = [h["message_weight"] for h in res.history]
+    assert weights[0] == pytest.approx(0.15) and weights[-1] > 0.15
+    assert all(h["psnr"] > 0 for h in res.history)
     fixed = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=_quick(scene),
                   progress=False)
     assert {h["message_weight"] for h in fixed.history} == {0.15}

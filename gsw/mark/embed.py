@@ -86,9 +86,9 @@ class EmbedConfig:
         sampled_views: without cameras, how many sampled views stand in for them (FGD, epochs, final scores).
         sampled_view_size: without cameras, the image side of those views, pixels.
         psnr_target: hold the fine-tune's running PSNR (its renders against the original renders, dB) at this
-            target by steering the message weight (:class:`gsw.mark.loss.WeightControl`: raised while the
-            PSNR is above the target, lowered while below, within ``psnr_weight_range`` times the configured
-            weight); None: a fixed weight.
+            target by steering the message weight, the mark first (:class:`gsw.mark.loss.WeightControl`: raised
+            while the steps' clean bit accuracy runs below 99 % or the PSNR above the target, lowered while the
+            PSNR is below it, within ``psnr_weight_range`` times the configured weight); None: a fixed weight.
         psnr_weight_range: how far the steered weight may move from ``weights.message`` (factor, >= 1).
         background: render background.
         seed: RNG seed (view order, attacks, sampled views); never the message (a missing message is drawn
@@ -421,7 +421,7 @@ def _finetune(params: _Trainable, views: _Views, loss_fn: WatermarkLoss, target:
                 step_psnr = float(psnr(render.detach().clamp(0, 1), original.clamp(0, 1)))
                 terms.update(loss=float(loss.detach()), bit_acc=acc, psnr=step_psnr, message_weight=weight)
                 if control is not None:
-                    weight = control.observe(step_psnr)
+                    weight = control.observe(step_psnr, acc if attacked is None else None)
                 history.append(terms)
                 bar.update(loss=f"{terms['loss']:.4f}", bits=f"{acc:.3f}", psnr=f"{step_psnr:.1f}")
     return history
