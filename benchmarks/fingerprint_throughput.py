@@ -149,13 +149,13 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     import gsw
     from gsw.data import load_inria_model
     from gsw.decoder.zoo import load_decoder
-    from gsw.mark.embed import EmbedConfig
+    from gsw.fingerprint.batched import pool_config
     from gsw.mark.loss import LossWeights, lpips_weights
     from gsw.registry import open_registry
 
     lp = None if setting["lpips"] == "none" else setting["lpips"]
     weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
-    cfg = EmbedConfig(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+    cfg = pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
     tmp = Path(tempfile.mkdtemp(prefix="gsw-fp-"))
     names = [f"r{i:03d}" for i in range(setting["n"])]
     if dev.type == "cuda":
@@ -192,11 +192,12 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
 def bench_baseline(args, dev, g, cams, held, held_orig, bg, images) -> dict:
     """One-at-a-time ``gsw.embed`` (set-up included, as a separate ``gsw embed`` per recipient)."""
     from gsw.decoder.zoo import load_decoder
-    from gsw.mark.embed import EmbedConfig, embed
+    from gsw.fingerprint.batched import pool_config
+    from gsw.mark.embed import embed
     from gsw.mark.loss import lpips_weights
     from gsw.mark.message import random_message
 
-    cfg = EmbedConfig(background=bg, lpips_net="alex", weights=lpips_weights("alex"))
+    cfg = pool_config(background=bg, lpips_net="alex", weights=lpips_weights("alex"))
     rows, total = [], 0.0
     for i in range(args.baseline):
         m = random_message(args.bits, seed=1000 + i)

@@ -26,6 +26,8 @@ from gsw.stats import binomial_p_value
 from gsw.scenes import default_scene
 from gsw.stats import false_positive_threshold
 
+from gsw.mark.embed import paper_config  # noqa: E402
+
 NO_LPIPS = lpips_loss_overrides(None)
 
 
@@ -36,7 +38,7 @@ def _flat(obj: object, prefix: str = "") -> dict[str, object]:
 
 
 def _differences(cfg: EmbedConfig) -> dict[str, object]:
-    base, other = _flat(dataclasses.asdict(EmbedConfig())), _flat(dataclasses.asdict(cfg))
+    base, other = _flat(dataclasses.asdict(paper_config())), _flat(dataclasses.asdict(cfg))
     return {k.rstrip("."): v for k, v in other.items() if base[k] != v}
 
 
@@ -45,6 +47,7 @@ def _differences(cfg: EmbedConfig) -> dict[str, object]:
 
 def test_methods_are_the_intended_embedder_configurations() -> None:
     expected = {
+        "default": {"freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
         "3d-gsw": {},
         "paper": {},
         "freeze-rest": {"freeze": ("f_rest",), "mask": "none"},

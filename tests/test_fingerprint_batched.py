@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from gsw.decoder.zoo import load_decoder
-from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch
+from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch, pool_config
 from gsw.fingerprint.shared import prepare_scene, worker_scene
 from gsw.fingerprint.stopping import EarlyStop
 from gsw.mark.embed import EmbedConfig, embed
@@ -35,7 +35,7 @@ def test_batched_loss_is_the_sum_of_the_single_losses(lpips_net) -> None:
 
 def test_stacked_parameters_start_from_the_model() -> None:
     scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
-    params = SlotParams(scene.gaussians, 3, EmbedConfig(lpips_net=None))
+    params = SlotParams(scene.gaussians, 3, pool_config(lpips_net=None))
     assert params.dc.shape == (3, len(scene.gaussians), 1, 3)
     for j in range(3):
         g = params.gaussians(j)
@@ -55,7 +55,7 @@ def test_stacked_parameters_start_from_the_model() -> None:
 def test_batch_matches_one_at_a_time() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
+    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     messages = torch.stack([as_message("c0ffee42", 32), as_message("12345678", 32)])
     steps = []
@@ -75,7 +75,7 @@ def test_batch_matches_one_at_a_time() -> None:
 def _cpu_scene(n_cameras: int = 3):
     scene = default_scene(width=64, height=64, n_cameras=n_cameras, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
+    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
     return scene, cfg, worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
 
 
@@ -107,7 +107,7 @@ class _Confident(torch.nn.Module):
 def test_early_stopping_finishes_and_refills() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
     ones, zeros = torch.ones(32), torch.zeros(32)
     progress = []
@@ -138,7 +138,7 @@ class _RightInBatches(_Confident):
 def test_confirmation_on_the_embedding_views() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_RightInBatches()), "cpu")
     ones = torch.ones(2, 32)
     strict = EarlyStop(min_steps=4, window=2, check_every=2, confirm=1.0)
@@ -155,7 +155,7 @@ def test_confirmation_on_the_embedding_views() -> None:
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
     rule = EarlyStop(min_steps=1, window=1, check_every=1, psnr_target=200.0, adapt=2.0, max_factor=4.0)
     copy = finetune_batch(ws, ["x"], torch.ones(1, 32), stop=rule)[0]
@@ -181,7 +181,7 @@ def test_early_stop_settings() -> None:
 def test_train_time_image_attacks_per_slot() -> None:
     scene = default_scene(width=64, height=64, n_cameras=2, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = EmbedConfig(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, attacks=1.0)
+    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, attacks=1.0)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
     copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2)  # attacks of different output sizes
@@ -190,9 +190,19 @@ def test_train_time_image_attacks_per_slot() -> None:
     assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-4
 
 
-def test_model_attacks_are_refused() -> None:
+@pytest.mark.parametrize("setting", [{"model_attacks": 0.5}, {"novel_views": 1.0}, {"render_scales": (0.5, 2.0)},
+                                     {"psnr_target": 37.0}])
+def test_settings_the_pool_does_not_implement_are_refused(setting) -> None:
     scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
-    cfg = EmbedConfig(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), model_attacks=0.5)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
-    with pytest.raises(ValueError, match="model attacks"):
-        finetune_batch(ws, ["a"], torch.zeros(1, 32))
+    with pytest.raises(ValueError, match=f"does not support EmbedConfig.{next(iter(setting))}"):
+        prepare_scene(scene.gaussians, scene.cameras, config=pool_config(epochs=1, lpips_net=None,
+                                                                         weights=LossWeights(lpips=0.0), **setting))
+    with pytest.raises(ValueError, match="novel_views"):  # the library default samples viewpoints
+        prepare_scene(scene.gaussians, scene.cameras, config=EmbedConfig())
+
+
+def test_frozen_groups_stay_in_the_pool() -> None:
+    scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
+    params = SlotParams(scene.gaussians, 2, pool_config(lpips_net=None, freeze=("f_rest", "scaling"), mask="none"))
+    assert not params.rest.requires_grad and not params.log_scales.requires_grad
+    assert {id(p) for p, _, _ in params.groups} == {id(params.dc), id(params.logits), id(params.quats)}

@@ -10,6 +10,7 @@ import os
 import pytest
 
 import gsw
+from gsw.fingerprint.batched import pool_config
 from gsw.mark.embed import EmbedConfig
 from gsw.mark.identify import identify
 from gsw.mark.loss import LossWeights
@@ -46,7 +47,7 @@ def scene():
 
 
 def _config(scene) -> EmbedConfig:
-    return EmbedConfig(epochs=10, lpips_net=None, weights=LossWeights(lpips=0.0, message=2.0), lr_f_dc=3e-2,
+    return pool_config(epochs=10, lpips_net=None, weights=LossWeights(lpips=0.0, message=2.0), lr_f_dc=3e-2,
                        background=tuple(float(v) for v in scene.background))
 
 

@@ -205,13 +205,13 @@ def test_freeze_keeps_the_frozen_groups_and_is_deterministic(scene) -> None:
 
 
 def test_psnr_target_steers_the_message_weight(scene) -> None:
-    # a target far below the renders' PSNR (or bits that do not read yet) raises the weight; the rule itself,
-    # lowering included, is tested in test_mark_loss.py
-    res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
-                config=_quick(scene, epochs=3, psnr_target=1.0), progress=False)
-    weights = [h["message_weight"] for h in res.history]
-    assert weights[0] == pytest.approx(0.15) and weights[-1] > 0.15
-    assert all(h["psnr"] > 0 for h in res.history)
+    # a target above what the fine-tune reaches lowers the weight; one far below raises it
+    for target, sign in ((150.0, -1), (1.0, 1)):
+        res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
+                    config=_quick(scene, epochs=3, psnr_target=target), progress=False)
+        weights = [h["message_weight"] for h in res.history]
+        assert weights[0] == pytest.approx(0.15) and (weights[-1] - 0.15) * sign > 0
+        assert all(h["psnr"] > 0 for h in res.history)
     fixed = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=_quick(scene),
                   progress=False)
     assert {h["message_weight"] for h in fixed.history} == {0.15}
@@ -219,20 +219,3 @@ def test_psnr_target_steers_the_message_weight(scene) -> None:
         with pytest.raises(ValueError, match="psnr"):
             embed(scene.gaussians, scene.cameras, config=_quick(scene, **bad), progress=False)
 
-
-def test_lr_final_decays_the_steps(scene) -> None:
-    # with the rates decayed to 1e-3 the late steps barely move the model: it ends closer to where a
-    # constant-rate fine-tune passed than a constant-rate one ends to its own start
-    base = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=_quick(scene),
-                 progress=False)
-    decayed = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
-                    config=_quick(scene, lr_final=1e-3), progress=False)
-    again = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32,
-                  config=_quick(scene, lr_final=1e-3), progress=False)
-    g = scene.gaussians
-    moved = lambda r: float((r.gaussians.sh[:, :1] - g.sh[:, :1]).abs().sum())  # noqa: E731
-    assert 0 < moved(decayed) < moved(base)
-    assert torch.equal(decayed.gaussians.sh, again.gaussians.sh)
-    for bad in (0.0, 1.5):
-        with pytest.raises(ValueError, match="lr_final"):
-            embed(scene.gaussians, scene.cameras, config=_quick(scene, lr_final=bad), progress=False)

@@ -45,7 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients per Ray task (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
-    fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
+    fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp",
+                    help="gradient mask (the pool's recipe is the paper's; default %(default)s)")
     fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
     fp.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
     fp.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
@@ -90,6 +91,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     from gsw.cli.mark import _load_model, embed_config
     from gsw.device import resolve_device
     from gsw.fingerprint import fingerprint, read_recipients
+    from gsw.fingerprint.batched import pool_config
     from gsw.fingerprint.stopping import EarlyStop
 
     with reading(args.recipients):
@@ -101,7 +103,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.input} is a bare model: gsw fingerprint needs its cameras (--cameras cameras.json, "
                          "or an INRIA model folder)")
     report = fingerprint(g, cams, recipients, args.output, args.registry, num_bits=args.bits,
-                         config=embed_config(args), images=None if images is None else list(images),
+                         config=embed_config(args, pool_config()), images=None if images is None else list(images),
                          batch_size=args.batch, early_stop=early_stop, task_size=args.task_size, device=device,
                          use_ray=_use_ray(args), address=args.address, gpus_per_task=args.gpus_per_task,
                          max_retries=args.max_retries,

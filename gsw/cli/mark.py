@@ -52,8 +52,15 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb.add_argument("--output", required=True, help="new model folder (never the input)")
     emb.add_argument("--force", action="store_true", help="replace an existing output folder")
     add_message_options(emb, claim=False)
+    emb.add_argument("--recipe", choices=["default", "paper"], default="default",
+                     help="default: SH rest kept, no mask, a sampled viewpoint every step (robust to new viewpoints "
+                          "and SH-0 / .splat exports); paper: the 3D-GSW paper's recipe (default %(default)s)")
     emb.add_argument("--epochs", type=positive_int, default=8)
-    emb.add_argument("--mask", choices=["exp", "stega", "none"], default="exp")
+    emb.add_argument("--mask", choices=["exp", "stega", "none"], default=None,
+                     help="gradient mask (default: the recipe's: none, paper: exp)")
+    emb.add_argument("--psnr-target", type=float, default=None, metavar="DB",
+                     help="steer the message weight so the fine-tune's renders hold this PSNR against the "
+                          "original's (e.g. 37; costs robustness; default: a fixed weight)")
     emb.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
     emb.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
     emb.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
@@ -111,18 +118,27 @@ def chosen_message_note(args: argparse.Namespace, command: str) -> str:
     return "chosen"
 
 
-def embed_config(args: argparse.Namespace):
-    """The :class:`~gsw.mark.embed.EmbedConfig` of `gsw embed`'s options."""
-    from gsw.mark.embed import EmbedConfig
+def embed_config(args: argparse.Namespace, base=None):
+    """The :class:`~gsw.mark.embed.EmbedConfig` of `gsw embed`'s (or `gsw fingerprint`'s) options.
+
+    Args:
+        args: the parsed options.
+        base: the settings the options apply to (default: ``--recipe``'s: ``EmbedConfig()`` or the paper's).
+    """
+    from gsw.mark.embed import EmbedConfig, paper_config
     from gsw.mark.loss import lpips_weights
 
+    if base is None:
+        base = paper_config() if getattr(args, "recipe", "default") == "paper" else EmbedConfig()
     lpips_net = None if args.lpips == "none" else args.lpips
     weights = lpips_weights(lpips_net)
     if args.message_weight is not None:
         weights = dataclasses.replace(weights, message=args.message_weight)
-    return EmbedConfig(epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask,
-                       lpips_net=lpips_net, attacks=args.attacks, model_attacks=args.model_attack_prob,
-                       seed=args.seed, weights=weights, background=background_of(args))
+    return dataclasses.replace(base, epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask or base.mask,
+                               lpips_net=lpips_net, attacks=args.attacks,
+                               model_attacks=getattr(args, "model_attack_prob", 0.0),
+                               psnr_target=getattr(args, "psnr_target", None), seed=args.seed, weights=weights,
+                               background=background_of(args))
 
 
 def _load_model(args: argparse.Namespace):

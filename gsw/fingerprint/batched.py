@@ -26,11 +26,33 @@ from torch import Tensor
 
 from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
-from gsw.mark.embed import EmbedConfig
+from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, paper_config
 
-__all__ = ["SlotParams", "CopyResult", "batched_loss", "finetune_batch"]
+__all__ = ["SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch", "pool_config"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
+
+
+def pool_config(**overrides) -> EmbedConfig:
+    """The pool's default settings: the paper's recipe (:func:`gsw.mark.embed.paper_config`), what the pool's
+    throughput and quality were measured with (BENCHMARKS.md, issue #26), plus ``overrides``."""
+    return paper_config(**overrides)
+
+
+def check_pool_config(cfg: EmbedConfig) -> None:
+    """Refuses the :class:`EmbedConfig` settings the pool does not implement (rather than ignoring them).
+
+    Raises:
+        ValueError: sampled viewpoints, render-size changes, train-time model attacks or a PSNR target.
+    """
+    unsupported = [name for name, on in (("novel_views", cfg.novel_views > 0),
+                                         ("render_scales", tuple(cfg.render_scales) != (1.0, 1.0)),
+                                         ("model_attacks", cfg.model_attacks > 0),
+                                         ("psnr_target", cfg.psnr_target is not None)) if on]
+    if unsupported:
+        raise ValueError(f"fingerprinting does not support EmbedConfig.{', '.join(unsupported)} (set by "
+                         f"{'them' if len(unsupported) > 1 else 'it'}); use gsw.fingerprint.batched.pool_config() "
+                         "as the base, or gsw embed per recipient for those settings")
 
 
 def _stack(t: Tensor, k: int) -> Tensor:
@@ -47,7 +69,7 @@ class SlotParams:
     Args:
         model: the shared starting model.
         k: number of slots.
-        cfg: the embedding settings (learning rates, mask kind; positions stay shared while
+        cfg: the embedding settings (learning rates, mask kind, frozen groups; positions stay shared while
             ``lr_position`` is 0).
     """
 
@@ -62,8 +84,13 @@ class SlotParams:
         self.logits = stack(model.opacity_logits)  # [K, N]
         self.log_scales = stack(model.log_scales)  # [K, N, 3]
         self.quats = stack(model.quats)  # [K, N, 4]
-        groups = [(self.dc, cfg.lr_f_dc), (self.rest, cfg.lr_f_rest), (self.logits, cfg.lr_opacity),
-                  (self.log_scales, cfg.lr_scaling), (self.quats, cfg.lr_rotation)]
+        groups = []
+        for name, p, lr in zip(PARAMETER_GROUPS, (self.dc, self.rest, self.logits, self.log_scales, self.quats),
+                               (cfg.lr_f_dc, cfg.lr_f_rest, cfg.lr_opacity, cfg.lr_scaling, cfg.lr_rotation)):
+            if name in cfg.freeze:
+                p.requires_grad_(False)  # frozen: no gradient, no update
+            else:
+                groups.append((p, lr))
         maker = {"exp": exp_mask, "stega": stega_mask}.get(cfg.mask)
         if cfg.mask not in ("exp", "stega", "none"):
             raise ValueError(f"mask kind must be 'exp', 'stega' or 'none', got {cfg.mask!r}")
@@ -200,9 +227,7 @@ class CopyResult:
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
-    if cfg.model_attacks > 0:
-        raise ValueError("fingerprinting does not support train-time model attacks (EmbedConfig.model_attacks); "
-                         "use gsw embed per recipient for them")
+    check_pool_config(cfg)
     if cfg.attacks <= 0:
         return None
     from gsw.attacks.layers import matched_noise_layers, training_noise_layers

@@ -23,6 +23,7 @@ from gsw.camera import Camera
 from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
 from gsw.fingerprint.stopping import EarlyStop
 from gsw.gaussians import Gaussians
+from gsw.fingerprint.batched import pool_config
 from gsw.mark.embed import EmbedConfig
 
 __all__ = ["RecipientReport", "FingerprintReport", "fingerprint"]
@@ -194,7 +195,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         output_dir: the job's folder (new, empty, or this scene's earlier job: finished recipients are skipped).
         registry: an open :class:`~gsw.registry.Registry` or a registry file path (created if missing).
         num_bits: message length.
-        config: embedding settings (default :class:`~gsw.mark.embed.EmbedConfig`).
+        config: embedding settings (default :func:`~gsw.fingerprint.batched.pool_config`, the paper's recipe; the
+            pool refuses what it does not implement, :func:`~gsw.fingerprint.batched.check_pool_config`).
         images: optional training images for FGD phase 1.
         decoder: a custom decoder (default: the shipped one).
         batch_size: recipients fine-tuned together on one device (the slots of a pool: a finished
@@ -229,7 +231,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     if batch_size < 1 or (task_size is not None and task_size < 1):
         raise ValueError(f"batch_size and task_size must be >= 1, got {batch_size}, {task_size}")
     log = log or ((lambda text: print(f"gsw fingerprint: {text}", file=sys.stderr)) if progress else (lambda _t: None))
-    cfg = config or EmbedConfig()
+    cfg = config or pool_config()
     people = _recipients(recipients)
     dev = resolve_device(device if device is not None else "auto")
     dec_sha = decoder_sha256(num_bits, decoder)

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
+from gsw.fingerprint.batched import check_pool_config, pool_config
 from gsw.mark.embed import EmbedConfig, prepare_embedding
 
 __all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "worker_scene"]
@@ -93,7 +94,8 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
     Raises:
         ValueError: as :func:`gsw.mark.embed.prepare_embedding`.
     """
-    cfg = config or EmbedConfig()
+    cfg = config or pool_config()
+    check_pool_config(cfg)
     g = gaussians.detach().to(device) if device is not None else gaussians.detach()
     imgs = None if images is None else [im.to(g.device) for im in images]
     setup = prepare_embedding(g, cameras, num_bits=num_bits, images=imgs, config=cfg, decoder=decoder)

@@ -128,13 +128,12 @@ def steer_weight(weight: float, factor: float, low: float, high: float) -> float
 
 
 class WeightControl:
-    """Steers the message weight towards a PSNR target, the mark first (a dual-ascent-like control).
+    """Steers the message weight so the fine-tune's running PSNR holds a target (a dual-ascent-like control).
 
-    Every ``check_every`` steps the weight is multiplied by ``adapt`` while the running bit accuracy of the
-    steps' clean decodes is below ``bits_floor`` (the mark must read, whatever the PSNR), else multiplied while
-    the running PSNR (of the steps' renders against the original renders, on whatever view each step used) is
-    above ``target`` and divided while below; always within ``[weight / max_factor, weight * max_factor]`` of
-    the configured weight. Running values are exponential averages over ``span`` steps.
+    Every ``check_every`` steps the weight is multiplied by ``adapt`` while the running PSNR (an exponential
+    average over the steps' renders against the original renders, on whatever view each step used) is above
+    ``target`` and divided by it while below, within ``[weight / max_factor, weight * max_factor]`` of the
+    configured weight: the PSNR budget is spent on the message, never more of it.
 
     Args:
         weight: the configured message weight.
@@ -142,41 +141,28 @@ class WeightControl:
         adapt: factor per check (> 1).
         max_factor: range of the steered weight around the configured one.
         check_every: steps between adjustments.
-        span: steps of the running averages.
-        bits_floor: running clean bit accuracy below which the weight only rises.
+        span: steps of the running PSNR's exponential average.
     """
 
     def __init__(self, weight: float, target: float, adapt: float = 1.25, max_factor: float = 4.0,
-                 check_every: int = 8, span: int = 16, bits_floor: float = 0.99) -> None:
-        if adapt <= 1 or max_factor < 1 or check_every < 1 or not 0 <= bits_floor <= 1:
-            raise ValueError(f"WeightControl needs adapt > 1, max_factor >= 1, check_every >= 1 and bits_floor in "
-                             f"[0, 1], got {adapt}, {max_factor}, {check_every}, {bits_floor}")
+                 check_every: int = 8, span: int = 16) -> None:
+        if adapt <= 1 or max_factor < 1 or check_every < 1:
+            raise ValueError(f"WeightControl needs adapt > 1, max_factor >= 1 and check_every >= 1, got "
+                             f"{adapt}, {max_factor}, {check_every}")
         self.configured, self.weight, self.target = float(weight), float(weight), float(target)
         self.adapt, self.max_factor, self.check_every = float(adapt), float(max_factor), int(check_every)
-        self.bits_floor = float(bits_floor)
         self.alpha = 2.0 / (span + 1)
         self.psnr: float | None = None
-        self.bits: float | None = None
         self.steps = 0
 
-    def _average(self, old: float | None, new: float) -> float:
-        return new if old is None else (1 - self.alpha) * old + self.alpha * new
-
-    def observe(self, psnr_db: float, bit_accuracy: float | None = None) -> float:
-        """Records one step and returns the weight for the next one.
-
-        Args:
-            psnr_db: the step's render PSNR (dB; an identical render's infinite PSNR counts as 100 dB).
-            bit_accuracy: share of the message read right from the step's clean render; None when the step
-                decoded an attacked or distorted copy instead.
-        """
-        self.psnr = self._average(self.psnr, min(float(psnr_db), 100.0))
-        if bit_accuracy is not None:
-            self.bits = self._average(self.bits, float(bit_accuracy))
+    def observe(self, psnr_db: float) -> float:
+        """Records one step's PSNR (dB; an identical render's infinite PSNR counts as 100 dB); returns the
+        weight for the next step."""
+        psnr_db = min(float(psnr_db), 100.0)
+        self.psnr = psnr_db if self.psnr is None else (1 - self.alpha) * self.psnr + self.alpha * psnr_db
         self.steps += 1
         if self.steps % self.check_every == 0:
-            mark_first = self.bits is not None and self.bits < self.bits_floor
-            factor = self.adapt if mark_first or self.psnr > self.target else 1 / self.adapt
+            factor = self.adapt if self.psnr > self.target else 1 / self.adapt
             self.weight = steer_weight(self.weight, factor, self.configured / self.max_factor,
                                        self.configured * self.max_factor)
         return self.weight

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 
 from gsw.attacks.presets import EXPORT_MODEL_ATTACKS, IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
-from gsw.mark.embed import EmbedConfig
+from gsw.mark.embed import PAPER_RECIPE, EmbedConfig
 from gsw.stats import DETECTION_FPR
 
 __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "GridMismatchError", "GridSpec",
@@ -20,28 +20,31 @@ __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "Gri
 #: and no wavelet-subband loss, with StegaNeRF's magnitude mask (no exponential) or no mask (WateRF).
 #: ``3d-gsw+attacks`` decodes an attacked copy of the render at half of the fine-tuning steps;
 #: ``3d-gsw+all-attacks`` also decodes the render of a perturbed model (parameter noise or SH degree 0) at
-#: half of them (``EmbedConfig.model_attacks``). ``paper`` pins the paper-faithful recipe (given cameras only,
-#: no train-time attacks) whatever the defaults; ``wild`` (issue 23) trains on sampled viewpoints and render
+#: half of them (``EmbedConfig.model_attacks``). ``3d-gsw`` / ``paper`` and every method derived from them pin
+#: the paper-faithful recipe (:data:`gsw.mark.embed.PAPER_RECIPE`: given cameras only, exponential mask, no
+#: train-time attacks) whatever the defaults; ``default`` is the library's default (``EmbedConfig()``, which is
+#: ``freeze-rest+views``); ``wild`` (issue 23) trains on sampled viewpoints and render
 #: sizes, with image attacks up to the evaluation's strengths and every model distortion (parameter noise,
 #: SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports). ``freeze-rest`` keeps the SH rest coefficients fixed
 #: and updates the others without the exponential mask, so the mark lives where SH-degree-0 viewers and ``.splat``
 #: keep it (the mask would all but freeze saturated DC colours); ``freeze-rest+views`` also renders every step from a
 #: fresh viewpoint sampled around the content (:mod:`gsw.mark.views`).
 METHODS: dict[str, dict[str, Any]] = {
-    "3d-gsw": {},
-    "paper": {"novel_views": 0.0, "render_scales": (1.0, 1.0), "attacks": 0.0, "model_attacks": 0.0, "freeze": (),
-              "mask": "exp"},
-    "freeze-rest": {"freeze": ("f_rest",), "mask": "none"},
-    "freeze-rest+views": {"freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
-    "wild": {"novel_views": 0.5, "render_scales": (0.5, 2.0), "attacks": 0.5, "attack_ranges": "matched",
-             "model_attacks": 0.5, "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
-    "no-fgd": {"fgd": False},
-    "no-mask": {"mask": "none"},
-    "no-subband": {"weights": {"subband": 0.0}},
-    "stega-3dgs": {"fgd": False, "mask": "stega", "weights": {"subband": 0.0}},
-    "waterf-3dgs": {"fgd": False, "mask": "none", "weights": {"subband": 0.0}},
-    "3d-gsw+attacks": {"attacks": 0.5},
-    "3d-gsw+all-attacks": {"attacks": 0.5, "model_attacks": 0.5},
+    "default": {},
+    "3d-gsw": dict(PAPER_RECIPE),
+    "paper": dict(PAPER_RECIPE),
+    "freeze-rest": {**PAPER_RECIPE, "freeze": ("f_rest",), "mask": "none"},
+    "freeze-rest+views": {**PAPER_RECIPE, "freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
+    "wild": {**PAPER_RECIPE, "novel_views": 0.5, "render_scales": (0.5, 2.0), "attacks": 0.5,
+             "attack_ranges": "matched", "model_attacks": 0.5,
+             "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
+    "no-fgd": {**PAPER_RECIPE, "fgd": False},
+    "no-mask": {**PAPER_RECIPE, "mask": "none"},
+    "no-subband": {**PAPER_RECIPE, "weights": {"subband": 0.0}},
+    "stega-3dgs": {**PAPER_RECIPE, "fgd": False, "mask": "stega", "weights": {"subband": 0.0}},
+    "waterf-3dgs": {**PAPER_RECIPE, "fgd": False, "mask": "none", "weights": {"subband": 0.0}},
+    "3d-gsw+attacks": {**PAPER_RECIPE, "attacks": 0.5},
+    "3d-gsw+all-attacks": {**PAPER_RECIPE, "attacks": 0.5, "model_attacks": 0.5},
 }
 
 #: Rows of the ablation table: the full method and one component off at a time.
