@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from helpers import scan_crawl
 
+import gsw.fingerprint.scan
 import gsw.mark.identify
 import gsw.mark.scales
 from gsw.fingerprint.scan import expand_inputs, scan, scan_sources
@@ -96,7 +97,7 @@ def test_a_source_the_decoder_rejects_gets_an_error_and_the_others_are_scanned(c
     assert rows["img1.png"].identified == "alice" and not rows["img1.png"].error
 
 
-def test_progress_and_bad_arguments(crawl) -> None:
+def test_progress_and_bad_arguments(crawl, monkeypatch) -> None:
     paths, marks = crawl
     seen = []
     rows = scan(paths[:3], marks, use_ray=False, batch_size=2, readers=3, on_row=seen.append)
@@ -106,3 +107,7 @@ def test_progress_and_bad_arguments(crawl) -> None:
             scan(paths[:1], marks, use_ray=False, **bad)
     with pytest.raises(ValueError, match="no marks"):
         scan(paths[:1], [], use_ray=False)
+    monkeypatch.setattr(gsw.fingerprint.scan, "_ray_data_available", lambda: False)
+    with pytest.raises(ImportError, match=r"pip install gsw\[ray\]"):
+        scan(paths[:1], marks, use_ray=True)
+    assert [r.source for r in scan(paths[:1], marks)] == [str(paths[0])]  # default: this process, quietly

@@ -261,6 +261,15 @@ class _RayScanner:  # pragma: no cover - runs in Ray Data workers
         return {k: [getattr(r, k) for r in rows] for k in ScanRow.__dataclass_fields__}
 
 
+def _ray_data_available() -> bool:
+    """Whether Ray Data imports (Ray with its ``data`` extra)."""
+    try:
+        import ray.data  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
               workers: int | None, batch_size: int, readers: int) -> list[ScanRow]:
     """Ray Data: one worker per GPU (or CPU), each scanning blocks of :data:`RAY_SOURCES_PER_CALL` x
@@ -310,16 +319,15 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
         ValueError: no marks; nothing to scan; ``batch_size`` or ``readers`` < 1.
         ImportError: Ray asked for (``use_ray`` or ``address``) but not installed.
     """
-    from gsw.fingerprint.run import SCALE_OUT_HINT, ray_available
-
     if not marks:
         raise ValueError("the registry holds no marks")
     _check_batching(batch_size, readers)
     paths = expand_inputs(inputs)
     want_ray = use_ray if use_ray is not None else bool(address) or len(paths) >= RAY_DATA_MIN_SOURCES
-    if want_ray and not ray_available():
+    if want_ray and not _ray_data_available():
         if use_ray or address:
-            raise ImportError(SCALE_OUT_HINT.replace("running in one process. ", ""))
+            raise ImportError("scanning on Ray needs Ray Data (ray[data], with pandas and pyarrow): install the Ray "
+                              "extra (pip install gsw[ray])")
         want_ray = False
     if want_ray:
         gpu = device is not None and torch.device(device).type == "cuda"

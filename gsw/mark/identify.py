@@ -53,7 +53,7 @@ from gsw.mark.scales import Reading, read_images
 from gsw.registry import Mark, Registry, shipped_decoder_sha256
 from gsw.stats import DETECTION_FPR, ORIGINS
 
-__all__ = ["DecoderGroup", "Identification", "IdentifyPlan", "MarkResult", "SourceReadings", "decode_sources",
+__all__ = ["DecoderGroup", "Identification", "IdentifyPlan", "MarkBatch", "MarkResult", "SourceReadings", "decode_sources",
            "identify", "identify_readings", "plan_identify"]
 
 ImageLike = Union[Tensor, Sequence[Tensor]]
@@ -141,6 +141,23 @@ class Identification:
 
 
 @dataclass
+class MarkBatch:
+    """The marks of one decoder, embedding size and origin: tested together by one test.
+
+    Attributes:
+        size: embedding size ``(height, width)`` of the marks, None for marks without one (scale search).
+        origin: ``"random"`` or ``"chosen"`` (:data:`gsw.stats.ORIGINS`).
+        marks: the marks.
+        messages: [M, k] their message bits (int8 0/1).
+    """
+
+    size: tuple[int, int] | None
+    origin: str
+    marks: list[Mark]
+    messages: np.ndarray
+
+
+@dataclass
 class DecoderGroup:
     """The marks read by one decoder.
 
@@ -149,14 +166,21 @@ class DecoderGroup:
         num_bits: message length k.
         decoder: the frozen decoder (images [B, 3, H, W] or LL2 subband -> logits [B, k]), on the device.
         null_model: its null model (chosen messages; the fair coin for a custom decoder without one).
-        by_size: its marks by embedding size ``(height, width)``, None for marks without one (scale search).
+        fair: the fair-coin model of k bits (screening of chosen messages).
+        batches: its marks by embedding size and origin.
     """
 
     sha256: str
     num_bits: int
     decoder: torch.nn.Module
     null_model: NullModel
-    by_size: dict[tuple[int, int] | None, list[Mark]]
+    fair: NullModel
+    batches: list[MarkBatch]
+
+    @property
+    def sizes(self) -> list[tuple[int, int] | None]:
+        """The embedding sizes its images are read at (None: the scale search), in order."""
+        return list(dict.fromkeys(b.size for b in self.batches))
 
 
 @dataclass
@@ -228,7 +252,10 @@ def plan_identify(registry: Registry | Sequence[Mark], *, decoders: Mapping[str,
         by_size: dict[tuple[int, int] | None, list[Mark]] = {}
         for mark in group:
             by_size.setdefault((mark.height, mark.width) if mark.width and mark.height else None, []).append(mark)
-        groups.append(DecoderGroup(sha, k, decoder, model, by_size))
+        batches = [MarkBatch(size, origin, same, np.stack([m.message.numpy() for m in same]).astype(np.int8))
+                   for size, marks_of_size in by_size.items() for origin in ORIGINS
+                   if (same := [m for m in marks_of_size if m.origin == origin])]
+        groups.append(DecoderGroup(sha, k, decoder, model, NullModel.fair(k), batches))
     return IdentifyPlan(groups, skipped)
 
 
@@ -264,7 +291,7 @@ def decode_sources(sources: Sequence[Sequence[Tensor]], plan: IdentifyPlan, *,
     if not flat:
         return out
     for g, group in enumerate(plan.groups):
-        for size in group.by_size:
+        for size in group.sizes:
             readings = read_images(flat, group.decoder, embed_size=size, batch_size=batch_size)  # once per size
             start = 0
             for src, n in zip(out, counts):
@@ -294,38 +321,33 @@ def identify_readings(source: SourceReadings, plan: IdentifyPlan, *, fpr: float 
         raise ValueError(f"fpr must lie in (0, 1), got {fpr}")
     tested: list[tuple[Mark, float, list[int], bool]] = []
     for g, group in enumerate(plan.groups):
-        for size, marks in group.by_size.items():
-            readings = source.readings[(g, size)]
-            for origin in ORIGINS:
-                same = [m for m in marks if m.origin == origin]
-                if same:
-                    score = _score_random if origin == "random" else _score_chosen
-                    tested += score(readings, same, group.null_model, fpr, exact)
+        for batch in group.batches:
+            score = _score_random if batch.origin == "random" else _score_chosen
+            tested += score(source.readings[(g, batch.size)], batch, group, fpr, exact)
     adjusted = _holm([p for _, p, _, _ in tested])
     results = sorted((MarkResult(m, p, a, row, a <= fpr, ex) for (m, p, row, ex), a in zip(tested, adjusted)),
                      key=lambda r: (r.adjusted_p_value, r.p_value, r.mark.id))
     return Identification([r for r in results if r.identified], results, plan.skipped, source.num_images, fpr)
 
 
-def _score_random(readings: list, marks: list[Mark], model: NullModel, fpr: float,
+def _score_random(readings: list[Reading], batch: MarkBatch, group: DecoderGroup, fpr: float,
                   exact: int) -> list[tuple[Mark, float, list[int], bool]]:
-    """Random messages: the exact randomization test of every mark (``model``, ``fpr``, ``exact`` unused)."""
-    messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
-    sc = score_messages(readings, messages, origin="random")
-    return [(mark, float(sc.combined[j]), sc.matches[:, j].tolist(), True) for j, mark in enumerate(marks)]
+    """Random messages: the exact randomization test of every mark (``group``, ``fpr``, ``exact`` unused)."""
+    sc = score_messages(readings, batch.messages, origin="random")
+    return [(mark, float(sc.combined[j]), sc.matches[:, j].tolist(), True) for j, mark in enumerate(batch.marks)]
 
 
-def _score_chosen(readings: list, marks: list[Mark], model: NullModel, fpr: float,
+def _score_chosen(readings: list[Reading], batch: MarkBatch, group: DecoderGroup, fpr: float,
                   exact: int) -> list[tuple[Mark, float, list[int], bool]]:
     """Chosen messages: the calibrated null model, screened by the fair coin (see the module docstring)."""
-    messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
-    fair = score_messages(readings, messages, NullModel.fair(messages.shape[1]), origin="chosen")
+    messages = batch.messages
+    fair = score_messages(readings, messages, group.fair, origin="chosen")
     order = np.argsort(fair.combined, kind="stable")
     todo = sorted(set(order[:exact].tolist()) | set(np.flatnonzero(fair.combined <= fpr).tolist()))
-    calibrated = score_messages(readings, messages[todo], model, origin="chosen") if todo else None
+    calibrated = score_messages(readings, messages[todo], group.null_model, origin="chosen") if todo else None
     at = {j: i for i, j in enumerate(todo)}
     out = []
-    for j, mark in enumerate(marks):
+    for j, mark in enumerate(batch.marks):
         sc, col = (calibrated, at[j]) if j in at else (fair, j)
         out.append((mark, float(sc.combined[col]), sc.matches[:, col].tolist(), j in at))
     return out
