@@ -6,8 +6,9 @@
    re-encoding (JPEG, quality 85-95) up to N, written by a pool of threads.
 2. A registry of ``--marks`` M random 32-bit marks (``--chosen`` of them of origin "chosen", the others
    "random"); the first ``--carriers`` are the messages the decoder reads from the first renders (factor 1),
-   so those renders (and their replicas, while the re-encoding keeps the bits) carry a registered mark
-   without an embedding: the decoder's work per image is the same as on a marked render.
+   (the bits of the reading the exact test picks), so those renders (and their replicas, while the
+   re-encoding keeps the bits) carry a registered mark without an embedding: the decoder's work per image
+   is the same as on a marked render.
 3. Each ``--modes`` entry times :func:`gsw.fingerprint.scan.scan` end to end over the N files (reading, decoding,
    testing; the registry already open; Ray's start excluded, its workers' start and decoder loading
    included):
@@ -21,7 +22,9 @@
      GPUs (``CUDA_VISIBLE_DEVICES`` restricted to the first ``--gpus`` when it is not set) or, on the CPU,
      ``--workers`` CPUs: one Ray Data worker per GPU (per CPU), each running the batched pipeline.
 
-   Every mode's rows are compared with the first mode's (identified labels and best p-values).
+   The modes run in turn ``--repeats`` times (interleaved, so that a change of the machine's load hits them
+   alike); the summary gives each mode's median. Every run's rows are compared with the first run's
+   (identified labels and best p-values).
 4. A JSON (``--out``) with the machine, versions, load averages before/after every mode, the settings and the
    results, and a summary table on stdout.
 
@@ -44,6 +47,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import time
@@ -71,6 +75,8 @@ def _parse_args() -> argparse.Namespace:
     ap.add_argument("--workers", type=int, default=None, help="Ray workers (default: --gpus, or the CPU count)")
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--readers", type=int, default=4)
+    ap.add_argument("--repeats", type=int, default=1, help="runs of every mode, interleaved")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads of this process (0: torch's default)")
     ap.add_argument("--workdir", default=None, help="crawl folder (default: a new temporary one)")
     ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/scan_<device>.json)")
     args = ap.parse_args()
@@ -132,13 +138,20 @@ def _crawl(args: argparse.Namespace, workdir: Path, device: str) -> list[Path]:
 
 def _registry(args: argparse.Namespace, workdir: Path, paths: list[Path]) -> list:
     """The M marks (a new registry file each run)."""
+    import torch
+
     from gsw.io.video import load_images_or_video
-    from gsw.mark.detect import extract
+    from gsw.mark.detect import load_decoder_for
     from gsw.mark.message import message_to_hex, random_message
+    from gsw.mark.randomization import choose_reading
+    from gsw.mark.scales import read_images
     from gsw.registry import open_registry, shipped_decoder_sha256
 
-    carried = [message_to_hex(extract(load_images_or_video([p])[0], num_bits=32).bits[0])
-               for p in paths[:min(args.carriers, args.views, len(paths))]]
+    decoder = load_decoder_for(32, None, torch.device("cpu"))
+    carried = []
+    for p in paths[:min(args.carriers, args.views, len(paths))]:  # the reading the exact test picks
+        reading = read_images(load_images_or_video([p]), decoder)[0]
+        carried.append(message_to_hex(reading.bits[choose_reading(reading.confidence)]))
     messages = carried + [message_to_hex(random_message(32, seed=10_000 + i)) for i in range(args.marks - len(carried))]
     origins = ["random"] * (args.marks - args.chosen) + ["chosen"] * args.chosen
     path = workdir / f"marks-{os.getpid()}.sqlite"
@@ -223,6 +236,10 @@ def main() -> int:
         os.environ["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, range(args.gpus)))
     import tempfile
 
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="scan_throughput_"))
     modes = args.modes.split(",")
     paths = _crawl(args, workdir, args.device)
@@ -233,34 +250,46 @@ def main() -> int:
         ray.init(num_cpus=None if args.gpus else (args.workers or os.cpu_count()), num_gpus=args.gpus or None,
                  include_dashboard=False, log_to_driver=False)
     results, first = [], None
-    for mode in modes:
-        subset = paths[:args.per_source_images] if mode == "per-source" and args.per_source_images else paths
-        res, rows = _time_mode(mode, args, subset, marks)
-        if first is None:
-            first = {r.source: r for r in rows}
-        same = [r for r in rows if r.source in first]
-        res["agree_with_first"] = sum((r.identified, r.best_p) == (first[r.source].identified, first[r.source].best_p)
-                                      for r in same)
-        res["compared"] = len(same)
-        results.append(res)
-        print(json.dumps(res), flush=True)
+    for _ in range(args.repeats):
+        for mode in modes:
+            subset = paths[:args.per_source_images] if mode == "per-source" and args.per_source_images else paths
+            res, rows = _time_mode(mode, args, subset, marks)
+            if first is None:
+                first = {r.source: r for r in rows}
+            same = [r for r in rows if r.source in first]
+            res["agree_with_first"] = sum((r.identified, r.best_p) == (first[r.source].identified,
+                                                                       first[r.source].best_p) for r in same)
+            res["compared"] = len(same)
+            results.append(res)
+            print(json.dumps(res), flush=True)
     from PIL import Image
 
     with Image.open(paths[0]) as first_image:
         image_size = list(first_image.size)
-    out = dict(settings=vars(args), machine=_machine(args), image_size=image_size, marks=len(marks),
-               results=results)
+    summary = []
+    for mode in modes:
+        runs = [r for r in results if r["mode"] == mode]
+        summary.append(dict(mode=mode, workers=runs[0].get("workers", 1), images=runs[0]["images"],
+                            images_per_s=statistics.median(r["images_per_s"] for r in runs),
+                            runs=[round(r["images_per_s"], 3) for r in runs], identified=runs[0]["identified"],
+                            errors=runs[0]["errors"], agree=sum(r["agree_with_first"] for r in runs),
+                            compared=sum(r["compared"] for r in runs)))
+    machine = _machine(args)
+    out = dict(settings=vars(args), machine=machine, image_size=image_size, marks=len(marks),
+               summary=summary, results=results)
     dest = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / f"scan_{args.device}.json"
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_name(f".{dest.name}.tmp")
     tmp.write_text(json.dumps(out, indent=1) + "\n")
     tmp.replace(dest)
-    print(f"\n{'mode':<11} {'workers':>7} {'images':>7} {'seconds':>8} {'images/s':>9} {'identified':>10} "
-          f"{'errors':>6} {'agree':>9}")
-    for r in results:
-        print(f"{r['mode']:<11} {r.get('workers', 1):>7} {r['images']:>7} {r['seconds']:>8.1f} "
-              f"{r['images_per_s']:>9.2f} {r['identified']:>10} {r['errors']:>6} "
-              f"{r['agree_with_first']:>4}/{r['compared']:<4}")
+    print(f"\n{image_size[0]}x{image_size[1]}, {len(marks)} marks, batch {args.batch_size}, {args.readers} readers, "
+          f"torch threads {machine['torch_threads']}, load {os.getloadavg()[0]:.1f}")
+    print(f"{'mode':<11} {'workers':>7} {'images':>7} {'images/s (median)':>18} {'runs':<24} {'identified':>10} "
+          f"{'errors':>6} {'agree':>11}")
+    for r in summary:
+        print(f"{r['mode']:<11} {r['workers']:>7} {r['images']:>7} {r['images_per_s']:>18.2f} "
+              f"{','.join(map(str, r['runs'])):<24} {r['identified']:>10} {r['errors']:>6} "
+              f"{r['agree']:>5}/{r['compared']:<5}")
     print(f"written {dest}")
     return 0
 
