@@ -3,7 +3,9 @@
 Every image file is one source, every video one source (its frames taken together). Each source gets
 the result :func:`gsw.mark.identify.identify` would give it alone (every registered mark tested by its
 origin's test -- random: the exact randomization test, chosen: the calibrated null model -- with the scale
-search, and Holm's family-wise correction over the marks), computed as a pipeline:
+search, and Holm's family-wise correction over the marks; batching changes the decoder's outputs only by
+float rounding, which the tests, reading signs and ranks, see only when two logits, or one and 0, lie
+within it: :mod:`gsw.mark.identify`), computed as a pipeline:
 
 1. ``readers`` threads read sources ahead of the decoder (PIL and PyAV release the GIL), at most
    ``2 x batch_size`` sources ahead;
@@ -13,7 +15,7 @@ search, and Holm's family-wise correction over the marks), computed as a pipelin
 3. each source is tested on its own decoder outputs (:func:`gsw.mark.identify.identify_readings`).
 
 A file that cannot be read (or that the decoder cannot read) gets a row with its ``error``; the others are
-scanned. With Ray installed and at least :data:`RAY_DATA_MIN_SOURCES` sources (or a cluster ``address``),
+scanned. With Ray Data installed (``pip install gsw[ray]``) and at least :data:`RAY_DATA_MIN_SOURCES` sources (or a cluster ``address``),
 the paths go to Ray Data workers instead (``map_batches``, one worker per GPU on CUDA or per CPU), each
 running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size`` sources; the rows come
 back in input order.
