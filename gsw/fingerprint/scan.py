@@ -12,7 +12,8 @@ within it: :mod:`gsw.mark.identify`), computed as a pipeline:
 2. consecutive sources are taken together until they hold ``batch_size`` images; the decoders (loaded once,
    :func:`gsw.mark.identify.plan_identify`) read all their images together, images of one shape in batches
    of up to ``batch_size`` (:func:`gsw.mark.identify.decode_sources`);
-3. each source is tested on its own decoder outputs (:func:`gsw.mark.identify.identify_readings`).
+3. each source is tested on its own decoder outputs (:func:`gsw.mark.identify.identify_readings`), while
+   the next group is decoded on a thread.
 
 A file that cannot be read (or that the decoder cannot read) gets a row with its ``error``; the others are
 scanned. With Ray Data installed (``pip install gsw[ray]``) and at least :data:`RAY_DATA_MIN_SOURCES` sources (or a cluster ``address``),
@@ -26,7 +27,7 @@ from __future__ import annotations
 import glob
 import os
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from itertools import islice
 from pathlib import Path
@@ -172,6 +173,8 @@ def _decode(sources: list[list[torch.Tensor]], plan: IdentifyPlan, batch_size: i
     the decoder cannot read gets its own error (a string) and the others their readings."""
     from gsw.mark.identify import decode_sources
 
+    if not sources:
+        return []
     try:
         return list(decode_sources(sources, plan, batch_size=batch_size))
     except (RuntimeError, ValueError) as err:
@@ -199,15 +202,28 @@ def _row(path: Path, images: int, error: str, readings: SourceReadings | str | N
 
 def _scan_planned(paths: Sequence[Path], plan: IdentifyPlan, *, fpr: float, frames: int, batch_size: int,
                   readers: int, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
-    """:func:`scan_sources` with the decoders already loaded (``plan``): what every Ray worker runs."""
-    rows = []
-    for chunk in _chunks(_read_ahead(paths, frames, readers, ahead=max(2 * batch_size, readers)), batch_size):
-        readable = [images for _, images, _ in chunk if images]
-        decoded = iter(_decode(readable, plan, batch_size) if readable else [])
+    """:func:`scan_sources` with the decoders already loaded (``plan``): what every Ray worker runs.
+
+    A chunk of sources is decoded on a thread while the previous chunk is tested here (the decoder's
+    kernels release the GIL), so that a GPU does not wait for the tests."""
+    rows: list[ScanRow] = []
+
+    def finish(chunk: list[tuple[Path, list[torch.Tensor], str]], decoding: Future) -> None:
+        decoded = iter(decoding.result())
         for path, images, error in chunk:
             rows.append(_row(path, len(images), error, next(decoded) if images else None, plan, fpr))
             if on_row is not None:
                 on_row(rows[-1])
+
+    previous = None
+    with ThreadPoolExecutor(max_workers=1) as decoder:
+        for chunk in _chunks(_read_ahead(paths, frames, readers, ahead=max(2 * batch_size, readers)), batch_size):
+            decoding = decoder.submit(_decode, [images for _, images, _ in chunk if images], plan, batch_size)
+            if previous is not None:
+                finish(*previous)
+            previous = (chunk, decoding)
+        if previous is not None:
+            finish(*previous)
     return rows
 
 
