@@ -20,7 +20,10 @@
      (one GPU);
    * ``ray``: ``scan(use_ray=True, workers=--workers)`` on a local Ray cluster started here with ``--gpus``
      GPUs (``CUDA_VISIBLE_DEVICES`` restricted to the first ``--gpus`` when it is not set) or, on the CPU,
-     ``--workers`` CPUs: one Ray Data worker per GPU (per CPU), each running the batched pipeline.
+     ``--workers`` CPUs: one Ray Data worker per GPU (per CPU), each running the batched pipeline. Ray Data
+     starts its workers for every scan; after the timed scan, the same scan over one file per worker is
+     timed (``startup_s``: worker start, imports, decoder loading), and ``images_per_s_after_startup``
+     divides by the difference (an estimate of the steady rate).
 
    The modes run in turn ``--repeats`` times (interleaved, so that a change of the machine's load hits them
    alike); the summary gives each mode's median. Every run's rows are compared with the first run's
@@ -29,16 +32,17 @@
    results, and a summary table on stdout.
 
 CPU (this 2-core machine; BENCHMARKS.md "Per-recipient fingerprints", `gsw scan`):
-    python benchmarks/scan_throughput.py --images 64 --size 256 --marks 14 --modes per-source,batched,ray \\
-        --workers 2 --out benchmarks/results/scan_cpu.json
+    python benchmarks/scan_throughput.py --images 48 --size 256 --marks 14 --modes per-source,batched,ray \
+        --workers 2 --repeats 3 --threads 1 --workdir /tmp/scan48 --out benchmarks/results/scan_cpu.json
 
-GPU, 10,000 images at 800x800 on 1 and 2 GPUs of one host (#27; Ray with its data extra must be importable;
-the crawl, ~10 GB of JPEG/PNG, is written once into --workdir and reused by the second command):
-    python benchmarks/scan_throughput.py --images 10000 --size 800 --marks 100 --device cuda --gpus 1 \\
-        --modes per-source,batched,ray --per-source-images 500 --workdir /tmp/scan10k \\
+GPU, 10,000 images at 800x800 against 64 marks on 1 and 2 GPUs of one host (#27; Ray with its data extra must
+be importable; the crawl, ~1-2 GB of JPEG and PNG, is written once into --workdir and reused by the second
+command; ``--per-source-images 500`` times the old path on the first 500 files only):
+    python benchmarks/scan_throughput.py --images 10000 --size 800 --marks 64 --device cuda --gpus 1 \
+        --readers 8 --modes per-source,batched,ray --per-source-images 500 --workdir /tmp/scan10k \
         --out benchmarks/results/scan_cuda_1gpu.json
-    python benchmarks/scan_throughput.py --images 10000 --size 800 --marks 100 --device cuda --gpus 2 \\
-        --modes ray --workdir /tmp/scan10k --out benchmarks/results/scan_cuda_2gpu.json
+    python benchmarks/scan_throughput.py --images 10000 --size 800 --marks 64 --device cuda --gpus 2 \
+        --readers 8 --modes ray --workdir /tmp/scan10k --out benchmarks/results/scan_cuda_2gpu.json
 """
 
 from __future__ import annotations
@@ -226,7 +230,12 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
     if mode == "ray":
         import ray
 
-        res["workers"] = args.workers or int(ray.cluster_resources().get("GPU" if device else "CPU", 1))
+        res["workers"] = workers = args.workers or int(ray.cluster_resources().get("GPU" if device else "CPU", 1))
+        t0 = time.perf_counter()  # the same scan over one file per worker: the workers' start, decoders' loading
+        scan(paths[:workers], marks, device=device, use_ray=True, workers=workers, batch_size=args.batch_size,
+             readers=args.readers)
+        res["startup_s"] = time.perf_counter() - t0
+        res["images_per_s_after_startup"] = len(paths) / max(seconds - res["startup_s"], 1e-9)
     return res, rows
 
 
@@ -272,6 +281,8 @@ def main() -> int:
         summary.append(dict(mode=mode, workers=runs[0].get("workers", 1), images=runs[0]["images"],
                             images_per_s=statistics.median(r["images_per_s"] for r in runs),
                             runs=[round(r["images_per_s"], 3) for r in runs], identified=runs[0]["identified"],
+                            after_startup=statistics.median(r.get("images_per_s_after_startup", r["images_per_s"])
+                                                            for r in runs),
                             errors=runs[0]["errors"], agree=sum(r["agree_with_first"] for r in runs),
                             compared=sum(r["compared"] for r in runs)))
     machine = _machine(args)
@@ -284,10 +295,10 @@ def main() -> int:
     tmp.replace(dest)
     print(f"\n{image_size[0]}x{image_size[1]}, {len(marks)} marks, batch {args.batch_size}, {args.readers} readers, "
           f"torch threads {machine['torch_threads']}, load {os.getloadavg()[0]:.1f}")
-    print(f"{'mode':<11} {'workers':>7} {'images':>7} {'images/s (median)':>18} {'runs':<24} {'identified':>10} "
-          f"{'errors':>6} {'agree':>11}")
+    print(f"{'mode':<11} {'workers':>7} {'images':>7} {'images/s (median)':>18} {'after startup':>13} {'runs':<24} "
+          f"{'identified':>10} {'errors':>6} {'agree':>11}")
     for r in summary:
-        print(f"{r['mode']:<11} {r['workers']:>7} {r['images']:>7} {r['images_per_s']:>18.2f} "
+        print(f"{r['mode']:<11} {r['workers']:>7} {r['images']:>7} {r['images_per_s']:>18.2f} {r['after_startup']:>13.2f} "
               f"{','.join(map(str, r['runs'])):<24} {r['identified']:>10} {r['errors']:>6} "
               f"{r['agree']:>5}/{r['compared']:<5}")
     print(f"written {dest}")

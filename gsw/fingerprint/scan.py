@@ -120,6 +120,7 @@ class ScanRow:
 
 
 def _check_batching(batch_size: int, readers: int) -> None:
+    """Raises a ValueError naming ``batch_size`` or ``readers`` when it is not a positive int."""
     for name, value in (("batch_size", batch_size), ("readers", readers)):
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -136,6 +137,7 @@ def _load(path: Path, frames: int) -> tuple[list[torch.Tensor], str]:
 
 
 def _why(err: BaseException) -> str:
+    """An error's message on one line (a report cell)."""
     return " ".join(str(err).split()) or type(err).__name__
 
 
@@ -176,7 +178,7 @@ def _decode(sources: list[list[torch.Tensor]], plan: IdentifyPlan, batch_size: i
     if not sources:
         return []
     try:
-        return list(decode_sources(sources, plan, batch_size=batch_size))
+        return decode_sources(sources, plan, batch_size=batch_size)
     except (RuntimeError, ValueError) as err:
         if len(sources) == 1:
             return [_why(err)]
@@ -185,6 +187,8 @@ def _decode(sources: list[list[torch.Tensor]], plan: IdentifyPlan, batch_size: i
 
 def _row(path: Path, images: int, error: str, readings: SourceReadings | str | None, plan: IdentifyPlan,
          fpr: float) -> ScanRow:
+    """A source's row: its identification from ``readings`` (:func:`_decode`'s output, an error string, or
+    None for a source that could not be read)."""
     from gsw.mark.identify import identify_readings
 
     row = ScanRow(str(path), images, error=error)
