@@ -77,7 +77,7 @@ def _parse_args() -> argparse.Namespace:
     ap.add_argument("--device", default="cpu", help="cpu or cuda")
     ap.add_argument("--gpus", type=int, default=0, help="GPUs of the local Ray cluster (and CUDA_VISIBLE_DEVICES)")
     ap.add_argument("--workers", type=int, default=None, help="Ray workers (default: --gpus, or the CPU count)")
-    ap.add_argument("--batch-size", type=int, default=64)
+    ap.add_argument("--batch-size", type=int, default=None, help="default: gsw's for the device (64 CUDA, 4 CPU)")
     ap.add_argument("--readers", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=1, help="runs of every mode, interleaved")
     ap.add_argument("--threads", type=int, default=0, help="torch threads of this process (0: torch's default)")
@@ -293,7 +293,8 @@ def main() -> int:
     tmp = dest.with_name(f".{dest.name}.tmp")
     tmp.write_text(json.dumps(out, indent=1) + "\n")
     tmp.replace(dest)
-    print(f"\n{image_size[0]}x{image_size[1]}, {len(marks)} marks, batch {args.batch_size}, {args.readers} readers, "
+    print(f"\n{image_size[0]}x{image_size[1]}, {len(marks)} marks, batch {args.batch_size or 'default'}, "
+          f"{args.readers} readers, "
           f"torch threads {machine['torch_threads']}, load {os.getloadavg()[0]:.1f}")
     print(f"{'mode':<11} {'workers':>7} {'images':>7} {'images/s (median)':>18} {'after startup':>13} {'runs':<24} "
           f"{'identified':>10} {'errors':>6} {'agree':>11}")

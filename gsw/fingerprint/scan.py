@@ -40,13 +40,16 @@ from gsw.stats import DETECTION_FPR
 if TYPE_CHECKING:
     from gsw.mark.identify import IdentifyPlan, SourceReadings
 
-__all__ = ["DEFAULT_BATCH_SIZE", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
+__all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
            "expand_inputs", "scan", "scan_sources"]
 
 #: Sources from which :func:`scan` uses Ray Data (when installed) rather than one process.
 RAY_DATA_MIN_SOURCES = 256
-#: Images per decoder call (and per group of consecutive sources decoded together).
-DEFAULT_BATCH_SIZE = 64
+#: Images per decoder call (and per group of consecutive sources decoded together) by device type: on a GPU
+#: large batches amortise the per-call cost; on a CPU the decoder is compute-bound and batches beyond a few
+#: images run slower per image (measured on a 2-core CPU at 256x256: ~0.64 s per image in batches of 48
+#: against ~0.47 s one by one, BENCHMARKS.md).
+DEFAULT_BATCH_SIZES = {"cuda": 64, "cpu": 4}
 #: Threads reading (decoding the files of) sources ahead of the decoder.
 DEFAULT_READERS = 4
 #: A Ray Data worker is handed this many x ``batch_size`` sources per call.
@@ -119,11 +122,18 @@ class ScanRow:
         return asdict(self)
 
 
-def _check_batching(batch_size: int, readers: int) -> None:
-    """Raises a ValueError naming ``batch_size`` or ``readers`` when it is not a positive int."""
+def _batching(batch_size: int | None, readers: int, device: torch.device | str | None) -> int:
+    """``batch_size``, or the default of ``device`` (:data:`DEFAULT_BATCH_SIZES`) when None.
+
+    Raises:
+        ValueError: ``batch_size`` or ``readers`` not a positive int.
+    """
+    if batch_size is None:
+        batch_size = DEFAULT_BATCH_SIZES.get(torch.device(device or "cpu").type, DEFAULT_BATCH_SIZES["cpu"])
     for name, value in (("batch_size", batch_size), ("readers", readers)):
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return batch_size
 
 
 def _load(path: Path, frames: int) -> tuple[list[torch.Tensor], str]:
@@ -232,7 +242,7 @@ def _scan_planned(paths: Sequence[Path], plan: IdentifyPlan, *, fpr: float, fram
 
 
 def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTION_FPR,
-                 device: torch.device | None = None, frames: int = 16, batch_size: int = DEFAULT_BATCH_SIZE,
+                 device: torch.device | None = None, frames: int = 16, batch_size: int | None = None,
                  readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
     """Identifies each source in this process, the images of consecutive sources decoded in batches.
 
@@ -249,7 +259,8 @@ def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTI
         fpr: family-wise false-positive rate per source.
         device: where to decode (None: the CPU).
         frames: frames read per video.
-        batch_size: images per decoder call (and per group of sources).
+        batch_size: images per decoder call (and per group of sources); None: :data:`DEFAULT_BATCH_SIZES`
+            of ``device``.
         readers: threads reading sources.
         on_row: called after each source (progress).
 
@@ -262,7 +273,7 @@ def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTI
     """
     from gsw.mark.identify import plan_identify
 
-    _check_batching(batch_size, readers)
+    batch_size = _batching(batch_size, readers, device)
     plan = plan_identify(marks, device=device or "cpu")
     return _scan_planned(paths, plan, fpr=fpr, frames=frames, batch_size=batch_size, readers=readers,
                          on_row=on_row)
@@ -316,7 +327,7 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
 
 def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = DETECTION_FPR,
          device: torch.device | None = None, frames: int = 16, use_ray: bool | None = None,
-         address: str | None = None, workers: int | None = None, batch_size: int = DEFAULT_BATCH_SIZE,
+         address: str | None = None, workers: int | None = None, batch_size: int | None = None,
          readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
     """Tests every image and video found in ``inputs`` against the registered marks.
 
@@ -330,7 +341,8 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
             :data:`RAY_DATA_MIN_SOURCES` sources or an ``address``.
         address: a Ray cluster to join.
         workers: Ray Data workers (default: one per CPU, or per GPU on CUDA).
-        batch_size: images per decoder call (in this process and in every Ray worker).
+        batch_size: images per decoder call (in this process and in every Ray worker); None:
+            :data:`DEFAULT_BATCH_SIZES` of ``device``.
         readers: threads reading sources (in this process and in every Ray worker).
         on_row: called after each source in this process (progress; not called with Ray).
 
@@ -343,7 +355,7 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
     """
     if not marks:
         raise ValueError("the registry holds no marks")
-    _check_batching(batch_size, readers)
+    batch_size = _batching(batch_size, readers, device)
     paths = expand_inputs(inputs)
     want_ray = use_ray if use_ray is not None else bool(address) or len(paths) >= RAY_DATA_MIN_SOURCES
     if want_ray and not _ray_data_available():
