@@ -31,9 +31,10 @@
 4. A JSON (``--out``) with the machine, versions, load averages before/after every mode, the settings and the
    results, and a summary table on stdout.
 
-CPU (this 2-core machine; BENCHMARKS.md "Per-recipient fingerprints", `gsw scan`):
+CPU (this 2-core machine; BENCHMARKS.md "Per-recipient fingerprints", `gsw scan`; add ``--batch-size 64`` for
+scan_cpu_batch64.json):
     python benchmarks/scan_throughput.py --images 48 --size 256 --marks 14 --modes per-source,batched,ray \
-        --workers 2 --repeats 3 --threads 1 --workdir /tmp/scan48 --out benchmarks/results/scan_cpu.json
+        --workers 2 --repeats 2 --threads 1 --workdir /tmp/scan48 --out benchmarks/results/scan_cpu.json
 
 GPU, 10,000 images at 800x800 against 64 marks on 1 and 2 GPUs of one host (#27; Ray with its data extra must
 be importable; the crawl, ~1-2 GB of JPEG and PNG, is written once into --workdir and reused by the second
