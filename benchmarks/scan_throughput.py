@@ -300,7 +300,8 @@ def main() -> int:
     print(f"{'mode':<11} {'workers':>7} {'images':>7} {'images/s (median)':>18} {'after startup':>13} {'runs':<24} "
           f"{'identified':>10} {'errors':>6} {'agree':>11}")
     for r in summary:
-        print(f"{r['mode']:<11} {r['workers']:>7} {r['images']:>7} {r['images_per_s']:>18.2f} {r['after_startup']:>13.2f} "
+        print(f"{r['mode']:<11} {r['workers']:>7} {r['images']:>7} {r['images_per_s']:>18.2f} "
+              f"{r['after_startup']:>13.2f} "
               f"{','.join(map(str, r['runs'])):<24} {r['identified']:>10} {r['errors']:>6} "
               f"{r['agree']:>5}/{r['compared']:<5}")
     print(f"written {dest}")

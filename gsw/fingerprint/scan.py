@@ -16,10 +16,10 @@ within it: :mod:`gsw.mark.identify`), computed as a pipeline:
    the next group is decoded on a thread.
 
 A file that cannot be read (or that the decoder cannot read) gets a row with its ``error``; the others are
-scanned. With Ray Data installed (``pip install gsw[ray]``) and at least :data:`RAY_DATA_MIN_SOURCES` sources (or a cluster ``address``),
-the paths go to Ray Data workers instead (``map_batches``, one worker per GPU on CUDA or per CPU), each
-running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size`` sources; the rows come
-back in input order.
+scanned. With Ray Data installed (``pip install gsw[ray]``) and at least :data:`RAY_DATA_MIN_SOURCES` sources
+(or a cluster ``address``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU on
+CUDA or per CPU), each running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size``
+sources; the rows come back in input order.
 """
 
 from __future__ import annotations

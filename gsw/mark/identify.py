@@ -53,8 +53,8 @@ from gsw.mark.scales import Reading, read_images
 from gsw.registry import Mark, Registry, shipped_decoder_sha256
 from gsw.stats import DETECTION_FPR, ORIGINS
 
-__all__ = ["DecoderGroup", "Identification", "IdentifyPlan", "MarkBatch", "MarkResult", "SourceReadings", "decode_sources",
-           "identify", "identify_readings", "plan_identify"]
+__all__ = ["DecoderGroup", "Identification", "IdentifyPlan", "MarkBatch", "MarkResult", "SourceReadings",
+           "decode_sources", "identify", "identify_readings", "plan_identify"]
 
 ImageLike = Union[Tensor, Sequence[Tensor]]
 
