@@ -100,3 +100,16 @@ def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
     assert (tmp_path / "died").exists()
     failed = map_ray(dies_once, str(tmp_path / "again"), [3], lambda i, r: None, max_retries=0)
     assert [i for i, _ in failed] == [0]
+
+
+def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path) -> None:
+    """Ray Data, 2 CPU workers, blocks of 4 x 2 sources: the local rows, in input order, errors kept."""
+    from helpers import scan_crawl
+
+    from gsw.fingerprint.scan import scan
+
+    marks = scan_crawl(tmp_path / "web")
+    local = scan([tmp_path / "web"], marks, use_ray=False, batch_size=2)
+    remote = scan([tmp_path / "web"], marks, use_ray=True, workers=2, batch_size=2)
+    assert [r.to_dict() for r in remote] == [r.to_dict() for r in local]
+    assert sum(bool(r.error) for r in remote) == 2 and {"alice", "carol"} <= {r.identified for r in remote}

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, add_resize_images_option,
                             REGISTRY_HELP, positive_int, print_json, reading)
+from gsw.fingerprint.scan import DEFAULT_BATCH_SIZES, DEFAULT_READERS
 from gsw.stats import DETECTION_FPR
 
 __all__ = ["register", "cmd_fingerprint", "cmd_scan"]
@@ -73,6 +74,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_device_option(sc)
     _add_ray_options(sc)
     sc.add_argument("--workers", type=positive_int, default=None, help="Ray Data workers (default: one per CPU/GPU)")
+    sc.add_argument("--batch-size", type=positive_int, default=None,
+                    help="images per decoder call (default: " + ", ".join(f"{n} on {d}" for d, n in
+                                                                      DEFAULT_BATCH_SIZES.items()) + ")")
+    sc.add_argument("--readers", type=positive_int, default=DEFAULT_READERS,
+                    help="threads reading images and videos, per process (default %(default)s)")
     sc.set_defaults(func=cmd_scan)
 
 
@@ -161,7 +167,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
         marks = reg.list()
     device = resolve_device(args.device)
     rows = scan(args.inputs, marks, fpr=args.fpr, device=None if device.type == "cpu" else device,
-                frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers)
+                frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers,
+                batch_size=args.batch_size, readers=args.readers)
     _write_report(rows, args.output)
     hits = [r for r in rows if r.identified]
     errors = [r for r in rows if r.error]

@@ -1,29 +1,59 @@
 """Scanning many images and videos for registered marks: :func:`scan`.
 
-Every image file is one source, every video one source (its frames taken together). Each source is
-tested against every registered mark by :func:`gsw.mark.identify.identify` (calibrated p-values,
-family-wise error control over the marks); the decoders are loaded once and reused for all sources.
-Sources are read ahead on a thread while the previous one is decoded; with Ray installed and many
-sources (or a cluster ``address``) they are spread over Ray Data workers instead.
+Every image file is one source, every video one source (its frames taken together). Each source gets
+the result :func:`gsw.mark.identify.identify` would give it alone (every registered mark tested by its
+origin's test -- random: the exact randomization test, chosen: the calibrated null model -- with the scale
+search, and Holm's family-wise correction over the marks; batching changes the decoder's outputs only by
+float rounding, which the tests, reading signs and ranks, see only when two logits, or one and 0, lie
+within it: :mod:`gsw.mark.identify`), computed as a pipeline:
+
+1. ``readers`` threads read sources ahead of the decoder (PIL and PyAV release the GIL), at most
+   ``2 x batch_size`` sources ahead;
+2. consecutive sources are taken together until they hold ``batch_size`` images; the decoders (loaded once,
+   :func:`gsw.mark.identify.plan_identify`) read all their images together, images of one shape in batches
+   of up to ``batch_size`` (:func:`gsw.mark.identify.decode_sources`);
+3. each source is tested on its own decoder outputs (:func:`gsw.mark.identify.identify_readings`), while
+   the next group is decoded on a thread.
+
+A file that cannot be read (or that the decoder cannot read) gets a row with its ``error``; the others are
+scanned. With Ray Data installed (``pip install gsw[ray]``) and at least :data:`RAY_DATA_MIN_SOURCES` sources
+(or a cluster ``address``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU on
+CUDA or per CPU), each running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size``
+sources; the rows come back in input order.
 """
 
 from __future__ import annotations
 
 import glob
 import os
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
+from itertools import islice
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import torch
 
 from gsw.stats import DETECTION_FPR
 
-__all__ = ["RAY_DATA_MIN_SOURCES", "ScanRow", "expand_inputs", "scan", "scan_sources"]
+if TYPE_CHECKING:
+    from gsw.mark.identify import IdentifyPlan, SourceReadings
+
+__all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
+           "expand_inputs", "scan", "scan_sources"]
 
 #: Sources from which :func:`scan` uses Ray Data (when installed) rather than one process.
 RAY_DATA_MIN_SOURCES = 256
+#: Images per decoder call (and per group of consecutive sources decoded together) by device type: on a GPU
+#: large batches amortise the per-call cost; on a CPU the decoder is compute-bound and batches beyond a few
+#: images run slower per image (measured on a 2-core CPU at 256x256: ~0.64 s per image in batches of 48
+#: against ~0.47 s one by one, BENCHMARKS.md).
+DEFAULT_BATCH_SIZES = {"cuda": 64, "cpu": 4}
+#: Threads reading (decoding the files of) sources ahead of the decoder.
+DEFAULT_READERS = 4
+#: A Ray Data worker is handed this many x ``batch_size`` sources per call.
+RAY_SOURCES_PER_CALL = 4
 
 
 def _suffixes() -> tuple[str, ...]:
@@ -92,33 +122,136 @@ class ScanRow:
         return asdict(self)
 
 
-def _decoders(marks: Sequence, device: torch.device | None) -> dict[str, torch.nn.Module]:
-    """The shipped decoders of the marks' lengths, loaded once, by their sha256 (what marks record)."""
-    from gsw.decoder.zoo import WeightsError, load_decoder
-    from gsw.registry import shipped_decoder_sha256
+def _batching(batch_size: int | None, readers: int, device: torch.device | str | None) -> int:
+    """``batch_size``, or the default of ``device`` (:data:`DEFAULT_BATCH_SIZES`) when None.
 
-    out = {}
-    for k in sorted({m.num_bits for m in marks}):
-        try:
-            out[shipped_decoder_sha256(k)] = load_decoder(k).to(device or "cpu")
-        except WeightsError:
-            continue
-    return out
+    Raises:
+        ValueError: ``batch_size`` or ``readers`` not a positive int.
+    """
+    if batch_size is None:
+        batch_size = DEFAULT_BATCH_SIZES.get(torch.device(device or "cpu").type, DEFAULT_BATCH_SIZES["cpu"])
+    for name, value in (("batch_size", batch_size), ("readers", readers)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return batch_size
 
 
 def _load(path: Path, frames: int) -> tuple[list[torch.Tensor], str]:
+    """A source's images, or ``([], why)`` when it cannot be read."""
     from gsw.io.video import load_images_or_video
 
     try:
         return load_images_or_video([path], frames), ""
     except (OSError, ValueError, ImportError, RuntimeError) as err:
-        return [], " ".join(str(err).split()) or type(err).__name__
+        return [], _why(err)
+
+
+def _why(err: BaseException) -> str:
+    """An error's message on one line (a report cell)."""
+    return " ".join(str(err).split()) or type(err).__name__
+
+
+def _read_ahead(paths: Sequence[Path], frames: int, readers: int,
+                ahead: int) -> Iterator[tuple[Path, list[torch.Tensor], str]]:
+    """``(path, images, error)`` per source, in order, read by ``readers`` threads at most ``ahead`` sources
+    ahead of the consumer (bounded memory)."""
+    with ThreadPoolExecutor(max_workers=readers) as pool:
+        todo = iter(paths)
+        pending: deque = deque((p, pool.submit(_load, p, frames)) for p in islice(todo, ahead))
+        while pending:
+            path, future = pending.popleft()
+            for p in islice(todo, 1):
+                pending.append((p, pool.submit(_load, p, frames)))
+            yield (path, *future.result())
+
+
+def _chunks(loaded: Iterator[tuple[Path, list[torch.Tensor], str]],
+            images: int) -> Iterator[list[tuple[Path, list[torch.Tensor], str]]]:
+    """Consecutive sources grouped until a group holds at least ``images`` images (or the sources end)."""
+    chunk: list[tuple[Path, list[torch.Tensor], str]] = []
+    count = 0
+    for item in loaded:
+        chunk.append(item)
+        count += len(item[1])
+        if count >= images:
+            yield chunk
+            chunk, count = [], 0
+    if chunk:
+        yield chunk
+
+
+def _decode(sources: list[list[torch.Tensor]], plan: IdentifyPlan, batch_size: int) -> list[SourceReadings | str]:
+    """:func:`decode_sources` of the sources together; when that fails, each source alone, so that a source
+    the decoder cannot read gets its own error (a string) and the others their readings."""
+    from gsw.mark.identify import decode_sources
+
+    if not sources:
+        return []
+    try:
+        return decode_sources(sources, plan, batch_size=batch_size)
+    except (RuntimeError, ValueError) as err:
+        if len(sources) == 1:
+            return [_why(err)]
+        return [out for images in sources for out in _decode([images], plan, batch_size)]
+
+
+def _row(path: Path, images: int, error: str, readings: SourceReadings | str | None, plan: IdentifyPlan,
+         fpr: float) -> ScanRow:
+    """A source's row: its identification from ``readings`` (:func:`_decode`'s output, an error string, or
+    None for a source that could not be read)."""
+    from gsw.mark.identify import identify_readings
+
+    row = ScanRow(str(path), images, error=error)
+    if isinstance(readings, str):
+        row.error = readings
+    elif readings is not None:
+        res = identify_readings(readings, plan, fpr=fpr)
+        row.identified = ";".join(res.recipients)
+        if res.results:
+            best = res.results[0]
+            row.best_label, row.best_adjusted_p, row.best_p = best.mark.label, best.adjusted_p_value, best.p_value
+            row.best_bit_accuracy = best.best_bit_accuracy
+    return row
+
+
+def _scan_planned(paths: Sequence[Path], plan: IdentifyPlan, *, fpr: float, frames: int, batch_size: int,
+                  readers: int, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+    """:func:`scan_sources` with the decoders already loaded (``plan``): what every Ray worker runs.
+
+    A chunk of sources is decoded on a thread while the previous chunk is tested here (the decoder's
+    kernels release the GIL), so that a GPU does not wait for the tests."""
+    rows: list[ScanRow] = []
+
+    def finish(chunk: list[tuple[Path, list[torch.Tensor], str]], decoding: Future) -> None:
+        decoded = iter(decoding.result())
+        for path, images, error in chunk:
+            rows.append(_row(path, len(images), error, next(decoded) if images else None, plan, fpr))
+            if on_row is not None:
+                on_row(rows[-1])
+
+    previous = None
+    with ThreadPoolExecutor(max_workers=1) as decoder:
+        for chunk in _chunks(_read_ahead(paths, frames, readers, ahead=max(2 * batch_size, readers)), batch_size):
+            decoding = decoder.submit(_decode, [images for _, images, _ in chunk if images], plan, batch_size)
+            if previous is not None:
+                finish(*previous)
+            previous = (chunk, decoding)
+        if previous is not None:
+            finish(*previous)
+    return rows
 
 
 def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTION_FPR,
-                 device: torch.device | None = None, frames: int = 16,
-                 on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
-    """Identifies each source in this process (reading the next one while the current one is decoded).
+                 device: torch.device | None = None, frames: int = 16, batch_size: int | None = None,
+                 readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+    """Identifies each source in this process, the images of consecutive sources decoded in batches.
+
+    Sources are read by ``readers`` threads ahead of the decoding (image and video decoding release the
+    GIL). Consecutive sources are taken together until they hold ``batch_size`` images; their images go
+    through each decoder together (:func:`gsw.mark.identify.decode_sources`: images of one shape in batches
+    of up to ``batch_size``), then each source is tested on its own decoder outputs
+    (:func:`gsw.mark.identify.identify_readings`): the p-values and identified recipients of
+    :func:`gsw.mark.identify.identify` on that source alone.
 
     Args:
         paths: image / video files.
@@ -126,42 +259,54 @@ def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTI
         fpr: family-wise false-positive rate per source.
         device: where to decode (None: the CPU).
         frames: frames read per video.
+        batch_size: images per decoder call (and per group of sources); None: :data:`DEFAULT_BATCH_SIZES`
+            of ``device``.
+        readers: threads reading sources.
         on_row: called after each source (progress).
-    """
-    from gsw.mark.identify import identify
 
-    decoders = _decoders(marks, device)
-    rows = []
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        loads: Iterator = pool.map(lambda p: _load(p, frames), paths)
-        for path, (images, error) in zip(paths, loads):
-            row = ScanRow(str(path), len(images), error=error)
-            if images:
-                res = identify(images, marks, fpr=fpr, decoders=decoders, device=device)
-                row.identified = ";".join(res.recipients)
-                if res.results:
-                    best = res.results[0]
-                    row.best_label, row.best_adjusted_p, row.best_p = best.mark.label, best.adjusted_p_value, best.p_value
-                    row.best_bit_accuracy = best.best_bit_accuracy
-            rows.append(row)
-            if on_row is not None:
-                on_row(row)
-    return rows
+    Returns:
+        One :class:`ScanRow` per path, in order; an unreadable source (or one the decoder cannot read) has
+        its ``error`` set and the others are scanned.
+
+    Raises:
+        ValueError: ``batch_size`` or ``readers`` < 1.
+    """
+    from gsw.mark.identify import plan_identify
+
+    batch_size = _batching(batch_size, readers, device)
+    plan = plan_identify(marks, device=device or "cpu")
+    return _scan_planned(paths, plan, fpr=fpr, frames=frames, batch_size=batch_size, readers=readers,
+                         on_row=on_row)
 
 
 class _RayScanner:  # pragma: no cover - runs in Ray Data workers
-    def __init__(self, marks: Sequence, fpr: float, frames: int, gpu: bool) -> None:
-        self.marks, self.fpr, self.frames = marks, fpr, frames
-        self.device = torch.device("cuda") if gpu else None
+    """One Ray Data worker: the decoders loaded once, each batch of paths scanned by :func:`_scan_planned`."""
+
+    def __init__(self, marks: Sequence, fpr: float, frames: int, batch_size: int, readers: int, gpu: bool) -> None:
+        from gsw.mark.identify import plan_identify
+
+        self.plan = plan_identify(marks, device="cuda" if gpu else "cpu")
+        self.fpr, self.frames, self.batch_size, self.readers = fpr, frames, batch_size, readers
 
     def __call__(self, batch: dict) -> dict:
-        rows = scan_sources([Path(p) for p in batch["path"]], self.marks, fpr=self.fpr, device=self.device,
-                            frames=self.frames)
+        rows = _scan_planned([Path(p) for p in batch["path"]], self.plan, fpr=self.fpr, frames=self.frames,
+                             batch_size=self.batch_size, readers=self.readers)
         return {k: [getattr(r, k) for r in rows] for k in ScanRow.__dataclass_fields__}
 
 
-def _scan_ray(paths: Sequence[Path], marks: Sequence, fpr: float, frames: int, gpu: bool, address: str | None,
-              workers: int | None) -> list[ScanRow]:
+def _ray_data_available() -> bool:
+    """Whether Ray Data imports (Ray with its ``data`` extra)."""
+    try:
+        import ray.data  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
+              workers: int | None, batch_size: int, readers: int) -> list[ScanRow]:
+    """Ray Data: one worker per GPU (or CPU), each scanning blocks of :data:`RAY_SOURCES_PER_CALL` x
+    ``batch_size`` sources; rows put back in input order."""
     import ray
 
     from gsw.fingerprint.run import connect_ray
@@ -170,19 +315,20 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, fpr: float, frames: int, g
     try:
         n = workers or max(1, int(ray.cluster_resources().get("GPU" if gpu else "CPU", 1)))
         ds = ray.data.from_items([{"path": str(p)} for p in paths])
-        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, gpu), batch_size=16,
-                            concurrency=n, num_gpus=1 if gpu else 0)
+        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu),
+                            batch_size=RAY_SOURCES_PER_CALL * batch_size, concurrency=n,
+                            num_gpus=1 if gpu else 0, num_cpus=1)
         by_path = {r["source"]: ScanRow(**r) for r in ds.iter_rows()}
     finally:
         if started:
             ray.shutdown()
-    return [by_path[str(p)] for p in paths]
+    return [by_path.get(str(p)) or ScanRow(str(p), error="no result came back from Ray") for p in paths]
 
 
 def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = DETECTION_FPR,
          device: torch.device | None = None, frames: int = 16, use_ray: bool | None = None,
-         address: str | None = None, workers: int | None = None,
-         on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+         address: str | None = None, workers: int | None = None, batch_size: int | None = None,
+         readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
     """Tests every image and video found in ``inputs`` against the registered marks.
 
     Args:
@@ -195,25 +341,31 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
             :data:`RAY_DATA_MIN_SOURCES` sources or an ``address``.
         address: a Ray cluster to join.
         workers: Ray Data workers (default: one per CPU, or per GPU on CUDA).
+        batch_size: images per decoder call (in this process and in every Ray worker); None:
+            :data:`DEFAULT_BATCH_SIZES` of ``device``.
+        readers: threads reading sources (in this process and in every Ray worker).
         on_row: called after each source in this process (progress; not called with Ray).
 
     Returns:
         One :class:`ScanRow` per source, in input order.
 
     Raises:
-        ValueError: no marks; nothing to scan.
+        ValueError: no marks; nothing to scan; ``batch_size`` or ``readers`` < 1.
+        ImportError: Ray asked for (``use_ray`` or ``address``) but not installed.
     """
-    from gsw.fingerprint.run import SCALE_OUT_HINT, ray_available
-
     if not marks:
         raise ValueError("the registry holds no marks")
+    batch_size = _batching(batch_size, readers, device)
     paths = expand_inputs(inputs)
     want_ray = use_ray if use_ray is not None else bool(address) or len(paths) >= RAY_DATA_MIN_SOURCES
-    if want_ray and not ray_available():
+    if want_ray and not _ray_data_available():
         if use_ray or address:
-            raise ImportError(SCALE_OUT_HINT.replace("running in one process. ", ""))
+            raise ImportError("scanning on Ray needs Ray Data (ray[data], with pandas and pyarrow): install the Ray "
+                              "extra (pip install gsw[ray])")
         want_ray = False
     if want_ray:
         gpu = device is not None and torch.device(device).type == "cuda"
-        return _scan_ray(paths, marks, fpr, frames, gpu, address, workers)
-    return scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, on_row=on_row)
+        return _scan_ray(paths, marks, fpr=fpr, frames=frames, gpu=gpu, address=address, workers=workers,
+                         batch_size=batch_size, readers=readers)
+    return scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, batch_size=batch_size,
+                        readers=readers, on_row=on_row)

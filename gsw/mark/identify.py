@@ -17,6 +17,14 @@ chosen mark whose fair-coin value is at or below ``fpr``, and for the ``exact`` 
 marks keep their fair-coin value, a lower bound already above ``fpr`` (``MarkResult.exact`` is False).
 Random messages need no screening: their exact p-values cost one matrix product for all marks.
 
+:func:`identify` is three steps, public for callers that test many sources (``gsw scan``,
+:mod:`gsw.fingerprint.scan`): :func:`plan_identify` (marks grouped by decoder and embedding size, each
+decoder loaded once), :func:`decode_sources` (the decoding: the images of many sources through each decoder
+in batches) and :func:`identify_readings` (the testing of one source from its decoder outputs). Decoder
+outputs depend on the batch only by float rounding (summation order of the kernels); the tests read signs
+and ranks of the logits, so a source's p-values and decisions do not depend on the sources decoded with it
+unless two of its logits lie within that rounding of each other (or of 0).
+
 The price of the correction: with M marks the best one must reach about ``fpr / M``. With one image at
 the default 1e-6 and 1,000 marks, a 32-bit mark needs all 32 bits right; 48 and 64 bits leave room for
 errors.
@@ -41,11 +49,12 @@ from torch import Tensor
 
 from gsw.decoder.null import NullModel
 from gsw.mark.evidence import resolve_null_model, score_messages
-from gsw.mark.scales import read_images
+from gsw.mark.scales import Reading, read_images
 from gsw.registry import Mark, Registry, shipped_decoder_sha256
 from gsw.stats import DETECTION_FPR, ORIGINS
 
-__all__ = ["MarkResult", "Identification", "identify"]
+__all__ = ["DecoderGroup", "Identification", "IdentifyPlan", "MarkBatch", "MarkResult", "SourceReadings",
+           "decode_sources", "identify", "identify_readings", "plan_identify"]
 
 ImageLike = Union[Tensor, Sequence[Tensor]]
 
@@ -131,11 +140,98 @@ class Identification:
                 "results": [r.to_dict(show_secret) for r in self.results]}
 
 
-def _groups(marks: Sequence[Mark], decoders: Mapping[str, torch.nn.Module]
-            ) -> tuple[dict[tuple[str, int], list[Mark]], list[Mark]]:
-    """Marks by (decoder sha256, bits) with a usable decoder, and the marks without one."""
+@dataclass
+class MarkBatch:
+    """The marks of one decoder, embedding size and origin: tested together by one test.
+
+    Attributes:
+        size: embedding size ``(height, width)`` of the marks, None for marks without one (scale search).
+        origin: ``"random"`` or ``"chosen"`` (:data:`gsw.stats.ORIGINS`).
+        marks: the marks.
+        messages: [M, k] their message bits (int8 0/1).
+    """
+
+    size: tuple[int, int] | None
+    origin: str
+    marks: list[Mark]
+    messages: np.ndarray
+
+
+@dataclass
+class DecoderGroup:
+    """The marks read by one decoder.
+
+    Attributes:
+        sha256: the decoder's sha256 (what its marks record).
+        num_bits: message length k.
+        decoder: the frozen decoder (images [B, 3, H, W] or LL2 subband -> logits [B, k]), on the device.
+        null_model: its null model (chosen messages; the fair coin for a custom decoder without one).
+        fair: the fair-coin model of k bits (screening of chosen messages).
+        batches: its marks by embedding size and origin.
+    """
+
+    sha256: str
+    num_bits: int
+    decoder: torch.nn.Module
+    null_model: NullModel
+    fair: NullModel
+    batches: list[MarkBatch]
+
+    @property
+    def sizes(self) -> list[tuple[int, int] | None]:
+        """The embedding sizes its images are read at (None: the scale search), in order."""
+        return list(dict.fromkeys(b.size for b in self.batches))
+
+
+@dataclass
+class IdentifyPlan:
+    """What :func:`decode_sources` reads and :func:`identify_readings` tests: built once for many sources by
+    :func:`plan_identify` (decoders loaded and checked, null models resolved).
+
+    Attributes:
+        groups: one per decoder of the tested marks.
+        skipped: marks not tested because their decoder is neither shipped nor given.
+    """
+
+    groups: list[DecoderGroup]
+    skipped: list[Mark]
+
+
+@dataclass
+class SourceReadings:
+    """One source's decoder outputs (:func:`decode_sources`).
+
+    Attributes:
+        num_images: images (frames) of the source.
+        readings: per ``(group index, embedding size)`` of the plan, one :class:`~gsw.mark.scales.Reading`
+            per image, in order.
+    """
+
+    num_images: int
+    readings: dict[tuple[int, tuple[int, int] | None], list[Reading]]
+
+
+def plan_identify(registry: Registry | Sequence[Mark], *, decoders: Mapping[str, torch.nn.Module] | None = None,
+                  device: str | torch.device = "cpu") -> IdentifyPlan:
+    """Groups the marks by decoder and embedding size, loads each decoder once on ``device``.
+
+    Args:
+        registry: an open :class:`~gsw.registry.Registry`, or the marks to test.
+        decoders: custom decoders by the sha256 their marks record (see :func:`identify`).
+        device: where to decode.
+
+    Returns:
+        An :class:`IdentifyPlan`.
+
+    Raises:
+        ValueError: a custom decoder that does not output ``[1, num_bits]``.
+    """
+    from gsw.mark.detect import load_decoder_for
+
+    marks = registry.list() if isinstance(registry, Registry) else list(registry)
+    decoders = decoders or {}
     shipped: dict[int, str | None] = {}
-    groups: dict[tuple[str, int], list[Mark]] = {}
+    by_decoder: dict[tuple[str, int], list[Mark]] = {}
     skipped = []
     for mark in marks:
         k = mark.num_bits
@@ -145,49 +241,113 @@ def _groups(marks: Sequence[Mark], decoders: Mapping[str, torch.nn.Module]
             except RuntimeError:  # WeightsError: no shipped decoder of that length
                 shipped[k] = None
         if mark.decoder_sha256 in decoders or mark.decoder_sha256 == shipped[k]:
-            groups.setdefault((mark.decoder_sha256, k), []).append(mark)
+            by_decoder.setdefault((mark.decoder_sha256, k), []).append(mark)
         else:
             skipped.append(mark)
-    return groups, skipped
+    groups = []
+    for (sha, k), group in by_decoder.items():
+        custom = decoders.get(sha)
+        decoder = load_decoder_for(k, custom, torch.device(device))
+        model, _ = resolve_null_model(k, decoder, None, custom is None)
+        by_size: dict[tuple[int, int] | None, list[Mark]] = {}
+        for mark in group:
+            by_size.setdefault((mark.height, mark.width) if mark.width and mark.height else None, []).append(mark)
+        batches = [MarkBatch(size, origin, same, np.stack([m.message.numpy() for m in same]).astype(np.int8))
+                   for size, marks_of_size in by_size.items() for origin in ORIGINS
+                   if (same := [m for m in marks_of_size if m.origin == origin])]
+        groups.append(DecoderGroup(sha, k, decoder, model, NullModel.fair(k), batches))
+    return IdentifyPlan(groups, skipped)
 
 
-def _score_group(images: list[Tensor], group: list[Mark], decoder: torch.nn.Module, model: NullModel,
-                 fpr: float, exact: int) -> list[tuple[Mark, float, list[int], bool]]:
-    """(mark, p-value, per-image matches, exact) of the marks of one decoder (see the module docstring)."""
-    out = []
-    by_size: dict[tuple[int, int] | None, list[Mark]] = {}
-    for mark in group:
-        size = (mark.height, mark.width) if mark.width and mark.height else None
-        by_size.setdefault(size, []).append(mark)
-    for size, marks in by_size.items():
-        readings = read_images(images, decoder, embed_size=size)  # once per embedding size
-        for origin in ORIGINS:
-            same = [m for m in marks if m.origin == origin]
-            if same:
-                score = _score_random if origin == "random" else _score_chosen
-                out += score(readings, same, model, fpr, exact)
+def decode_sources(sources: Sequence[Sequence[Tensor]], plan: IdentifyPlan, *,
+                   batch_size: int = 16) -> list[SourceReadings]:
+    """Runs every decoder of ``plan`` over the images of many sources together (the decoding half of
+    :func:`identify`).
+
+    For each decoder and embedding size, the images of all sources are read by
+    :func:`gsw.mark.scales.read_images`: images of one shape go through the decoder in batches of up to
+    ``batch_size``, whichever source they come from (each read at every scale of the search, or once at the
+    embedding size).
+
+    Args:
+        sources: per source, its [3, H, W] RGB images in [0, 1] (sizes may differ), on any device.
+        plan: :func:`plan_identify`.
+        batch_size: at most this many images of one shape per decoder call.
+
+    Returns:
+        One :class:`SourceReadings` per source, in order.
+
+    Raises:
+        ValueError: a source without images, a malformed image, ``batch_size`` < 1.
+    """
+    flat: list[Tensor] = []
+    counts = []
+    for s, images in enumerate(sources):
+        if len(images) == 0:
+            raise ValueError(f"source {s}: no images given")
+        flat += list(images)
+        counts.append(len(images))
+    out = [SourceReadings(n, {}) for n in counts]
+    if not flat:
+        return out
+    for g, group in enumerate(plan.groups):
+        for size in group.sizes:
+            readings = read_images(flat, group.decoder, embed_size=size, batch_size=batch_size)  # once per size
+            start = 0
+            for src, n in zip(out, counts):
+                src.readings[(g, size)] = readings[start:start + n]
+                start += n
     return out
 
 
-def _score_random(readings: list, marks: list[Mark], model: NullModel, fpr: float,
+def identify_readings(source: SourceReadings, plan: IdentifyPlan, *, fpr: float = DETECTION_FPR,
+                      exact: int = 10) -> Identification:
+    """Tests one source's readings against every mark of ``plan`` (the testing half of :func:`identify`):
+    each mark by its origin's test, then Holm's correction over all marks tested.
+
+    Args:
+        source: the source's readings (:func:`decode_sources` with the same ``plan``).
+        plan: :func:`plan_identify`.
+        fpr: family-wise false-positive rate.
+        exact: see :func:`identify`.
+
+    Returns:
+        An :class:`Identification`.
+
+    Raises:
+        ValueError: ``fpr`` outside (0, 1).
+    """
+    if not 0.0 < fpr < 1.0:
+        raise ValueError(f"fpr must lie in (0, 1), got {fpr}")
+    tested: list[tuple[Mark, float, list[int], bool]] = []
+    for g, group in enumerate(plan.groups):
+        for batch in group.batches:
+            score = _score_random if batch.origin == "random" else _score_chosen
+            tested += score(source.readings[(g, batch.size)], batch, group, fpr, exact)
+    adjusted = _holm([p for _, p, _, _ in tested])
+    results = sorted((MarkResult(m, p, a, row, a <= fpr, ex) for (m, p, row, ex), a in zip(tested, adjusted)),
+                     key=lambda r: (r.adjusted_p_value, r.p_value, r.mark.id))
+    return Identification([r for r in results if r.identified], results, plan.skipped, source.num_images, fpr)
+
+
+def _score_random(readings: list[Reading], batch: MarkBatch, group: DecoderGroup, fpr: float,
                   exact: int) -> list[tuple[Mark, float, list[int], bool]]:
-    """Random messages: the exact randomization test of every mark (``model``, ``fpr``, ``exact`` unused)."""
-    messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
-    sc = score_messages(readings, messages, origin="random")
-    return [(mark, float(sc.combined[j]), sc.matches[:, j].tolist(), True) for j, mark in enumerate(marks)]
+    """Random messages: the exact randomization test of every mark (``group``, ``fpr``, ``exact`` unused)."""
+    sc = score_messages(readings, batch.messages, origin="random")
+    return [(mark, float(sc.combined[j]), sc.matches[:, j].tolist(), True) for j, mark in enumerate(batch.marks)]
 
 
-def _score_chosen(readings: list, marks: list[Mark], model: NullModel, fpr: float,
+def _score_chosen(readings: list[Reading], batch: MarkBatch, group: DecoderGroup, fpr: float,
                   exact: int) -> list[tuple[Mark, float, list[int], bool]]:
     """Chosen messages: the calibrated null model, screened by the fair coin (see the module docstring)."""
-    messages = np.stack([m.message.numpy() for m in marks]).astype(np.int8)  # [M, k]
-    fair = score_messages(readings, messages, NullModel.fair(messages.shape[1]), origin="chosen")
+    messages = batch.messages
+    fair = score_messages(readings, messages, group.fair, origin="chosen")
     order = np.argsort(fair.combined, kind="stable")
     todo = sorted(set(order[:exact].tolist()) | set(np.flatnonzero(fair.combined <= fpr).tolist()))
-    calibrated = score_messages(readings, messages[todo], model, origin="chosen") if todo else None
+    calibrated = score_messages(readings, messages[todo], group.null_model, origin="chosen") if todo else None
     at = {j: i for i, j in enumerate(todo)}
     out = []
-    for j, mark in enumerate(marks):
+    for j, mark in enumerate(batch.marks):
         sc, col = (calibrated, at[j]) if j in at else (fair, j)
         out.append((mark, float(sc.combined[col]), sc.matches[:, col].tolist(), j in at))
     return out
@@ -218,7 +378,7 @@ def identify(images: ImageLike, registry: Registry | Sequence[Mark], *, fpr: flo
     """
     if not 0.0 < fpr < 1.0:
         raise ValueError(f"fpr must lie in (0, 1), got {fpr}")
-    from gsw.mark.detect import _as_images, load_decoder_for
+    from gsw.mark.detect import _as_images
 
     if isinstance(images, Tensor):
         images = list(images.unsqueeze(0) if images.dim() == 3 else images)
@@ -226,15 +386,5 @@ def identify(images: ImageLike, registry: Registry | Sequence[Mark], *, fpr: flo
     if not images:
         raise ValueError("no images given")
     images = [img[0] for img in _as_images(images)]
-    marks = registry.list() if isinstance(registry, Registry) else list(registry)
-    groups, skipped = _groups(marks, decoders or {})
-    tested: list[tuple[Mark, float, list[int], bool]] = []
-    for (sha, k), group in groups.items():
-        custom = (decoders or {}).get(sha)
-        decoder = load_decoder_for(k, custom, images[0].device)
-        model, _ = resolve_null_model(k, decoder, None, custom is None)
-        tested += _score_group(images, group, decoder, model, fpr, exact)
-    adjusted = _holm([p for _, p, _, _ in tested])
-    results = sorted((MarkResult(m, p, a, row, a <= fpr, ex) for (m, p, row, ex), a in zip(tested, adjusted)),
-                     key=lambda r: (r.adjusted_p_value, r.p_value, r.mark.id))
-    return Identification([r for r in results if r.identified], results, skipped, len(images), fpr)
+    plan = plan_identify(registry, decoders=decoders, device=images[0].device)
+    return identify_readings(decode_sources([images], plan)[0], plan, fpr=fpr, exact=exact)

@@ -1,0 +1,113 @@
+"""gsw scan's batched pipeline (gsw.fingerprint.scan): the results of identify on each source alone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from helpers import scan_crawl
+
+import gsw.fingerprint.scan
+import gsw.mark.identify
+import gsw.mark.scales
+from gsw.fingerprint.scan import expand_inputs, scan, scan_sources
+from gsw.io.video import load_images_or_video
+from gsw.mark.identify import decode_sources, identify, identify_readings, plan_identify
+
+pytest.importorskip("av")
+
+
+@pytest.fixture(scope="module")
+def crawl(tmp_path_factory) -> tuple[list[Path], list]:
+    root = tmp_path_factory.mktemp("scan")
+    marks = scan_crawl(root / "web")
+    return expand_inputs([root / "web"]), marks
+
+
+def _summary(found) -> list[tuple]:
+    return [(r.mark.label, r.p_value, r.adjusted_p_value, r.matches, r.identified, r.exact) for r in found.results]
+
+
+def test_decode_then_test_equals_identify_on_each_source(crawl) -> None:
+    paths, marks = crawl
+    sources = [load_images_or_video([p], 16) for p in paths if p.name not in ("broken.png", "empty.mp4")]
+    plan = plan_identify(marks)
+    decoded = decode_sources(sources, plan, batch_size=5)
+    for images, readings in zip(sources, decoded):
+        alone = identify(images, marks)
+        together = identify_readings(readings, plan)
+        assert _summary(together) == _summary(alone) and together.num_images == alone.num_images == len(images)
+    with pytest.raises(ValueError, match="source 1: no images"):
+        decode_sources([sources[0], []], plan)
+
+
+#: The chosen marks' messages are read from unmarked renders, which the calibrated null model discounts:
+#: they are identified at this level (not at the default 1e-6).
+FPR = 1e-4
+
+
+def test_scan_rows_equal_the_per_source_path(crawl) -> None:
+    paths, marks = crawl
+    rows = scan_sources(paths, marks, fpr=FPR, batch_size=4, readers=2)
+    assert [Path(r.source) for r in rows] == paths
+    by_name = {Path(r.source).name: r for r in rows}
+    assert by_name["img1.png"].identified == "alice" and by_name["wide0.jpg"].identified == "bob"
+    assert by_name["img3.png"].identified == "dave" and by_name["clip.mkv"].images == 3
+    assert by_name["clip.mkv"].identified == "carol" and by_name["img0.png"].identified == ""
+    for path, row in zip(paths, rows):
+        if path.name in ("broken.png", "empty.mp4"):
+            assert row.error and row.images == 0 and row.best_p is None
+            continue
+        alone = identify(load_images_or_video([path], 16), marks, fpr=FPR)
+        best = alone.results[0]
+        assert (row.identified, row.best_label, row.best_p, row.best_adjusted_p, row.images, row.error) == (
+            ";".join(alone.recipients), best.mark.label, best.p_value, best.adjusted_p_value, alone.num_images, "")
+    assert [r.to_dict() for r in scan_sources(paths, marks, fpr=FPR, batch_size=64,
+                                                           readers=1)] == [r.to_dict() for r in rows]
+
+
+def test_images_of_many_sources_share_decoder_calls(crawl, monkeypatch) -> None:
+    paths, marks = crawl
+    batches = []
+    real = gsw.mark.scales._decode
+
+    def counting(decoder, images):
+        batches.append(images.shape[0])
+        return real(decoder, images)
+
+    monkeypatch.setattr(gsw.mark.scales, "_decode", counting)
+    scan_sources(paths, marks, batch_size=64)
+    # one chunk: per reading, the six 96x96 PNGs and the video's 3 frames together, the two JPEGs together
+    assert max(batches) == 9 and len(batches) < sum(r for r in batches)
+
+
+def test_a_source_the_decoder_rejects_gets_an_error_and_the_others_are_scanned(crawl, monkeypatch) -> None:
+    paths, marks = crawl
+    real = gsw.mark.identify.read_images
+
+    def picky(images, decoder, **kwargs):
+        if any(img.shape[-1] == 112 for img in images):
+            raise RuntimeError("cannot read\n this size")
+        return real(images, decoder, **kwargs)
+
+    monkeypatch.setattr(gsw.mark.identify, "read_images", picky)
+    rows = {Path(r.source).name: r for r in scan_sources(paths, marks, batch_size=64)}
+    assert rows["wide0.jpg"].error == rows["wide1.jpg"].error == "cannot read this size"
+    assert rows["wide0.jpg"].images == 1 and rows["wide0.jpg"].best_p is None
+    assert rows["img1.png"].identified == "alice" and not rows["img1.png"].error
+
+
+def test_progress_and_bad_arguments(crawl, monkeypatch) -> None:
+    paths, marks = crawl
+    seen = []
+    rows = scan(paths[:3], marks, use_ray=False, batch_size=2, readers=3, on_row=seen.append)
+    assert seen == rows
+    for bad in (dict(batch_size=0), dict(readers=0), dict(batch_size=2.5)):
+        with pytest.raises(ValueError, match="must be a positive int"):
+            scan(paths[:1], marks, use_ray=False, **bad)
+    with pytest.raises(ValueError, match="no marks"):
+        scan(paths[:1], [], use_ray=False)
+    monkeypatch.setattr(gsw.fingerprint.scan, "_ray_data_available", lambda: False)
+    with pytest.raises(ImportError, match=r"pip install gsw\[ray\]"):
+        scan(paths[:1], marks, use_ray=True)
+    assert [r.source for r in scan(paths[:1], marks)] == [str(paths[0])]  # default: this process, quietly
