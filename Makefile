@@ -23,7 +23,7 @@ $(STAMP):
 	# Optional extras (pyproject.toml `test`): the grid's plots (matplotlib), video frames (PyAV, `gsw identify
 	# clip.mp4`), pycolmap for the COLMAP tests, Ray for `gsw fingerprint` / `gsw scan` on a cluster.
 	# Installed so their tests run.
-	$(PY) -m pip install -q matplotlib av pycolmap "ray>=2.9"
+	$(PY) -m pip install -q matplotlib av pycolmap "ray[data]>=2.9"
 	# gsplat's pure-Python strategies (DefaultStrategy) for the drop-in test of gsw.rasterization; its CUDA
 	# kernels are never used, so its (CUDA-only) dependencies are not installed.
 	$(PY) -m pip install -q --no-deps gsplat==1.5.3
