@@ -369,9 +369,10 @@ struct BackwardPixels {
 };
 static_assert(kTilePixels <= 256, "BackwardPixels::order packs the pixel index into 8 bits");
 
+// `count` is reusable per-thread storage (the counting sort of px.order).
 template <typename T>
 GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterGradParams<T>& g,
-                                         const TileView& v, BackwardPixels<T>& px) {
+                                         const TileView& v, BackwardPixels<T>& px, std::vector<int32_t>& count) {
   const int64_t P = int64_t(p.width) * p.height;
   px.max_n = 0;
   px.n_order = 0;
@@ -388,7 +389,7 @@ GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterG
       const int64_t pix = int64_t(py) * p.width + x;
       const int32_t n = p.n_contrib[pix];
       px.max_n = std::max(px.max_n, n);
-      if (n > 0) px.order[px.n_order++] = n << 8 | k;
+      if (n > 0) px.order[px.n_order++] = n << 8 | k;  // sorted below
       px.tr[k] = px.t_final[k] = p.final_T[pix];
       for (int c = 0; c < 3; ++c) px.v_color[c][k] = g.v_image[c * P + pix];
       px.v_depth[k] = g.v_depth ? g.v_depth[pix] : T(0);
@@ -399,7 +400,17 @@ GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterG
       px.has_t_final |= px.v_t_final[k] != T(0);
     }
   }
-  std::sort(px.order, px.order + px.n_order, [](int32_t a, int32_t b) { return a > b; });
+  // Counting sort by n_contrib, largest first (pixel order within one n_contrib does not matter).
+  count.assign(px.max_n + 1, 0);
+  for (int e = 0; e < px.n_order; ++e) ++count[px.order[e] >> 8];
+  for (int n = px.max_n, pos = 0; n > 0; --n) {
+    const int c = count[n];
+    count[n] = pos;
+    pos += c;
+  }
+  int32_t keys[kTilePixels];
+  std::copy(px.order, px.order + px.n_order, keys);
+  for (int e = 0; e < px.n_order; ++e) px.order[count[keys[e] >> 8]++] = keys[e];
 }
 
 // Backward of splat s (tile-local index j) over NB aligned lane blocks at once (blk[b].lanes: pixels
@@ -481,17 +492,18 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
   }
 }
 
-// Backward blending of one tile: per-splat cotangent records into scratch[slot].
+// Backward blending of one tile: per-splat cotangent records into scratch[slot] (`splats`,
+// `count`: reusable per-thread storage).
 template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
-                                  std::vector<PackedSplat<T>>& splats, T* scratch) {
+                                  std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* scratch) {
   constexpr int S = kSplatGradSize;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
   T* out = scratch + int64_t(S) * v.start;
   BackwardPixels<T> px;
-  load_backward_pixels(p, g, v, px);
+  load_backward_pixels(p, g, v, px, count);
   // Records of splats no pixel reaches are zero; the others are written once, by walk_back.
   std::fill(out + int64_t(S) * px.max_n, out + int64_t(S) * (v.end - v.start), T(0));
   if (px.has_depth && px.has_t_final)
@@ -523,7 +535,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   const auto recs = pack_gaussians(p);
   parallel_dynamic(num_tiles, [&](int64_t tile) {
     thread_local std::vector<PackedSplat<T>> splats;
-    backward_tile(p, g, recs.get(), tile, splats, scratch);
+    thread_local std::vector<int32_t> count;
+    backward_tile(p, g, recs.get(), tile, splats, count, scratch);
   });
   parallel_items(p.N, [&](int64_t i) {
     T acc[S];
