@@ -177,8 +177,8 @@ struct BlockCentres {
   }
 };
 
-// The blocks of splat s's rows [by0, by1) that hold a pixel of both its chords (`span`, from
-// row_spans) and `live`, in row-major order, with those pixels as their lanes. Returns their
+// The blocks of splat s's rows [by0, by1) that hold a pixel both on its chord (`span`, from
+// row_spans) and in `live`, in row-major order, with those pixels as their lanes. Returns their
 // number (`blocks` holds kTileBlocks).
 template <typename T>
 GSW_CPU_INLINE int collect_blocks(const PackedSplat<T>& s, const RowBits* span, const RowBits* live,
