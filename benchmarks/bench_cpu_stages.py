@@ -28,6 +28,7 @@ from bench_cpu import family_scene
 def _load_extension(path: str) -> None:
     """Registers the extension at ``path`` as ``gsw._C`` (before anything imports it)."""
     import gsw
+    import torch  # noqa: F401  (the extension links against libtorch: load it first)
 
     spec = importlib.util.spec_from_file_location("gsw._C", path)
     module = importlib.util.module_from_spec(spec)

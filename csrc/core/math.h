@@ -739,14 +739,6 @@ GSW_HD SplatGrad<T> splat_alpha_vjp_from_gaussian(const Sym2<T>& conic, T dx, T 
   g.mean2d.y = -(conic.b * dx + conic.c * dy) * v_power;
   return g;
 }
-// splat_alpha_vjp_from_gaussian at pixel centre (px, py).
-template <typename T>
-GSW_HD SplatGrad<T> splat_alpha_vjp(const Sym2<T>& conic, T mean_x, T mean_y, T px, T py,
-                                    T opacity, T v_alpha) {
-  const T dx = mean_x - px, dy = mean_y - py;
-  const T power = T(-0.5) * (conic.a * dx * dx + conic.c * dy * dy) - conic.b * dx * dy;
-  return splat_alpha_vjp_from_gaussian(conic, dx, dy, blend_exp(power), opacity, v_alpha);
-}
 
 // Whether a pixel with transmittance T stops before blending a splat of opacity alpha
 // (INRIA: that splat is not blended). A lane mask for lane vectors.
@@ -754,5 +746,77 @@ template <typename T>
 GSW_HD auto blend_terminates(T transmittance, T alpha) {
   return transmittance * (Scalar<T>(1) - alpha) < Scalar<T>(T_MIN);
 }
+
+// ------------------------------------------------------------------ per-pixel blend backward
+
+// Cotangents of one pixel's outputs, fixed during its back-to-front walk.
+template <typename T>
+struct PixelCotangents {
+  T color[3];   // v_image
+  T depth;      // v_depth
+  T t_final;    // the pixel's final transmittance T_final
+  T v_t_final;  // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final)
+};
+
+// State of one pixel's back-to-front walk over the splats it blended.
+template <typename T>
+struct BlendBackwardPixel {
+  T tr;         // transmittance behind the current splat (starts at T_final)
+  T behind[4];  // colour and depth behind the current splat, per unit transmittance
+};
+
+// One splat at one pixel: conic, offset (dx, dy) = mean2d - pixel centre, Gaussian factor
+// G = splat_gaussian(power), opacity and the forward's alpha there (0: not blended); colour and
+// depth are the splat's (Scalar<T>: the same for every lane).
+template <typename T>
+struct SplatAtPixel {
+  Sym2<T> conic;
+  T dx, dy, G, opacity, alpha;
+  Scalar<T> color[3], depth;
+};
+
+// Cotangents of one splat from one pixel: through alpha (mean2d, conic, opacity), then colour
+// and depth.
+template <typename T>
+struct BlendGrad {
+  SplatGrad<T> splat;
+  T color[3], depth;
+};
+
+// One step of a pixel's back-to-front blend backward: undoes splat s (T_i = T_{i+1} / (1 - alpha)),
+// returns its cotangents from this pixel and moves the colour/depth behind it past s. Where
+// alpha = 0 the state is unchanged and every cotangent is 0. kDepth / kFinalT = false leave out the
+// depth and T_final terms (identical results where v.depth / v.v_t_final are 0; v.depth /
+// v.t_final / v.v_t_final and px.behind[3] are then not read, and the returned depth is 0).
+template <bool kDepth = true, bool kFinalT = true, typename T>
+GSW_HD BlendGrad<T> blend_backward_step(const SplatAtPixel<T>& s, const PixelCotangents<T>& v,
+                                        BlendBackwardPixel<T>& px) {
+  using S = Scalar<T>;
+  const T om = S(1) - s.alpha;
+  const T inv_om = S(1) / om;
+  const T t = px.tr * inv_om;  // transmittance in front of s
+  px.tr = t;
+  const T w = s.alpha * t;
+  BlendGrad<T> g;
+  T v_alpha = (s.color[0] - px.behind[0]) * v.color[0] + (s.color[1] - px.behind[1]) * v.color[1] +
+              (s.color[2] - px.behind[2]) * v.color[2];
+  if constexpr (kDepth) v_alpha = v_alpha + (s.depth - px.behind[3]) * v.depth;
+  v_alpha = t * v_alpha;
+  if constexpr (kFinalT) v_alpha = v_alpha - v.t_final * inv_om * v.v_t_final;
+  g.splat = splat_alpha_vjp_from_gaussian(s.conic, s.dx, s.dy, s.G, s.opacity,
+                                          s.alpha > S(0) ? v_alpha : S(0));
+  for (int c = 0; c < 3; ++c) {
+    g.color[c] = w * v.color[c];
+    px.behind[c] = s.alpha * s.color[c] + om * px.behind[c];
+  }
+  if constexpr (kDepth) {
+    g.depth = w * v.depth;
+    px.behind[3] = s.alpha * s.depth + om * px.behind[3];
+  } else {
+    g.depth = T{};
+  }
+  return g;
+}
+
 
 }  // namespace gsw

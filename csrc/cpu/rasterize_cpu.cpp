@@ -118,14 +118,17 @@ constexpr int kTileAlloc = kTilePixels + kLaneBlock;
 // Margin (pixels) of the row chords against rounding (the chord is otherwise exact, like the box).
 constexpr double kChordMargin = 1e-2;
 
-// Tile-local x range [lo[ly], hi[ly]) of each tile row ly that splat s can reach: the pixel
-// centres on the chord of its skip ellipse at the row's pixel-centre height (widened by
-// kChordMargin), within its box [bx0, bx1). Lanes outside it would compute alpha = 0 (the ellipse is conservative by
+// A set of pixels of one tile row: bit lx stands for tile-local column lx.
+using RowBits = uint32_t;
+static_assert(TILE_SIZE < 32, "a tile row must fit a RowBits");
+
+// The pixels of each tile row ly that splat s can reach, as RowBits: the pixel centres on the
+// chord of its skip ellipse at the row's pixel-centre height (widened by kChordMargin), within
+// its box [bx0, bx1). Lanes outside it would compute alpha = 0 (the ellipse is conservative by
 // SKIP_LOG_MARGIN), so leaving them out changes no result. All TILE_SIZE rows in one SIMD loop;
 // NaN-safe (falls back to the box).
 template <typename T>
-GSW_CPU_INLINE void row_spans(const PackedSplat<T>& s, T x_centre0, T y_centre0, int32_t* lo,
-                              int32_t* hi) {
+GSW_CPU_INLINE void row_spans(const PackedSplat<T>& s, T x_centre0, T y_centre0, RowBits* span) {
   const T box0 = T(s.bx0), box1 = T(s.bx1);
   for (int ly = 0; ly < TILE_SIZE; ++ly) {
     const T dy = s.my - (y_centre0 + T(ly));
@@ -134,9 +137,8 @@ GSW_CPU_INLINE void row_spans(const PackedSplat<T>& s, T x_centre0, T y_centre0,
     const T mid = s.mx + s.b_over_a * dy - x_centre0;
     const T l = ceil(mid - half), h = floor(mid + half) + T(1);
     const T lc = l > box0 ? (l < box1 ? l : box1) : box0;
-    const T hc = h < box1 ? (h > lc ? h : lc) : box1;
-    lo[ly] = static_cast<int32_t>(lc);
-    hi[ly] = static_cast<int32_t>(hc);
+    const T hc = h < box1 ? (h > lc ? h : lc) : box1;  // lc <= hc
+    span[ly] = (RowBits(1) << static_cast<int32_t>(hc)) - (RowBits(1) << static_cast<int32_t>(lc));
   }
 }
 
@@ -152,49 +154,95 @@ struct SplatLanes {
         opacity(splat(s.opacity)) {}
 };
 
-// Lanes [lo, hi) of a block (lane indices relative to the block).
-template <typename T>
-GSW_CPU_INLINE MaskT<T> lane_range(int lo, int hi) {
-  const VecT<T> q = iota<T>();
-  return (q >= T(lo)) & (q < T(hi));
-}
+constexpr int kTileBlocks = kTilePixels / kLaneBlock;
 
-// Every kAliveCheckInterval splats, a tile checks whether any of its pixels is still open.
-constexpr int kAliveCheckInterval = 16;
-
-// One lane block of a splat's traversal: tile-local index of its first pixel, the centre of
-// that pixel and the mask of its open lanes on the splat's chord.
-template <typename T>
+// One lane block of a splat's traversal, packed: the block's index (its first pixel is
+// kLaneBlock * index) and its lanes to evaluate (bit q: pixel kLaneBlock * index + q).
 struct LaneBlock {
-  MaskT<T> open;
-  T pxc, pyc;
-  int k0;
+  uint32_t packed;  // index << kLaneBlock | lanes
+  GSW_CPU_INLINE int index() const { return static_cast<int>(packed >> kLaneBlock); }
+  GSW_CPU_INLINE int k0() const { return index() * kLaneBlock; }
+  GSW_CPU_INLINE uint32_t lanes() const { return packed & ((1u << kLaneBlock) - 1); }
 };
 
+// Pixel-centre coordinates of the first pixel of each lane block of a tile.
+template <typename T>
+struct BlockCentres {
+  T x[kTileBlocks], y[kTileBlocks];
+  GSW_CPU_INLINE BlockCentres(T x_centre0, T y_centre0) {
+    for (int b = 0; b < kTileBlocks; ++b) {
+      x[b] = x_centre0 + T(b * kLaneBlock % TILE_SIZE);
+      y[b] = y_centre0 + T(b * kLaneBlock / TILE_SIZE);
+    }
+  }
+};
+
+// The blocks of splat s's rows [by0, by1) that hold a pixel both on its chord (`span`, from
+// row_spans) and in `live`, in row-major order, with those pixels as their lanes. Returns their
+// number (`blocks` holds kTileBlocks).
+template <typename T>
+GSW_CPU_INLINE int collect_blocks(const PackedSplat<T>& s, const RowBits* span, const RowBits* live,
+                                  LaneBlock* blocks) {
+  constexpr RowBits kBlockBits = (RowBits(1) << kLaneBlock) - 1;
+  constexpr int kRowBlocks = TILE_SIZE / kLaneBlock;
+  int nb = 0;
+  for (int ly = s.by0; ly < s.by1; ++ly) {
+    const RowBits m = span[ly] & live[ly];
+    for (int rb = 0; rb < kRowBlocks; ++rb) {
+      const uint32_t lanes = (m >> (rb * kLaneBlock)) & kBlockBits;
+      blocks[nb] = LaneBlock{uint32_t(ly * kRowBlocks + rb) << kLaneBlock | lanes};  // kept if lanes != 0
+      nb += lanes != 0;
+    }
+  }
+  return nb;
+}
+
 // Blends splat j over NB lane blocks at once (independent work the CPU can overlap: a block
-// alone is one long dependency chain, exp() included). Per lane: w = blending weight (0 where
-// masked, skipped or terminating here), passed to pixel_fn(j, k0, w), then the transmittance
-// and last-contributor updates.
+// alone is one long dependency chain, exp() included). Per lane (open: one of the block's lanes
+// and tr > 0): w = blending weight (0 where not open, skipped or terminating here), passed to
+// pixel_fn(j, k0, w), then the transmittance (negated where the pixel terminates) and
+// last-contributor updates.
 template <int NB, typename T, typename F>
-GSW_CPU_INLINE void blend_blocks(const SplatLanes<T>& sl, const LaneBlock<T>* blk, int j, T* tr,
-                                 int32_t* last, F& pixel_fn) {
+GSW_CPU_INLINE void blend_blocks(const SplatLanes<T>& sl, const BlockCentres<T>& cen, const LaneBlock* blk, int j,
+                                 T* tr, int32_t* last, F& pixel_fn) {
   using V = VecT<T>;
   V t[NB], a[NB];
   MaskT<T> term[NB];
   for (int b = 0; b < NB; ++b) {
-    t[b] = load<V>(tr + blk[b].k0);
-    const V power = gaussian_power(sl.conic, sl.mx, sl.my, blk[b].pxc + iota<T>(), splat(blk[b].pyc));
-    const V alpha = blk[b].open ? splat_alpha(sl.opacity, power) : T(0);
+    const int i = blk[b].index();
+    t[b] = load<V>(tr + blk[b].k0());
+    const V power = gaussian_power(sl.conic, sl.mx, sl.my, cen.x[i] + iota<T>(), splat(cen.y[i]));
+    const MaskT<T> open = mask_as<T>(bits_mask(blk[b].lanes())) & (t[b] > T(0));
+    const V alpha = open ? splat_alpha(sl.opacity, power) : T(0);
     term[b] = (alpha > T(0)) & blend_terminates(t[b], alpha);
     a[b] = term[b] ? T(0) : alpha;
   }
   const VecI32 next = VecI32{} + (j + 1);
   for (int b = 0; b < NB; ++b) {
-    const int k0 = blk[b].k0;
+    const int k0 = blk[b].k0();
     pixel_fn(j, k0, a[b] * t[b]);
     store(tr + k0, term[b] ? -t[b] : t[b] * (T(1) - a[b]));
     store(last + k0, mask_i32(a[b] > T(0)) ? next : load<VecI32>(last + k0));
   }
+}
+
+// Every kLiveRefreshInterval splats, a tile marks its open pixels (tr > 0) in `live` (blocks
+// with no live pixel are skipped; blocks of pixels that finished since are blended with those
+// lanes masked) and stops when none is left.
+constexpr int kLiveRefreshInterval = 16;
+
+// Sets live[ly] to the open pixels (tr > 0) of each tile row; returns whether there are any.
+template <typename T>
+GSW_CPU_INLINE bool refresh_live(const T* tr, RowBits* live) {
+  RowBits any = 0;
+  for (int ly = 0; ly < TILE_SIZE; ++ly) {
+    RowBits m = 0;
+    for (int b0 = 0; b0 < TILE_SIZE; b0 += kLaneBlock)
+      m |= RowBits(lane_bits(mask_i32(load<VecT<T>>(tr + ly * TILE_SIZE + b0) > T(0)))) << b0;
+    live[ly] = m;
+    any |= m;
+  }
+  return any != 0;
 }
 
 // Front-to-back traversal of one tile, splat-major over the aligned lane blocks each splat can
@@ -206,7 +254,6 @@ GSW_CPU_INLINE void blend_blocks(const SplatLanes<T>& sl, const LaneBlock<T>* bl
 template <typename T, typename F, typename G>
 GSW_CPU_INLINE void traverse_front_to_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, T* tr,
                             int32_t* last, F&& pixel_fn, G&& splat_end) {
-  using V = VecT<T>;
   // Open pixels hold tr > 0, finished ones -tr (tr >= T_MIN > 0 while open).
   for (int k = 0; k < kTileAlloc; ++k) {
     const int lx = k % TILE_SIZE, ly = k / TILE_SIZE;
@@ -215,40 +262,26 @@ GSW_CPU_INLINE void traverse_front_to_back(const TileView& v, const std::vector<
   }
   const int n = static_cast<int>(splats.size());
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
-  int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
-  LaneBlock<T> blocks[kTilePixels / kLaneBlock];
+  const BlockCentres<T> cen(x_centre0, y_centre0);
+  RowBits live[TILE_SIZE], span[TILE_SIZE];
+  LaneBlock blocks[kTileBlocks];
   for (int j = 0; j < n; ++j) {
-    if (j % kAliveCheckInterval == 0) {
-      int open = 0;
-      for (int k = 0; k < kTilePixels; ++k) open |= tr[k] > T(0);
-      if (!open) break;
-    }
+    if (j % kLiveRefreshInterval == 0 && !refresh_live(tr, live)) break;
     const PackedSplat<T>& s = splats[j];
     if (s.by1 <= s.by0) continue;
-    row_spans(s, x_centre0, y_centre0, span_lo, span_hi);
-    // The blocks with an open pixel on the splat's chord.
-    int nb = 0;
-    for (int ly = s.by0; ly < s.by1; ++ly) {
-      const int lo = span_lo[ly], hi = span_hi[ly];
-      for (int b0 = lo - lo % kLaneBlock; b0 < hi; b0 += kLaneBlock) {
-        const int k0 = ly * TILE_SIZE + b0;
-        const MaskT<T> open = (load<V>(tr + k0) > T(0)) & lane_range<T>(lo - b0, hi - b0);
-        if (!any(open)) continue;
-        blocks[nb++] = LaneBlock<T>{open, x_centre0 + T(b0), y_centre0 + T(ly), k0};
-      }
-    }
+    row_spans(s, x_centre0, y_centre0, span);
+    const int nb = collect_blocks(s, span, live, blocks);
     const SplatLanes<T> sl(s);
     int b = 0;
-    for (; b + 4 <= nb; b += 4) blend_blocks<4>(sl, blocks + b, j, tr, last, pixel_fn);
+    for (; b + 4 <= nb; b += 4) blend_blocks<4>(sl, cen, blocks + b, j, tr, last, pixel_fn);
     if (b + 2 <= nb) {
-      blend_blocks<2>(sl, blocks + b, j, tr, last, pixel_fn);
+      blend_blocks<2>(sl, cen, blocks + b, j, tr, last, pixel_fn);
       b += 2;
     }
-    if (b < nb) blend_blocks<1>(sl, blocks + b, j, tr, last, pixel_fn);
+    if (b < nb) blend_blocks<1>(sl, cen, blocks + b, j, tr, last, pixel_fn);
     splat_end(j);
   }
 }
-
 // Reduces a splat's per-lane sums (`k_sums` rows, then one row of maxima) into its record and
 // clears them.
 template <typename T>
@@ -319,136 +352,168 @@ GSW_CPU_KERNEL void forward_tile(const RasterParams<T>& p, const PackedSplat<T>*
   }
 }
 
-// Per-pixel state of one tile's backward walk (tile-local, kTileAlloc entries, pads inert), walking
-// back to front from each pixel's last blended splat.
+// Per-pixel data of one tile's backward walk (tile-local, kTileAlloc entries, pads inert), walking
+// back to front from each pixel's last blended splat: core/math.h's BlendBackwardPixel and
+// PixelCotangents of every pixel, field by field.
 template <typename T>
 struct BackwardPixels {
-  T tr[kTileAlloc], t_final[kTileAlloc], v_tfinal[kTileAlloc];
-  T vi[3][kTileAlloc], vd[kTileAlloc];
-  T behind[3][kTileAlloc], behind_d[kTileAlloc];  // colour/depth behind, per unit T
-  int32_t n_pix[kTileAlloc];
-  // Largest n_contrib of each aligned group of kLaneBlock pixels: splat j touches no pixel of a
-  // block whose group has a maximum <= j.
-  int32_t blk_n[kTileAlloc / kLaneBlock];
+  T tr[kTileAlloc], behind[4][kTileAlloc];
+  T v_color[3][kTileAlloc], v_depth[kTileAlloc], t_final[kTileAlloc], v_t_final[kTileAlloc];
+  // The pixels with n_contrib > 0 as n_contrib << 8 | k (k: tile-local index), largest first: the
+  // walk adds each one to its set of active pixels on reaching that pixel's last blended splat.
+  int32_t order[kTilePixels];
+  int n_order;
   int max_n;  // largest n_contrib of the tile
+  // Whether any pixel has a nonzero depth / T_final cotangent (otherwise their terms are left out).
+  bool has_depth, has_t_final;
 };
+static_assert(kTilePixels <= 256, "BackwardPixels::order packs the pixel index into 8 bits");
 
+// `count` is reusable per-thread storage (the counting sort of px.order).
 template <typename T>
 GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterGradParams<T>& g,
-                                         const TileView& v, BackwardPixels<T>& px) {
+                                         const TileView& v, BackwardPixels<T>& px, std::vector<int32_t>& count) {
   const int64_t P = int64_t(p.width) * p.height;
   px.max_n = 0;
+  px.n_order = 0;
+  px.has_depth = px.has_t_final = false;
   for (int k = 0; k < kTileAlloc; ++k) {
-    px.n_pix[k] = 0;
-    px.tr[k] = px.t_final[k] = px.v_tfinal[k] = px.vd[k] = px.behind_d[k] = T(1);
-    for (int c = 0; c < 3; ++c) px.vi[c][k] = px.behind[c][k] = T(0);
+    px.tr[k] = px.t_final[k] = T(1);
+    px.v_depth[k] = px.v_t_final[k] = T(0);
+    for (int c = 0; c < 4; ++c) px.behind[c][k] = T(0);
+    for (int c = 0; c < 3; ++c) px.v_color[c][k] = T(0);
   }
   for (int py = v.y0; py < v.y1; ++py) {
     for (int x = v.x0; x < v.x1; ++x) {
       const int k = (py - v.y0) * TILE_SIZE + (x - v.x0);
       const int64_t pix = int64_t(py) * p.width + x;
-      px.n_pix[k] = p.n_contrib[pix];
-      px.max_n = std::max(px.max_n, px.n_pix[k]);
+      const int32_t n = p.n_contrib[pix];
+      px.max_n = std::max(px.max_n, n);
+      if (n > 0) px.order[px.n_order++] = n << 8 | k;  // sorted below
       px.tr[k] = px.t_final[k] = p.final_T[pix];
-      for (int c = 0; c < 3; ++c) px.vi[c][k] = g.v_image[c * P + pix];
-      px.vd[k] = g.v_depth ? g.v_depth[pix] : T(0);
-      px.behind_d[k] = T(0);
+      for (int c = 0; c < 3; ++c) px.v_color[c][k] = g.v_image[c * P + pix];
+      px.v_depth[k] = g.v_depth ? g.v_depth[pix] : T(0);
       // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
-      px.v_tfinal[k] = px.vi[0][k] * p.background[0] + px.vi[1][k] * p.background[1] +
-                       px.vi[2][k] * p.background[2] - (g.v_alpha ? g.v_alpha[pix] : T(0));
+      px.v_t_final[k] = px.v_color[0][k] * p.background[0] + px.v_color[1][k] * p.background[1] +
+                        px.v_color[2][k] * p.background[2] - (g.v_alpha ? g.v_alpha[pix] : T(0));
+      px.has_depth |= px.v_depth[k] != T(0);
+      px.has_t_final |= px.v_t_final[k] != T(0);
     }
   }
-  for (int k = 0; k < kTileAlloc / kLaneBlock; ++k) {
-    int32_t m = 0;
-    for (int q = 0; q < kLaneBlock; ++q) m = std::max(m, px.n_pix[k * kLaneBlock + q]);
-    px.blk_n[k] = m;
+  // Counting sort by n_contrib, largest first (pixel order within one n_contrib does not matter).
+  count.assign(px.max_n + 1, 0);
+  for (int e = 0; e < px.n_order; ++e) ++count[px.order[e] >> 8];
+  for (int n = px.max_n, pos = 0; n > 0; --n) {
+    const int c = count[n];
+    count[n] = pos;
+    pos += c;
   }
+  int32_t keys[kTilePixels];
+  std::copy(px.order, px.order + px.n_order, keys);
+  for (int e = 0; e < px.n_order; ++e) px.order[count[keys[e] >> 8]++] = keys[e];
 }
 
-// Backward of splat j over NB aligned lane blocks at once (blk[b].open: lanes on the splat's
-// chord whose pixel blended splat j or a splat behind it): steps the blocks' pixels back over
-// splat j and adds the splat's cotangents per lane to l (rows in kSplatGradSize record order).
-template <int NB, typename T>
-GSW_CPU_INLINE void backward_blocks(const SplatLanes<T>& sl, const PackedSplat<T>& s, BackwardPixels<T>& px,
-                                    const LaneBlock<T>* blk, VecT<T>* l) {
+// Backward of splat s (tile-local index j) over NB aligned lane blocks at once (blk[b].lanes: pixels
+// on the splat's chord that blended splat j or a splat behind it): steps the blocks' pixels back
+// over it (blend_backward_step) and adds its cotangents per lane to l (rows in kSplatGradSize
+// record order).
+template <int NB, bool kDepth, bool kFinalT, typename T>
+GSW_CPU_INLINE void backward_blocks(const SplatLanes<T>& sl, const PackedSplat<T>& s, const BlockCentres<T>& cen,
+                                    BackwardPixels<T>& px, const LaneBlock* blk, VecT<T>* l) {
   using V = VecT<T>;
   for (int b = 0; b < NB; ++b) {
-    const int k0 = blk[b].k0;
-    const V pxc = blk[b].pxc + iota<T>(), pyc = splat(blk[b].pyc);
-    const V v0 = load<V>(px.vi[0] + k0), v1 = load<V>(px.vi[1] + k0), v2 = load<V>(px.vi[2] + k0);
-    const V vd = load<V>(px.vd + k0);
+    const int k0 = blk[b].k0();
+    const V pxc = cen.x[blk[b].index()] + iota<T>(), pyc = splat(cen.y[blk[b].index()]);
+    PixelCotangents<V> cv{};
+    BlendBackwardPixel<V> st{};
+    for (int c = 0; c < 3; ++c) {
+      cv.color[c] = load<V>(px.v_color[c] + k0);
+      st.behind[c] = load<V>(px.behind[c] + k0);
+    }
+    if constexpr (kDepth) {
+      cv.depth = load<V>(px.v_depth + k0);
+      st.behind[3] = load<V>(px.behind[3] + k0);
+    }
+    if constexpr (kFinalT) {
+      cv.t_final = load<V>(px.t_final + k0);
+      cv.v_t_final = load<V>(px.v_t_final + k0);
+    }
+    st.tr = load<V>(px.tr + k0);
     const V power = gaussian_power(sl.conic, sl.mx, sl.my, pxc, pyc);
     const V G = splat_gaussian(power);
-    const V a = blk[b].open ? splat_alpha_from_gaussian(sl.opacity, power, G) : T(0);
-    const V om = T(1) - a;
-    const V inv_om = T(1) / om;
-    const V t = load<V>(px.tr + k0) * inv_om;  // transmittance in front of splat j (unchanged if a = 0)
-    store(px.tr + k0, t);
-    const V w = a * t;
-    l[6] += w * v0;
-    l[7] += w * v1;
-    l[8] += w * v2;
-    l[9] += w * vd;
-    const V b0 = load<V>(px.behind[0] + k0), b1 = load<V>(px.behind[1] + k0), b2 = load<V>(px.behind[2] + k0);
-    const V bd = load<V>(px.behind_d + k0);
-    const V v_alpha = t * ((s.color[0] - b0) * v0 + (s.color[1] - b1) * v1 + (s.color[2] - b2) * v2 +
-                           (s.depth - bd) * vd) -
-                      load<V>(px.t_final + k0) * inv_om * load<V>(px.v_tfinal + k0);
-    const SplatGrad<V> sg = splat_alpha_vjp_from_gaussian(sl.conic, sl.mx - pxc, sl.my - pyc, G, sl.opacity,
-                                                          a > T(0) ? v_alpha : T(0));
-    l[0] += sg.mean2d.x;
-    l[1] += sg.mean2d.y;
-    l[2] += sg.conic.a;
-    l[3] += sg.conic.b;
-    l[4] += sg.conic.c;
-    l[5] += sg.opacity;
-    store(px.behind[0] + k0, a * s.color[0] + om * b0);
-    store(px.behind[1] + k0, a * s.color[1] + om * b1);
-    store(px.behind[2] + k0, a * s.color[2] + om * b2);
-    store(px.behind_d + k0, a * s.depth + om * bd);
+    const V a = mask_as<T>(bits_mask(blk[b].lanes())) ? splat_alpha_from_gaussian(sl.opacity, power, G) : T(0);
+    const BlendGrad<V> g = blend_backward_step<kDepth, kFinalT>(
+        SplatAtPixel<V>{sl.conic, sl.mx - pxc, sl.my - pyc, G, sl.opacity, a, {s.color[0], s.color[1], s.color[2]},
+                        s.depth},
+        cv, st);
+    l[0] += g.splat.mean2d.x;
+    l[1] += g.splat.mean2d.y;
+    l[2] += g.splat.conic.a;
+    l[3] += g.splat.conic.b;
+    l[4] += g.splat.conic.c;
+    l[5] += g.splat.opacity;
+    for (int c = 0; c < 3; ++c) l[6 + c] += g.color[c];
+    if constexpr (kDepth) l[9] += g.depth;
+    store(px.tr + k0, st.tr);
+    for (int c = 0; c < 3; ++c) store(px.behind[c] + k0, st.behind[c]);
+    if constexpr (kDepth) store(px.behind[3] + k0, st.behind[3]);
   }
 }
 
-// Backward blending of one tile: per-splat cotangent records into scratch[slot].
+// The back-to-front walk of one tile over its splats [0, max_n): each splat's cotangent record
+// into out (kSplatGradSize values per splat).
+template <bool kDepth, bool kFinalT, typename T>
+GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, BackwardPixels<T>& px,
+                              T* out) {
+  using V = VecT<T>;
+  constexpr int S = kSplatGradSize;
+  const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
+  const BlockCentres<T> cen(x_centre0, y_centre0);
+  RowBits active[TILE_SIZE] = {};  // the pixels that blended splat j or a splat behind it
+  RowBits span[TILE_SIZE];
+  LaneBlock blocks[kTileBlocks];
+  int e = 0;
+  for (int j = px.max_n - 1; j >= 0; --j) {
+    for (; e < px.n_order && (px.order[e] >> 8) > j; ++e) {
+      const int k = px.order[e] & 0xff;
+      active[k / TILE_SIZE] |= RowBits(1) << (k % TILE_SIZE);
+    }
+    const PackedSplat<T>& s = splats[j];
+    V l[S];  // per-lane partial sums of the splat's cotangents
+    for (int k = 0; k < S; ++k) l[k] = V{};
+    row_spans(s, x_centre0, y_centre0, span);
+    const int nb = collect_blocks(s, span, active, blocks);
+    const SplatLanes<T> sl(s);
+    int b = 0;
+    for (; b + 2 <= nb; b += 2) backward_blocks<2, kDepth, kFinalT>(sl, s, cen, px, blocks + b, l);
+    if (b < nb) backward_blocks<1, kDepth, kFinalT>(sl, s, cen, px, blocks + b, l);
+    T* r = out + int64_t(S) * j;
+    for (int k = 0; k < S; ++k) r[k] = lane_sum(l[k]);
+  }
+}
+
+// Backward blending of one tile: per-splat cotangent records into scratch[slot] (`splats`,
+// `count`: reusable per-thread storage).
 template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
-                                  std::vector<PackedSplat<T>>& splats, T* scratch) {
-  using V = VecT<T>;
+                                  std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* scratch) {
   constexpr int S = kSplatGradSize;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
   T* out = scratch + int64_t(S) * v.start;
   BackwardPixels<T> px;
-  load_backward_pixels(p, g, v, px);
-  // Records of splats no pixel reaches are zero; the others are written once, below.
+  load_backward_pixels(p, g, v, px, count);
+  // Records of splats no pixel reaches are zero; the others are written once, by walk_back.
   std::fill(out + int64_t(S) * px.max_n, out + int64_t(S) * (v.end - v.start), T(0));
-  const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
-  int32_t span_lo[TILE_SIZE], span_hi[TILE_SIZE];
-  LaneBlock<T> blocks[kTilePixels / kLaneBlock];
-  for (int j = px.max_n - 1; j >= 0; --j) {
-    const PackedSplat<T>& s = splats[j];
-    V l[S];  // per-lane partial sums of the splat's cotangents
-    for (int k = 0; k < S; ++k) l[k] = V{};
-    row_spans(s, x_centre0, y_centre0, span_lo, span_hi);
-    const VecI32 jv = VecI32{} + j;
-    int nb = 0;
-    for (int ly = s.by0; ly < s.by1; ++ly) {
-      const int lo = span_lo[ly], hi = span_hi[ly];
-      for (int b0 = lo - lo % kLaneBlock; b0 < hi; b0 += kLaneBlock) {
-        const int k0 = ly * TILE_SIZE + b0;
-        if (j >= px.blk_n[k0 / kLaneBlock]) continue;
-        const MaskT<T> open = mask_as<T>(jv < load<VecI32>(px.n_pix + k0)) & lane_range<T>(lo - b0, hi - b0);
-        blocks[nb++] = LaneBlock<T>{open, x_centre0 + T(b0), y_centre0 + T(ly), k0};
-      }
-    }
-    const SplatLanes<T> sl(s);
-    int b = 0;
-    for (; b + 2 <= nb; b += 2) backward_blocks<2>(sl, s, px, blocks + b, l);
-    if (b < nb) backward_blocks<1>(sl, s, px, blocks + b, l);
-    T* r = out + int64_t(S) * j;
-    for (int k = 0; k < S; ++k) r[k] = lane_sum(l[k]);
-  }
+  if (px.has_depth && px.has_t_final)
+    walk_back<true, true>(v, splats, px, out);
+  else if (px.has_depth)
+    walk_back<true, false>(v, splats, px, out);
+  else if (px.has_t_final)
+    walk_back<false, true>(v, splats, px, out);
+  else
+    walk_back<false, false>(v, splats, px, out);
 }
 
 }  // namespace
@@ -470,7 +535,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   const auto recs = pack_gaussians(p);
   parallel_dynamic(num_tiles, [&](int64_t tile) {
     thread_local std::vector<PackedSplat<T>> splats;
-    backward_tile(p, g, recs.get(), tile, splats, scratch);
+    thread_local std::vector<int32_t> count;
+    backward_tile(p, g, recs.get(), tile, splats, count, scratch);
   });
   parallel_items(p.N, [&](int64_t i) {
     T acc[S];

@@ -52,19 +52,6 @@ template <typename V>
 GSW_CPU_INLINE void store(void* p, V v) {
   __builtin_memcpy(p, &v, sizeof(V));
 }
-// Whether any lane of a mask is set (OR-folded in registers: no store-to-load round trip).
-GSW_CPU_INLINE bool any(Lanes<float>::M m) {
-  m |= __builtin_shufflevector(m, m, 4, 5, 6, 7, 0, 1, 2, 3);
-  m |= __builtin_shufflevector(m, m, 2, 3, 0, 1, 6, 7, 4, 5);
-  m |= __builtin_shufflevector(m, m, 1, 0, 3, 2, 5, 4, 7, 6);
-  return m[0] != 0;
-}
-GSW_CPU_INLINE bool any(Lanes<double>::M m) {
-  m |= __builtin_shufflevector(m, m, 4, 5, 6, 7, 0, 1, 2, 3);
-  m |= __builtin_shufflevector(m, m, 2, 3, 0, 1, 6, 7, 4, 5);
-  m |= __builtin_shufflevector(m, m, 1, 0, 3, 2, 5, 4, 7, 6);
-  return m[0] != 0;
-}
 // Sum of a vector's lanes, in a fixed tree order ((q, q + 4), then (q, q + 2), then (q, q + 1)).
 template <typename V>
 GSW_CPU_INLINE auto lane_sum(V v) {
@@ -73,6 +60,25 @@ GSW_CPU_INLINE auto lane_sum(V v) {
   v += __builtin_shufflevector(v, v, 1, 0, 3, 2, 5, 4, 7, 6);
   return v[0];
 }
+// Bit q set where lane q of an int32 mask is set.
+GSW_CPU_INLINE uint32_t lane_bits(VecI32 m) {
+#if defined(__SSE__)
+  typedef float F4 __attribute__((vector_size(16)));
+  const auto lo = __builtin_shufflevector(m, m, 0, 1, 2, 3), hi = __builtin_shufflevector(m, m, 4, 5, 6, 7);
+  return uint32_t(__builtin_ia32_movmskps(reinterpret_cast<F4>(lo))) |
+         uint32_t(__builtin_ia32_movmskps(reinterpret_cast<F4>(hi))) << 4;
+#else
+  uint32_t b = 0;
+  for (int q = 0; q < kLanes; ++q) b |= uint32_t(m[q] != 0) << q;
+  return b;
+#endif
+}
+// The int32 lane mask of bits (lane q set where bit q is).
+GSW_CPU_INLINE VecI32 bits_mask(uint32_t bits) {
+  const VecI32 bit = {1, 2, 4, 8, 16, 32, 64, 128};
+  return ((VecI32{} + int32_t(bits)) & bit) == bit;
+}
+static_assert(kLanes == 8, "lane_bits / bits_mask assume 8 lanes");
 // An int32 lane mask as the comparison mask of T lanes.
 template <typename T>
 GSW_CPU_INLINE MaskT<T> mask_as(VecI32 m) {

@@ -26,7 +26,8 @@
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
 // batches from the tile's largest n_contrib down (a warp starts at its own largest), recovering
 // T_i = T_{i+1} / (1 - alpha_i) as the CPU backend does. Its cost, like the contribution's, is
-// the per-splat reduction of the ten cotangents (splat_alpha_vjp), so it has the same layout:
+// the per-splat reduction of the ten cotangents (blend_backward_step, core/math.h: the same
+// per-pixel step as the CPU backend's), so it has the same layout:
 // each thread owns kBackwardPixels vertically adjacent pixels of one column (a warp covers
 // 32 / TILE_SIZE * kBackwardPixels whole rows), reads the splat from shared memory once for them
 // and sums their ten cotangents in registers; a warp that blended the splat in none of its pixels
@@ -350,15 +351,13 @@ constexpr int kSplatGrads = 10;
 // rasterize_backward).
 constexpr int kBackwardPixels = 4;
 
-// Back-to-front state of one pixel.
+// Back-to-front state of one pixel (core/math.h's blend backward state and cotangents).
 template <typename T>
 struct BackPixel {
-  T pyc;          // pixel-centre y
-  T tr;           // transmittance behind the current splat (starts at T_final)
-  T tf, vtf;      // T_final and d(loss)/d(T_final)
-  T vi[3], vd;    // cotangents of the pixel's colour and depth
-  T behind[4];    // colour and depth behind the current splat, per unit transmittance
-  int32_t n;      // n_contrib: the splats at tile-local index >= n are not blended
+  T pyc;                     // pixel-centre y
+  BlendBackwardPixel<T> st;  // transmittance and colour/depth behind the current splat
+  PixelCotangents<T> cot;    // cotangents of the pixel's outputs, T_final
+  int32_t n;                 // n_contrib: the splats at tile-local index >= n are not blended
 };
 
 template <typename T, int PX>
@@ -367,22 +366,21 @@ __device__ __forceinline__ BackPixel<T> load_back_pixel(const RasterParams<T>& p
                                                         const PixelCtx<PX>& c, int i) {
   BackPixel<T> q;
   q.pyc = T(c.py + i) + T(0.5);
-  q.tr = q.tf = T(1);
-  q.vtf = q.vd = T(0);
+  q.st.tr = q.cot.t_final = T(1);
+  q.cot.v_t_final = q.cot.depth = T(0);
 #pragma unroll
-  for (int ch = 0; ch < 4; ++ch) q.behind[ch] = T(0);
+  for (int ch = 0; ch < 4; ++ch) q.st.behind[ch] = T(0);
 #pragma unroll
-  for (int ch = 0; ch < 3; ++ch) q.vi[ch] = T(0);
+  for (int ch = 0; ch < 3; ++ch) q.cot.color[ch] = T(0);
   q.n = 0;
   if (!c.inside(i)) return q;
   const int64_t P = int64_t(p.width) * p.height, pix = c.pix + int64_t(i) * p.width;
   q.n = p.n_contrib[pix];
-  q.tr = q.tf = p.final_T[pix];
+  q.st.tr = q.cot.t_final = p.final_T[pix];
 #pragma unroll
-  for (int ch = 0; ch < 3; ++ch) q.vi[ch] = g.v_image[ch * P + pix];
-  q.vd = g.v_depth ? g.v_depth[pix] : T(0);
-  // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
-  q.vtf = q.vi[0] * p.background[0] + q.vi[1] * p.background[1] + q.vi[2] * p.background[2] -
+  for (int ch = 0; ch < 3; ++ch) q.cot.color[ch] = g.v_image[ch * P + pix];
+  q.cot.depth = g.v_depth ? g.v_depth[pix] : T(0);
+  q.cot.v_t_final = q.cot.color[0] * p.background[0] + q.cot.color[1] * p.background[1] + q.cot.color[2] * p.background[2] -
           (g.v_alpha ? g.v_alpha[pix] : T(0));
   return q;
 }
@@ -401,6 +399,21 @@ struct BackwardShared {
   int32_t hit[kWarps][kThreads];
   int max_n;
 };
+
+// Adds one pixel's cotangents of a splat to the ten sums (kSplatGrads order).
+template <typename T>
+__device__ __forceinline__ void add_blend_grad(const BlendGrad<T>& bg, T (&v)[kSplatGrads]) {
+  v[0] += bg.splat.mean2d.x;
+  v[1] += bg.splat.mean2d.y;
+  v[2] += bg.splat.conic.a;
+  v[3] += bg.splat.conic.b;
+  v[4] += bg.splat.conic.c;
+  v[5] += bg.splat.opacity;
+  v[6] += bg.color[0];
+  v[7] += bg.color[1];
+  v[8] += bg.color[2];
+  v[9] += bg.depth;
+}
 
 // Steps the thread's pixels back over staged splat k (tile-local index j) and, if any pixel of
 // the warp blended it, stores the warp's sums of its cotangents in the warp's shared slot.
@@ -429,30 +442,10 @@ __device__ __forceinline__ void backward_splat(BackwardShared<T, PX>& sh, int k,
   for (int i = 0; i < PX; ++i) {
     if (!(a[i] > T(0))) continue;
     BackPixel<T>& pp = px[i];
-    const T om = T(1) - a[i];
-    const T inv_om = T(1) / om;
-    const T t = pp.tr * inv_om;  // transmittance in front of splat j
-    pp.tr = t;
-    const T w = a[i] * t;
-    const T v_alpha = t * ((col.r - pp.behind[0]) * pp.vi[0] + (col.g - pp.behind[1]) * pp.vi[1] +
-                           (col.b - pp.behind[2]) * pp.vi[2] + (col.depth - pp.behind[3]) * pp.vd) -
-                      pp.tf * inv_om * pp.vtf;
-    const SplatGrad<T> sg = splat_alpha_vjp_from_gaussian(conic, s.mx - pxc, s.my - pp.pyc, G[i],
-                                                          s.opacity, v_alpha);
-    v[0] += sg.mean2d.x;
-    v[1] += sg.mean2d.y;
-    v[2] += sg.conic.a;
-    v[3] += sg.conic.b;
-    v[4] += sg.conic.c;
-    v[5] += sg.opacity;
-    v[6] += w * pp.vi[0];
-    v[7] += w * pp.vi[1];
-    v[8] += w * pp.vi[2];
-    v[9] += w * pp.vd;
-    pp.behind[0] = a[i] * col.r + om * pp.behind[0];
-    pp.behind[1] = a[i] * col.g + om * pp.behind[1];
-    pp.behind[2] = a[i] * col.b + om * pp.behind[2];
-    pp.behind[3] = a[i] * col.depth + om * pp.behind[3];
+    const BlendGrad<T> bg = blend_backward_step(
+        SplatAtPixel<T>{conic, s.mx - pxc, s.my - pp.pyc, G[i], s.opacity, a[i], {col.r, col.g, col.b}, col.depth},
+        pp.cot, pp.st);
+    add_blend_grad(bg, v);
   }
   // The ten warp sums in 12 shuffles; each lands in a pair of lanes (2l, 2l + 1).
   int q;
@@ -550,28 +543,13 @@ __global__ void __launch_bounds__(kBlock)
   __shared__ int32_t s_id[kBatch];
   __shared__ int s_max_n;
   const PixelCtx<1> c = pixel_ctx<1>(p);
-  const int64_t P = int64_t(p.width) * p.height;
-  const T pxc = T(c.px) + T(0.5), pyc = T(c.py) + T(0.5);
+  const T pxc = T(c.px) + T(0.5);
   const int lane = threadIdx.x & 31;
-
-  T tr = T(1), tf = T(1), vtf = T(0), vd = T(0);
-  T vi[3] = {T(0), T(0), T(0)};
-  int n_pix = 0;
-  if (c.inside()) {
-    n_pix = p.n_contrib[c.pix];
-    tr = tf = p.final_T[c.pix];
-    for (int ch = 0; ch < 3; ++ch) vi[ch] = g.v_image[ch * P + c.pix];
-    vd = g.v_depth ? g.v_depth[c.pix] : T(0);
-    // d(loss)/d(T_final): background and the alpha output (alpha = 1 - T_final).
-    vtf = vi[0] * p.background[0] + vi[1] * p.background[1] + vi[2] * p.background[2] -
-          (g.v_alpha ? g.v_alpha[c.pix] : T(0));
-  }
-  // Colour and depth behind the current splat, per unit transmittance.
-  T behind[3] = {T(0), T(0), T(0)}, behind_d = T(0);
+  BackPixel<T> px = load_back_pixel(p, g, c, 0);
 
   if (threadIdx.x == 0) s_max_n = 0;
   __syncthreads();
-  const unsigned wmax = __reduce_max_sync(kFullMask, static_cast<unsigned>(n_pix));
+  const unsigned wmax = __reduce_max_sync(kFullMask, static_cast<unsigned>(px.n));
   if (lane == 0 && wmax > 0) atomicMax(&s_max_n, static_cast<int>(wmax));
   __syncthreads();
   const int max_n = s_max_n;
@@ -590,40 +568,24 @@ __global__ void __launch_bounds__(kBlock)
     for (int k = hi - lo - 1; k >= 0; --k) {
       const int j = lo + k;  // tile-local index
       const SplatGeo<T> s = s_geo[k];
-      const T a = j < n_pix ? alpha_at(s, pxc, pyc) : T(0);
+      const Sym2<T> conic{s.ca, s.cb, s.cc};
+      const T power = gaussian_power(conic, s.mx, s.my, pxc, px.pyc);
+      const T G = splat_gaussian(power);
+      const T a = j < px.n ? splat_alpha_from_gaussian(s.opacity, power, G) : T(0);
       const bool blended = a > T(0);
       if (!__any_sync(kFullMask, blended)) continue;  // warp-uniform
-      T v[10];
+      T v[kSplatGrads];
 #pragma unroll
-      for (int q = 0; q < 10; ++q) v[q] = T(0);
+      for (int q = 0; q < kSplatGrads; ++q) v[q] = T(0);
       if (blended) {
         const SplatColor<T> col = s_col[k];
-        const T om = T(1) - a;
-        const T t = tr / om;  // transmittance in front of splat j
-        tr = t;
-        const T w = a * t;
-        T v_alpha = t * ((col.r - behind[0]) * vi[0] + (col.g - behind[1]) * vi[1] +
-                         (col.b - behind[2]) * vi[2] + (col.depth - behind_d) * vd) -
-                    tf / om * vtf;
-        const SplatGrad<T> sg = splat_alpha_vjp(Sym2<T>{s.ca, s.cb, s.cc}, s.mx, s.my, pxc, pyc,
-                                                s.opacity, v_alpha);
-        v[0] = sg.mean2d.x;
-        v[1] = sg.mean2d.y;
-        v[2] = sg.conic.a;
-        v[3] = sg.conic.b;
-        v[4] = sg.conic.c;
-        v[5] = sg.opacity;
-        v[6] = w * vi[0];
-        v[7] = w * vi[1];
-        v[8] = w * vi[2];
-        v[9] = w * vd;
-        behind[0] = a * col.r + om * behind[0];
-        behind[1] = a * col.g + om * behind[1];
-        behind[2] = a * col.b + om * behind[2];
-        behind_d = a * col.depth + om * behind_d;
+        add_blend_grad(blend_backward_step(SplatAtPixel<T>{conic, s.mx - pxc, s.my - px.pyc, G, s.opacity, a,
+                                                           {col.r, col.g, col.b}, col.depth},
+                                           px.cot, px.st),
+                       v);
       }
 #pragma unroll
-      for (int q = 0; q < 10; ++q) v[q] = warp_sum(v[q]);
+      for (int q = 0; q < kSplatGrads; ++q) v[q] = warp_sum(v[q]);
       if (lane == 0) {
         const int32_t gid = s_id[k];
         atomicAdd(g.v_means2d + 2 * gid, v[0]);
