@@ -97,9 +97,10 @@ def test_signals_mid_write(inputs, tmp_path, capsys) -> None:
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGKILL):
         parent = tmp_path / sig.name.lower().removeprefix("sig")
         parent.mkdir(exist_ok=True)
-        runs[sig] = (parent, _gsw(_render_argv(inputs, parent / "out", "--orbit", "1000")))
-    leftovers = {sig: _wait_for_temporary(proc, parent) for sig, (parent, proc) in runs.items()}
-    for sig, (_, proc) in runs.items():
+        runs[sig] = (parent, _gsw(_render_argv(inputs, parent / "out", "--orbit", "20000")))
+    leftovers = {}
+    for sig, (parent, proc) in runs.items():  # each run is signalled as soon as it is mid-write (a fast GPU
+        leftovers[sig] = _wait_for_temporary(proc, parent)  # machine finished a 1,000-view run meanwhile)
         proc.send_signal(sig)
     errors = {sig: proc.communicate(timeout=120)[1] for sig, (_, proc) in runs.items()}
     codes = {sig: proc.returncode for sig, (_, proc) in runs.items()}
