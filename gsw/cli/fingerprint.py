@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--max-retries", type=int, default=3, help="retries of a Ray task whose worker dies")
     fp.add_argument("--no-progress", action="store_true")
     fp.add_argument("--json", action="store_true", help="print the report as JSON")
-    fp.set_defaults(func=cmd_fingerprint, model_attack_prob=0.0)
+    fp.set_defaults(func=cmd_fingerprint, model_attack_prob=0.0, psnr_target=None)  # the pool has neither
 
     sc = subparsers.add_parser("scan", help="test many images and videos against every registered mark",
                                description="Each image, and each video (its frames together), is tested against every "

@@ -129,15 +129,15 @@ def embed_config(args: argparse.Namespace, base=None):
     from gsw.mark.loss import lpips_weights
 
     if base is None:
-        base = paper_config() if getattr(args, "recipe", "default") == "paper" else EmbedConfig()
+        base = paper_config() if args.recipe == "paper" else EmbedConfig()
     lpips_net = None if args.lpips == "none" else args.lpips
     weights = lpips_weights(lpips_net)
     if args.message_weight is not None:
         weights = dataclasses.replace(weights, message=args.message_weight)
     return dataclasses.replace(base, epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask or base.mask,
                                lpips_net=lpips_net, attacks=args.attacks,
-                               model_attacks=getattr(args, "model_attack_prob", 0.0),
-                               psnr_target=getattr(args, "psnr_target", None), seed=args.seed, weights=weights,
+                               model_attacks=args.model_attack_prob, psnr_target=args.psnr_target, seed=args.seed,
+                               weights=weights,
                                background=background_of(args))
 
 

@@ -227,7 +227,6 @@ class CopyResult:
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
-    check_pool_config(cfg)
     if cfg.attacks <= 0:
         return None
     from gsw.attacks.layers import matched_noise_layers, training_noise_layers
@@ -260,6 +259,7 @@ class _Pool:
         cfg: EmbedConfig = scene.shared.config
         self.scene, self.cfg = scene, cfg
         self.messages = messages.to(scene.device, torch.float32)
+        check_pool_config(cfg)  # a worker scene made without prepare_scene is checked too
         self.params = SlotParams(scene.model, k, cfg)
         self.monitor = SlotMonitor(k, cfg.weights.message, stop, scene.device)
         self.attacks = _attack_layers(cfg)
