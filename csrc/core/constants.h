@@ -54,4 +54,8 @@ constexpr double SH_C3_6 = -0.5900435899266435;
 // Colour offset added after SH evaluation (INRIA: rgb = SH(dir) + 0.5, clamped at 0).
 constexpr double SH_COLOR_OFFSET = 0.5;
 
+// Layout, not a threshold: a splat's blend cotangents as one record (CPU scratch rows, CUDA warp
+// sums), in this order: mean2d x, y; conic a, b, c; opacity; colour r, g, b; depth.
+constexpr int kBlendGrads = 10;
+
 }  // namespace gsw

@@ -783,6 +783,20 @@ struct BlendGrad {
   T color[3], depth;
 };
 
+// Adds one pixel's cotangents of a splat to its record sums acc[kBlendGrads] (core/constants.h). kDepth = false
+// leaves acc[9] (depth) untouched.
+template <bool kDepth = true, typename T>
+GSW_HD void add_blend_grad(const BlendGrad<T>& g, T* acc) {
+  acc[0] = acc[0] + g.splat.mean2d.x;
+  acc[1] = acc[1] + g.splat.mean2d.y;
+  acc[2] = acc[2] + g.splat.conic.a;
+  acc[3] = acc[3] + g.splat.conic.b;
+  acc[4] = acc[4] + g.splat.conic.c;
+  acc[5] = acc[5] + g.splat.opacity;
+  for (int c = 0; c < 3; ++c) acc[6 + c] = acc[6 + c] + g.color[c];
+  if constexpr (kDepth) acc[9] = acc[9] + g.depth;
+}
+
 // One step of a pixel's back-to-front blend backward: undoes splat s (T_i = T_{i+1} / (1 - alpha)),
 // returns its cotangents from this pixel and moves the colour/depth behind it past s. Where
 // alpha = 0 the state is unchanged and every cotangent is 0. kDepth / kFinalT = false leave out the

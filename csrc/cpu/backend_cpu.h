@@ -41,6 +41,6 @@ template <typename T>
 void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* scratch);
 
 // Per-intersection gradient record: mean2d (2), conic (3), opacity, colour (3), depth.
-constexpr int kSplatGradSize = 10;
+constexpr int kSplatGradSize = kBlendGrads;
 
 }  // namespace gsw::cpu

@@ -446,14 +446,7 @@ GSW_CPU_INLINE void backward_blocks(const SplatLanes<T>& sl, const PackedSplat<T
         SplatAtPixel<V>{sl.conic, sl.mx - pxc, sl.my - pyc, G, sl.opacity, a, {s.color[0], s.color[1], s.color[2]},
                         s.depth},
         cv, st);
-    l[0] += g.splat.mean2d.x;
-    l[1] += g.splat.mean2d.y;
-    l[2] += g.splat.conic.a;
-    l[3] += g.splat.conic.b;
-    l[4] += g.splat.conic.c;
-    l[5] += g.splat.opacity;
-    for (int c = 0; c < 3; ++c) l[6 + c] += g.color[c];
-    if constexpr (kDepth) l[9] += g.depth;
+    add_blend_grad<kDepth>(g, l);
     store(px.tr + k0, st.tr);
     for (int c = 0; c < 3; ++c) store(px.behind[c] + k0, st.behind[c]);
     if constexpr (kDepth) store(px.behind[3] + k0, st.behind[3]);

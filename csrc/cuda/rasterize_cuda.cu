@@ -344,9 +344,8 @@ __global__ void __launch_bounds__(kContribBlock)
 
 // ------------------------------------------------------------------ backward
 
-// Per-splat cotangents of the blend backward, in the CPU's record order (kSplatGradSize):
-// mean2d x, y; conic a, b, c; opacity; colour r, g, b; depth.
-constexpr int kSplatGrads = 10;
+// Per-splat cotangents of the blend backward, in record order (kBlendGrads, core/math.h).
+constexpr int kSplatGrads = kBlendGrads;
 // Pixels per thread of backward_kernel unless GSW_CUDA_BACKWARD says otherwise (see
 // rasterize_backward).
 constexpr int kBackwardPixels = 4;
@@ -399,21 +398,6 @@ struct BackwardShared {
   int32_t hit[kWarps][kThreads];
   int max_n;
 };
-
-// Adds one pixel's cotangents of a splat to the ten sums (kSplatGrads order).
-template <typename T>
-__device__ __forceinline__ void add_blend_grad(const BlendGrad<T>& bg, T (&v)[kSplatGrads]) {
-  v[0] += bg.splat.mean2d.x;
-  v[1] += bg.splat.mean2d.y;
-  v[2] += bg.splat.conic.a;
-  v[3] += bg.splat.conic.b;
-  v[4] += bg.splat.conic.c;
-  v[5] += bg.splat.opacity;
-  v[6] += bg.color[0];
-  v[7] += bg.color[1];
-  v[8] += bg.color[2];
-  v[9] += bg.depth;
-}
 
 // Steps the thread's pixels back over staged splat k (tile-local index j) and, if any pixel of
 // the warp blended it, stores the warp's sums of its cotangents in the warp's shared slot.
