@@ -206,3 +206,21 @@ def test_frozen_groups_stay_in_the_pool() -> None:
     params = SlotParams(scene.gaussians, 2, pool_config(lpips_net=None, freeze=("f_rest", "scaling"), mask="none"))
     assert not params.rest.requires_grad and not params.log_scales.requires_grad
     assert {id(p) for p, _, _ in params.groups} == {id(params.dc), id(params.logits), id(params.quats)}
+
+
+def test_pool_default_is_the_measured_setting() -> None:
+    """The pool's defaults: the paper's recipe with the AlexNet LPIPS term (BENCHMARKS.md, #26); the CLI agrees."""
+    import argparse
+
+    from gsw.cli.fingerprint import register
+    from gsw.fingerprint.batched import POOL_LPIPS
+    from gsw.mark.embed import PAPER_RECIPE
+
+    cfg = pool_config()
+    assert cfg.lpips_net == POOL_LPIPS == "alex" and cfg.weights.lpips > 0
+    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items())
+    assert pool_config(lpips_net="vgg").lpips_net == "vgg"
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["fingerprint", "m", "--recipients", "r.csv", "--output", "o"])
+    assert args.lpips == POOL_LPIPS

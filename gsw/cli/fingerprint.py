@@ -16,6 +16,7 @@ from pathlib import Path
 
 from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, add_resize_images_option,
                             REGISTRY_HELP, positive_int, print_json, reading)
+from gsw.fingerprint.batched import POOL_LPIPS
 from gsw.fingerprint.scan import DEFAULT_BATCH_SIZES, DEFAULT_READERS
 from gsw.stats import DETECTION_FPR
 
@@ -48,7 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--epochs", type=positive_int, default=8)
     fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp",
                     help="gradient mask (the pool's recipe is the paper's; default %(default)s)")
-    fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
+    fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default=POOL_LPIPS,
+                    help="LPIPS network of the loss (default %(default)s: the pool's measured setting)")
     fp.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
     fp.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
     fp.add_argument("--message-weight", type=float, default=None, help="weight of the message loss")

@@ -28,15 +28,20 @@ from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, paper_config
 
-__all__ = ["SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch", "pool_config"]
+__all__ = ["POOL_LPIPS", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch", "pool_config"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
 
 
+#: The pool's LPIPS network: AlexNet, what its throughput and quality were measured with (BENCHMARKS.md, #26).
+POOL_LPIPS = "alex"
+
+
 def pool_config(**overrides) -> EmbedConfig:
-    """The pool's default settings: the paper's recipe (:func:`gsw.mark.embed.paper_config`), what the pool's
-    throughput and quality were measured with (BENCHMARKS.md, issue #26), plus ``overrides``."""
-    return paper_config(**overrides)
+    """The pool's default settings: the paper's recipe (:func:`gsw.mark.embed.paper_config`) with the AlexNet
+    LPIPS term (:data:`POOL_LPIPS`), what the pool's throughput and quality were measured with (BENCHMARKS.md,
+    issue #26), plus ``overrides``."""
+    return paper_config(**{"lpips_net": POOL_LPIPS, **overrides})
 
 
 def check_pool_config(cfg: EmbedConfig) -> None:

@@ -1,0 +1,256 @@
+"""`gsw fingerprint` on 1, 2, 4 GPUs of one host through Ray (#27): recipients per hour, scaling, identical copies.
+
+Three steps, each one command (so that each fits one device call; ``--workdir`` carries the state):
+
+1. ``prepare``: trains lego for ``--train-seconds`` (the INRIA recipe cut by time, every 8th view held out,
+   as ``fingerprint_throughput.py``), saves it as an INRIA model folder ``WORKDIR/model`` (the embedding
+   views' cameras), the held-out cameras ``WORKDIR/held_out.json`` and ``WORKDIR/recipients.csv``: ``--recipients``
+   recipients whose 32-bit messages are drawn from ``--seed`` (given in the file, so that every run embeds
+   the same messages; the job itself never writes them outside its registry).
+2. ``run --gpus G``: the ``gsw fingerprint`` command a user runs, in a subprocess, with
+   ``CUDA_VISIBLE_DEVICES`` set to the first G GPUs: a local Ray cluster (one task per ``--task-size``
+   recipients, ``num_gpus=1`` each, so one worker per GPU), a pool of ``--batch`` slots per task, the early-
+   stopping rule ``--early-stop``; output ``WORKDIR/out_G``, registry ``WORKDIR/marks_G.sqlite``. Timed from
+   the command's start to its exit (Ray's start, the set-up and every write included) and, apart, its own
+   "finetune" time (after the once-per-scene set-up). Recipients per hour = 3600 x recipients / wall time.
+3. ``compare``: every run's copies against the first run's (``--gpus`` order; normally 1 GPU): bitwise equal
+   parameters or the largest difference; then each copy of each run on the held-out views (never used by
+   the job): bit accuracy of each view's render with its registered message, PSNR against the original
+   model's render; scaling efficiency = (rate at G GPUs) / (G x rate at 1 GPU).
+
+Results: ``WORKDIR/run_G.json`` and ``--out`` (the summary JSON; a table on stdout).
+
+Usage on a 2-GPU machine (lego photos in DIR; Ray with its data extra importable):
+    python benchmarks/fingerprint_multi_gpu.py prepare --data DIR --workdir /tmp/fp27
+    python benchmarks/fingerprint_multi_gpu.py run --gpus 1 --workdir /tmp/fp27
+    python benchmarks/fingerprint_multi_gpu.py run --gpus 2 --workdir /tmp/fp27
+    python benchmarks/fingerprint_multi_gpu.py compare --gpus 1 2 --workdir /tmp/fp27 --out fp_multi_gpu.json
+CPU smoke test (built-in scene, 2 Ray CPU workers):
+    python benchmarks/fingerprint_multi_gpu.py prepare --scene builtin --size 64 --recipients 4 --workdir /tmp/fp27
+    python benchmarks/fingerprint_multi_gpu.py run --gpus 0 --workers 1 --batch 2 --task-size 2 --epochs 1 \\
+        --device cpu --workdir /tmp/fp27
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: The pool's best measured rule on lego (BENCHMARKS.md, #26: K = 16, confirm 0.99, 790 recipients/h).
+EARLY_STOP = "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99"
+
+
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def _machine() -> dict:
+    import torch
+
+    import gsw
+
+    gpus = [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if torch.cuda.is_available() else []
+    try:
+        import ray
+
+        ray_version = ray.__version__
+    except ImportError:
+        ray_version = None
+    return dict(gpus=gpus, cpus=os.cpu_count(), torch=torch.__version__, python=platform.python_version(),
+                gsw=gsw.__version__, ray=ray_version, date=time.strftime("%Y-%m-%d %H:%M:%S %Z"))
+
+
+def prepare(args) -> None:
+    import torch
+
+    from gsw.camera_io import save_inria_cameras
+    from gsw.data import save_inria_model
+    from gsw.device import resolve_device
+
+    work = Path(args.workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    dev = resolve_device(args.device)
+    if args.scene == "lego":
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from fingerprint_throughput import _train_lego
+
+        ns = argparse.Namespace(data=args.data, size=args.size, train_seconds=args.train_seconds)
+        g, train_set, test_set, info = _train_lego(ns, dev)
+        cams, held = train_set.cameras, test_set.cameras
+    else:
+        from gsw.scenes import default_cameras, default_scene
+
+        sc = default_scene(width=args.size, height=args.size, n_cameras=args.views, device=dev)
+        g, cams, info = sc.gaussians, sc.cameras, None
+        held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=180.0 / args.views)
+    save_inria_model(work / "model", g.to("cpu"), cams, iteration=0)
+    save_inria_cameras(held, work / "held_out.json")
+    rng = random.Random(args.seed)
+    rows = ["recipient,message"] + [f"r{i:03d},{rng.getrandbits(args.bits):0{args.bits // 4}x}"
+                                    for i in range(args.recipients)]
+    (work / "recipients.csv").write_text("\n".join(rows) + "\n")
+    _write_json(work / "prepare.json", dict(scene=args.scene, training=info, gaussians=len(g), views=len(cams),
+                                           held_out_views=len(held), size=f"{cams[0].width}x{cams[0].height}",
+                                           recipients=args.recipients, machine=_machine()))
+    print(f"prepared {work}: {len(g)} Gaussians, {len(cams)} embedding / {len(held)} held-out views", flush=True)
+    del torch
+
+
+def run(args) -> None:
+    work = Path(args.workdir)
+    g = args.gpus[0]
+    out, reg = work / f"out_{g}", work / f"marks_{g}.sqlite"
+    if out.exists() or reg.exists():
+        raise SystemExit(f"{out} or {reg} exists: a run is timed from scratch; remove them first")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if g > 0:
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(g))
+    prep = json.loads((work / "prepare.json").read_text())
+    cmd = [sys.executable, "-m", "gsw", "fingerprint", str(work / "model"), "--recipients", str(work / "recipients.csv"),
+           "--output", str(out), "--registry", str(reg), "--batch", str(args.batch), "--task-size", str(args.task_size),
+           "--epochs", str(args.epochs), "--device", args.device, "--no-progress", "--json"]
+    cmd += ["--white"]  # lego's and the built-in scene's background
+    if args.early_stop != "none":
+        cmd += ["--early-stop", args.early_stop]
+    if args.workers:  # CPU: Ray's CPUs (a test of the path, not a measurement)
+        cmd = [sys.executable, "-c", "import ray,runpy,sys; ray.init(num_cpus=%d, include_dashboard=False, "
+               "log_to_driver=False); sys.argv=sys.argv[1:]; runpy.run_module('gsw', run_name='__main__')"
+               % args.workers, "gsw"] + cmd[3:]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        sys.stderr.write(proc.stderr[-4000:])
+        raise SystemExit(f"gsw fingerprint exited {proc.returncode}")
+    report = json.loads(proc.stdout[proc.stdout.index("{"):])
+    n = sum(r["status"] == "embedded" for r in report["recipients"])
+    res = dict(gpus=g, command=" ".join(cmd), wall_s=wall, recipients=n, runner=report["runner"],
+               timings=report["timings"], recipients_per_hour=3600 * n / wall,
+               recipients_per_hour_finetune=3600 * n / report["timings"]["finetune"],
+               recipients_per_gpu_hour=3600 * n / wall / max(g, 1), report=report, machine=_machine(),
+               stderr_tail=proc.stderr[-2000:])
+    _write_json(work / f"run_{g}.json", res)
+    print(json.dumps({k: v for k, v in res.items() if k not in ("report", "stderr_tail", "command")}), flush=True)
+
+
+def compare(args) -> None:
+    import torch
+
+    from gsw.camera_io import load_inria_cameras
+    from gsw.data import load_inria_model
+    from gsw.decoder.dwt import ll_subband
+    from gsw.decoder.zoo import load_decoder
+    from gsw.device import resolve_device
+    from gsw.metrics.image import psnr
+    from gsw.registry import open_registry
+    from gsw.render.rasterize import rasterize
+
+    work = Path(args.workdir)
+    dev = resolve_device(args.device)
+    prep = json.loads((work / "prepare.json").read_text())
+    bg = (1.0, 1.0, 1.0)
+    held = load_inria_cameras(work / "held_out.json")
+    orig = load_inria_model(work / "model").gaussians.to(dev)
+    dec = load_decoder(args.bits).to(dev)
+    with torch.no_grad():
+        originals = [rasterize(orig, c, background=bg).image.clamp(0, 1) for c in held]
+    runs = {g: json.loads((work / f"run_{g}.json").read_text()) for g in args.gpus}
+    base = args.gpus[0]
+    per_run = {}
+    for g in args.gpus:
+        with open_registry(work / f"marks_{g}.sqlite", create=False) as reg:
+            messages = {m.label: m.message.float() for m in reg.list()}
+        rows = []
+        for r in sorted(runs[g]["report"]["recipients"], key=lambda r: r["name"]):
+            copy = load_inria_model(Path(r["folder"])).gaussians.to(dev)
+            row = dict(name=r["name"], steps=r["steps"], stopped_early=r["stopped_early"])
+            if g != base:
+                ref = load_inria_model(work / f"out_{base}" / r["name"]).gaussians.to(dev)
+                pa, pb = copy.parameters(), ref.parameters()
+                diffs = [float((pa[k] - pb[k]).abs().max()) for k in pa] if len(copy) == len(ref) else [float("inf")]
+                row["max_abs_diff_vs_base"] = max(diffs)
+                with open_registry(work / f"marks_{base}.sqlite", create=False) as reg:
+                    row["same_message"] = bool(torch.equal(reg.get(r["name"]).message.float(), messages[r["name"]]))
+            accs, ps = [], []
+            with torch.no_grad():
+                for cam, a in zip(held, originals):
+                    img = rasterize(copy, cam, background=bg).image.clamp(0, 1)
+                    bits = (dec(ll_subband(img[None]))[0] > 0).float().cpu()
+                    accs.append(float((bits == messages[r["name"]]).float().mean()))
+                    ps.append(float(psnr(img, a)))
+            row.update(held_out_bits=sum(accs) / len(accs), held_out_min_bits=min(accs), held_out_psnr=sum(ps) / len(ps))
+            rows.append(row)
+        per_run[g] = rows
+    summary = []
+    rate1 = runs[base]["recipients_per_hour"] / max(base, 1)
+    for g in args.gpus:
+        rows = per_run[g]
+        s = dict(gpus=g, recipients=len(rows), wall_s=runs[g]["wall_s"], finetune_s=runs[g]["timings"]["finetune"],
+                 recipients_per_hour=runs[g]["recipients_per_hour"],
+                 recipients_per_gpu_hour=runs[g]["recipients_per_gpu_hour"],
+                 scaling_efficiency=runs[g]["recipients_per_hour"] / (max(g, 1) * rate1),
+                 mean_bits=sum(r["held_out_bits"] for r in rows) / len(rows),
+                 worst_recipient_bits=min(r["held_out_bits"] for r in rows),
+                 mean_psnr=sum(r["held_out_psnr"] for r in rows) / len(rows),
+                 worst_recipient_psnr=min(r["held_out_psnr"] for r in rows),
+                 meeting_99_and_37=sum(r["held_out_bits"] >= 0.99 and r["held_out_psnr"] >= 37 for r in rows))
+        if g != base:
+            same = {r["name"]: r for r in per_run[base]}
+            s.update(bitwise_identical=sum(r["max_abs_diff_vs_base"] == 0 for r in rows),
+                     max_abs_diff=max(r["max_abs_diff_vs_base"] for r in rows),
+                     same_message=sum(r["same_message"] for r in rows),
+                     same_held_out_bits=sum(r["held_out_bits"] == same[r["name"]]["held_out_bits"] for r in rows),
+                     same_steps=sum(r["steps"] == same[r["name"]]["steps"] for r in rows))
+        summary.append(s)
+    res = dict(prepare=prep, runs={g: {k: v for k, v in runs[g].items() if k != "report"} for g in args.gpus},
+               summary=summary, rows=per_run, machine=_machine())
+    _write_json(Path(args.out) if args.out else work / "compare.json", res)
+    print("| GPUs | recipients | wall s | recipients/h | per GPU-h | scaling | held-out bits mean / worst | PSNR mean / "
+          "worst | meets | identical to 1 GPU |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for s in summary:
+        ident = "-" if s["gpus"] == base else f"{s['bitwise_identical']} of {s['recipients']} (max diff {s['max_abs_diff']:.2g})"
+        print(f"| {s['gpus']} | {s['recipients']} | {s['wall_s']:.1f} | {s['recipients_per_hour']:.0f} | "
+              f"{s['recipients_per_gpu_hour']:.0f} | {s['scaling_efficiency']:.3f} | {100 * s['mean_bits']:.2f} / "
+              f"{100 * s['worst_recipient_bits']:.2f} % | {s['mean_psnr']:.2f} / {s['worst_recipient_psnr']:.2f} dB | "
+              f"{s['meeting_99_and_37']} | {ident} |")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("step", choices=["prepare", "run", "compare"])
+    ap.add_argument("--workdir", required=True)
+    ap.add_argument("--scene", choices=["lego", "builtin"], default="lego")
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "lego"))
+    ap.add_argument("--train-seconds", type=float, default=60.0)
+    ap.add_argument("--size", type=int, default=800)
+    ap.add_argument("--views", type=int, default=24, help="builtin: embedding views")
+    ap.add_argument("--held-out", type=int, default=8, help="builtin: held-out views")
+    ap.add_argument("--recipients", type=int, default=64)
+    ap.add_argument("--bits", type=int, default=32)
+    ap.add_argument("--seed", type=int, default=27, help="messages of the recipients file")
+    ap.add_argument("--gpus", type=int, nargs="+", default=[1], help="run: GPUs (0: CPU); compare: the runs")
+    ap.add_argument("--workers", type=int, default=0, help="run on the CPU: Ray CPUs")
+    ap.add_argument("--batch", type=int, default=16, help="pool slots per task")
+    ap.add_argument("--task-size", type=int, default=16, help="recipients per Ray task")
+    ap.add_argument("--epochs", type=int, default=8)
+    ap.add_argument("--early-stop", default=EARLY_STOP, help="gsw fingerprint --early-stop, or 'none'")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    {"prepare": prepare, "run": run, "compare": compare}[args.step](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
