@@ -83,8 +83,10 @@ def prepare(args) -> None:
     if args.scene == "lego":
         sys.path.insert(0, str(ROOT / "benchmarks"))
         from fingerprint_throughput import _train_lego
+        from power_lego import png_dataset  # a WebP copy of the photos (power_lego.py --pack-webp) back to PNG
 
-        ns = argparse.Namespace(data=args.data, size=args.size, train_seconds=args.train_seconds)
+        data = png_dataset(Path(args.data), work / "lego_png")
+        ns = argparse.Namespace(data=str(data), size=args.size, train_seconds=args.train_seconds)
         g, train_set, test_set, info = _train_lego(ns, dev)
         cams, held = train_set.cameras, test_set.cameras
     else:
