@@ -103,7 +103,9 @@ def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
 
 
 def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path) -> None:
-    """Ray Data, 2 CPU workers, blocks of 4 x 2 sources: the local rows, in input order, errors kept."""
+    """Ray Data, 2 CPU workers, blocks of RAY_SOURCES_PER_CALL x 2 sources: the local rows, in input order, errors
+    kept."""
+    pytest.importorskip("av")  # the crawl holds a video (gsw[video])
     from helpers import scan_crawl
 
     from gsw.fingerprint.scan import scan

@@ -53,7 +53,7 @@ DEFAULT_BATCH_SIZES = {"cuda": 64, "cpu": 4}
 #: Threads reading (decoding the files of) sources ahead of the decoder.
 DEFAULT_READERS = 4
 #: A Ray Data worker is handed this many x ``batch_size`` sources per call.
-RAY_SOURCES_PER_CALL = 4
+RAY_SOURCES_PER_CALL = 16
 
 
 def _suffixes() -> tuple[str, ...]:
@@ -282,9 +282,11 @@ def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTI
 class _RayScanner:  # pragma: no cover - runs in Ray Data workers
     """One Ray Data worker: the decoders loaded once, each batch of paths scanned by :func:`_scan_planned`."""
 
-    def __init__(self, marks: Sequence, fpr: float, frames: int, batch_size: int, readers: int, gpu: bool) -> None:
+    def __init__(self, marks: Sequence, fpr: float, frames: int, batch_size: int, readers: int, gpu: bool,
+                 threads: int = 1) -> None:
         from gsw.mark.identify import plan_identify
 
+        torch.set_num_threads(threads)  # Ray caps a worker's threads at its num_cpus (OMP_NUM_THREADS)
         self.plan = plan_identify(marks, device="cuda" if gpu else "cpu")
         self.fpr, self.frames, self.batch_size, self.readers = fpr, frames, batch_size, readers
 
@@ -306,18 +308,21 @@ def _ray_data_available() -> bool:
 def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
               workers: int | None, batch_size: int, readers: int) -> list[ScanRow]:
     """Ray Data: one worker per GPU (or CPU), each scanning blocks of :data:`RAY_SOURCES_PER_CALL` x
-    ``batch_size`` sources; rows put back in input order."""
+    ``batch_size`` sources; rows put back in input order. A GPU worker gets its share of the cluster's CPUs
+    (reading, decoding files and the CPU side of the tests), as ``num_cpus`` and torch threads."""
     import ray
 
     from gsw.fingerprint.run import connect_ray
 
     started = connect_ray(address)
     try:
-        n = workers or max(1, int(ray.cluster_resources().get("GPU" if gpu else "CPU", 1)))
+        resources = ray.cluster_resources()
+        n = workers or max(1, int(resources.get("GPU" if gpu else "CPU", 1)))
+        cpus = max(1, int((resources.get("CPU", 1) - 1) // n)) if gpu else 1  # one CPU left to Ray Data
         ds = ray.data.from_items([{"path": str(p)} for p in paths])
-        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu),
+        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu, cpus),
                             batch_size=RAY_SOURCES_PER_CALL * batch_size, concurrency=n,
-                            num_gpus=1 if gpu else 0, num_cpus=1)
+                            num_gpus=1 if gpu else 0, num_cpus=cpus)
         by_path = {r["source"]: ScanRow(**r) for r in ds.iter_rows()}
     finally:
         if started:
