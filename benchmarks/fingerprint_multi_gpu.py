@@ -136,10 +136,12 @@ def run(args) -> None:
         raise SystemExit(f"gsw fingerprint exited {proc.returncode}")
     report = json.loads(proc.stdout[proc.stdout.index("{"):])
     n = sum(r["status"] == "embedded" for r in report["recipients"])
+    first = json.loads((Path(report["recipients"][0]["folder"]) / "watermark.json").read_text())
+    scene = {k: first.get(k) for k in ("gaussians_in", "gaussians_out", "pruned", "split", "setup_timings")}
     res = dict(gpus=g, command=" ".join(cmd), wall_s=wall, recipients=n, runner=report["runner"],
                timings=report["timings"], recipients_per_hour=3600 * n / wall,
                recipients_per_hour_finetune=3600 * n / report["timings"]["finetune"],
-               recipients_per_gpu_hour=3600 * n / wall / max(g, 1), report=report, machine=_machine(),
+               recipients_per_gpu_hour=3600 * n / wall / max(g, 1), scene=scene, report=report, machine=_machine(),
                stderr_tail=proc.stderr[-2000:])
     _write_json(work / f"run_{g}.json", res)
     print(json.dumps({k: v for k, v in res.items() if k not in ("report", "stderr_tail", "command")}), flush=True)

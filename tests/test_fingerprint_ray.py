@@ -102,14 +102,16 @@ def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
     assert [i for i, _ in failed] == [0]
 
 
-def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path) -> None:
-    """Ray Data, 2 CPU workers, blocks of RAY_SOURCES_PER_CALL x 2 sources: the local rows, in input order, errors
-    kept."""
+def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path, monkeypatch) -> None:
+    """Ray Data, 2 CPU workers, blocks of 2 x 2 sources (several blocks per worker): the local rows, in input
+    order, errors kept."""
     pytest.importorskip("av")  # the crawl holds a video (gsw[video])
     from helpers import scan_crawl
 
+    import gsw.fingerprint.scan as scan_module
     from gsw.fingerprint.scan import scan
 
+    monkeypatch.setattr(scan_module, "RAY_SOURCES_PER_CALL", 2)  # the block size is set on the driver
     marks = scan_crawl(tmp_path / "web")
     local = scan([tmp_path / "web"], marks, use_ray=False, batch_size=2)
     remote = scan([tmp_path / "web"], marks, use_ray=True, workers=2, batch_size=2)

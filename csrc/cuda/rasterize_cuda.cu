@@ -344,7 +344,7 @@ __global__ void __launch_bounds__(kContribBlock)
 
 // ------------------------------------------------------------------ backward
 
-// Per-splat cotangents of the blend backward, in record order (kBlendGrads, core/math.h).
+// Per-splat cotangents of the blend backward, in record order (kBlendGrads, core/constants.h).
 constexpr int kSplatGrads = kBlendGrads;
 // Pixels per thread of backward_kernel unless GSW_CUDA_BACKWARD says otherwise (see
 // rasterize_backward).
