@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 from helpers import scan_crawl
 
 import gsw.fingerprint.scan
@@ -111,3 +112,14 @@ def test_progress_and_bad_arguments(crawl, monkeypatch) -> None:
     with pytest.raises(ImportError, match=r"pip install gsw\[ray\]"):
         scan(paths[:1], marks, use_ray=True)
     assert [r.source for r in scan(paths[:1], marks)] == [str(paths[0])]  # default: this process, quietly
+
+
+def test_ray_only_by_default_where_it_adds_gpus(monkeypatch) -> None:
+    """Ray Data by default only for many sources on several visible GPUs (one GPU, a CPU: this process)."""
+    from gsw.fingerprint.scan import RAY_DATA_MIN_SOURCES, ray_by_default
+
+    n = RAY_DATA_MIN_SOURCES
+    for gpus, device, sources, want in [(2, "cuda", n, True), (4, "cuda:1", 10 * n, True), (1, "cuda", 10 * n, False),
+                                        (2, "cuda", n - 1, False), (2, "cpu", 10 * n, False), (2, None, 10 * n, False)]:
+        monkeypatch.setattr(torch.cuda, "device_count", lambda g=gpus: g)
+        assert ray_by_default(sources, device) is want, (gpus, device, sources)

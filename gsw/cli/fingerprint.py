@@ -1,8 +1,9 @@
 """`gsw fingerprint` (one watermarked copy per recipient, registered) and `gsw scan` (who leaked these?).
 
-Both run on Ray when it is installed (a local Ray cluster, or ``--address`` to join one) and in one
-process otherwise. Messages are secrets: they go into the registry only, never into the output folders
-or the printed report.
+`gsw fingerprint` runs its recipient batches on Ray when it is installed (a local Ray cluster, or ``--address``
+to join one) and in one process otherwise. `gsw scan` runs in one process unless ``--address``, ``--workers`` or
+several visible GPUs (with ``--device cuda``) call for Ray Data (:func:`gsw.fingerprint.scan.ray_by_default`).
+Messages are secrets: they go into the registry only, never into the output folders or the printed report.
 """
 
 from __future__ import annotations
@@ -75,7 +76,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sc.add_argument("--frames", type=positive_int, default=16, help="frames read per video (default %(default)s)")
     add_device_option(sc)
     _add_ray_options(sc)
-    sc.add_argument("--workers", type=positive_int, default=None, help="Ray Data workers (default: one per CPU/GPU)")
+    sc.add_argument("--workers", type=positive_int, default=None,
+                    help="scan on this many Ray Data workers (a local Ray cluster unless --address; default: Ray Data "
+                         "only on several GPUs or a cluster, one worker per GPU/CPU)")
     sc.add_argument("--batch-size", type=positive_int, default=None,
                     help="images per decoder call (default: " + ", ".join(f"{n} on {d}" for d, n in
                                                                       DEFAULT_BATCH_SIZES.items()) + ")")
@@ -169,7 +172,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
         marks = reg.list()
     device = resolve_device(args.device)
     rows = scan(args.inputs, marks, fpr=args.fpr, device=None if device.type == "cpu" else device,
-                frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers,
+                frames=args.frames, use_ray=True if args.workers and not args.local else _use_ray(args),
+                address=args.address, workers=args.workers,
                 batch_size=args.batch_size, readers=args.readers)
     _write_report(rows, args.output)
     hits = [r for r in rows if r.identified]

@@ -16,10 +16,12 @@ within it: :mod:`gsw.mark.identify`), computed as a pipeline:
    the next group is decoded on a thread.
 
 A file that cannot be read (or that the decoder cannot read) gets a row with its ``error``; the others are
-scanned. With Ray Data installed (``pip install gsw[ray]``) and at least :data:`RAY_DATA_MIN_SOURCES` sources
-(or a cluster ``address``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU on
-CUDA or per CPU), each running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size``
-sources; the rows come back in input order.
+scanned. On a cluster (an ``address``), when asked (``use_ray=True``), or by default with at least
+:data:`RAY_DATA_MIN_SOURCES` sources on CUDA with several GPUs visible (:func:`ray_by_default`), and with Ray Data
+installed (``pip install gsw[ray]``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU
+on CUDA or per CPU), each running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size``
+sources; the rows come back in input order. On one GPU or a CPU the default is this process: Ray Data was slower
+there in every measurement (BENCHMARKS.md, #26 / #27).
 """
 
 from __future__ import annotations
@@ -41,9 +43,9 @@ if TYPE_CHECKING:
     from gsw.mark.identify import IdentifyPlan, SourceReadings
 
 __all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
-           "expand_inputs", "scan", "scan_sources"]
+           "expand_inputs", "ray_by_default", "scan", "scan_sources"]
 
-#: Sources from which :func:`scan` uses Ray Data (when installed) rather than one process.
+#: Sources from which :func:`scan` uses Ray Data by default on several GPUs (:func:`ray_by_default`).
 RAY_DATA_MIN_SOURCES = 256
 #: Images per decoder call (and per group of consecutive sources decoded together) by device type: on a GPU
 #: large batches amortise the per-call cost; on a CPU the decoder is compute-bound and batches beyond a few
@@ -330,6 +332,15 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
     return [by_path.get(str(p)) or ScanRow(str(p), error="no result came back from Ray") for p in paths]
 
 
+def ray_by_default(sources: int, device: torch.device | str | None) -> bool:
+    """Whether :func:`scan` uses Ray Data when not told: at least :data:`RAY_DATA_MIN_SOURCES` sources on CUDA
+    with more than one GPU visible, the one case where Ray Data adds hardware this process cannot use. On one
+    GPU (lego 800x800: 86 against 206 images/s in one process) and on a 2-core CPU (1.73 against 2.60) it was
+    slower (BENCHMARKS.md)."""
+    gpu = device is not None and torch.device(device).type == "cuda"
+    return sources >= RAY_DATA_MIN_SOURCES and gpu and torch.cuda.device_count() > 1
+
+
 def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = DETECTION_FPR,
          device: torch.device | None = None, frames: int = 16, use_ray: bool | None = None,
          address: str | None = None, workers: int | None = None, batch_size: int | None = None,
@@ -342,8 +353,8 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
         fpr: family-wise false-positive rate per source.
         device: where to decode (None: the CPU).
         frames: frames read per video.
-        use_ray: True: Ray Data; False: this process; None: Ray Data when installed and there are at least
-            :data:`RAY_DATA_MIN_SOURCES` sources or an ``address``.
+        use_ray: True: Ray Data; False: this process; None: Ray Data when installed and either an ``address``
+            is given or :func:`ray_by_default` holds.
         address: a Ray cluster to join.
         workers: Ray Data workers (default: one per CPU, or per GPU on CUDA).
         batch_size: images per decoder call (in this process and in every Ray worker); None:
@@ -362,7 +373,7 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
         raise ValueError("the registry holds no marks")
     batch_size = _batching(batch_size, readers, device)
     paths = expand_inputs(inputs)
-    want_ray = use_ray if use_ray is not None else bool(address) or len(paths) >= RAY_DATA_MIN_SOURCES
+    want_ray = use_ray if use_ray is not None else bool(address) or ray_by_default(len(paths), device)
     if want_ray and not _ray_data_available():
         if use_ray or address:
             raise ImportError("scanning on Ray needs Ray Data (ray[data], with pandas and pyarrow): install the Ray "
