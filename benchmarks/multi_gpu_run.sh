@@ -7,7 +7,8 @@
 # Steps (each logged to WORKDIR/progress.log; results WORKDIR/*.json): fingerprint_multi_gpu.py prepare
 # (trains lego 60 s), run on each GPU count, compare; then scan_throughput.py over a crawl of 10,000 files
 # rendered from the same lego model: per-source (500 files), batched and Ray on 1 GPU, Ray on the others.
-# NVLink multicast stays off (the device documentation asks for it; nothing here uses NCCL).
+# NVLink multicast stays off (the device documentation asks for it; nothing here uses NCCL). Ray must be
+# importable: on the offline GPU machines, carry the bundle of benchmarks/ray_bundle.sh and run its INSTALL.sh.
 set -uo pipefail
 W=${1:?WORKDIR}
 LEGO=${2:?LEGO_DIR}
