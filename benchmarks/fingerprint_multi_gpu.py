@@ -71,8 +71,6 @@ def _machine() -> dict:
 
 
 def prepare(args) -> None:
-    import torch
-
     from gsw.camera_io import save_inria_cameras
     from gsw.data import save_inria_model
     from gsw.device import resolve_device
@@ -105,7 +103,6 @@ def prepare(args) -> None:
                                            held_out_views=len(held), size=f"{cams[0].width}x{cams[0].height}",
                                            recipients=args.recipients, machine=_machine()))
     print(f"prepared {work}: {len(g)} Gaussians, {len(cams)} embedding / {len(held)} held-out views", flush=True)
-    del torch
 
 
 def run(args) -> None:
