@@ -28,7 +28,7 @@ not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak
 tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
 that change.
 
-`--backward legacy px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
+`--backward atomic px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
 GSW_CUDA_BACKWARD of csrc/cuda/rasterize_cuda.cu, set in this process around each call): per variant the
 blend backward op alone on the same bins and the whole forward+backward, two interleaved rounds, and the
 largest gradient difference to the first variant named (relative to each gradient tensor's largest value).
@@ -58,7 +58,7 @@ from gsw.scenes import frustum_scene, heavy_scene
 
 GSPLAT_MODES = {"packed": True, "unpacked": False}
 BACKWARD_ENV = "GSW_CUDA_BACKWARD"  # read by the CUDA blend backward at every call
-BACKWARD_VARIANTS = ("legacy", "px2", "px4")
+BACKWARD_VARIANTS = ("atomic", "px2", "px4")
 
 
 def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
@@ -290,6 +290,9 @@ def compare_backward_variants(g: Gaussians, cam: Camera, w_img: torch.Tensor, va
     for v in variants:
         with backward_variant(v):
             grads = [t.clone() for t in bwd()]
+            res[f"fwdbwd_peak_mb_{v}"] = peak_mb(fwdbwd, reset)
+            # the same bins and cotangents again: do the gradients come back as the same bits?
+            res[f"bitwise_repeats_{v}"] = sum(all(torch.equal(a, b) for a, b in zip(bwd(), grads)) for _ in range(5))
         if ref is None:
             ref = grads
         res[f"grad_maxdiff_{v}"] = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30))
@@ -417,16 +420,20 @@ def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int
         names = [k[len("grad_maxdiff_"):] for k in bv[0]["gsw_backward_variants"] if k.startswith("grad_maxdiff_")]
         lines += ["", f"CUDA blend backward variants ({BACKWARD_ENV}; ms, mean of two interleaved rounds; blend bwd: the "
                   "op alone on the same bins; fwd+bwd: the whole pipeline; grad diff: largest gradient difference to "
-                  f"{names[0]}, relative to each tensor's max abs):", "",
+                  f"{names[0]}, relative to each tensor's max abs; peak: extra MiB of one fwd+bwd; repeats: of 5 more "
+                  "blend backwards, those with the same gradient bits):", "",
                   "| scene | N | size | M | " + " | ".join(f"blend bwd {v}" for v in names) + " | "
                   + " | ".join(f"fwd+bwd {v}" for v in names) + " | " + " | ".join(f"grad diff {v}" for v in names[1:])
-                  + " |", "|---|---|---|---|" + "---|" * (3 * len(names) - 1)]
+                  + " | " + " | ".join(f"peak {v}" for v in names) + " | " + " | ".join(f"repeats {v}" for v in names)
+                  + " |", "|---|---|---|---|" + "---|" * (5 * len(names) - 1)]
         for r in bv:
             d = r["gsw_backward_variants"]
             lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | {r['intersections']:,} | "
                          + " | ".join(f"{d[f'blend_bwd_{v}']:.3f}" for v in names) + " | "
                          + " | ".join(f"{d[f'fwdbwd_{v}']:.2f}" for v in names) + " | "
-                         + " | ".join(f"{d[f'grad_maxdiff_{v}']:.1e}" for v in names[1:]) + " |")
+                         + " | ".join(f"{d[f'grad_maxdiff_{v}']:.1e}" for v in names[1:]) + " | "
+                         + " | ".join(f"{d[f'fwdbwd_peak_mb_{v}']:.0f}" for v in names) + " | "
+                         + " | ".join(f"{d[f'bitwise_repeats_{v}']}/5" for v in names) + " |")
     diffs = [r for r in rows if "image_mean_abs_diff_vs_gsplat_unpacked" in r]
     if diffs:
         lines += ["", "Image difference gsw vs gsplat unpacked (mean / max abs): " + "; ".join(
@@ -448,7 +455,7 @@ def main() -> None:
     ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (ellipse tiles vs radius rectangles)")
     ap.add_argument("--backward", nargs="+", choices=BACKWARD_VARIANTS, default=[],
                     help="also compare these CUDA blend backward variants (the first is the reference of the gradient "
-                         "differences), e.g. legacy px2 px4")
+                         "differences), e.g. atomic px2 px4")
     ap.add_argument("--commit", default="", help="gsw commit to record")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")

@@ -13,10 +13,14 @@ Three steps, each one command (so that each fits one device call; ``--workdir`` 
    stopping rule ``--early-stop``; output ``WORKDIR/out_G``, registry ``WORKDIR/marks_G.sqlite``. Timed from
    the command's start to its exit (Ray's start, the set-up and every write included) and, apart, its own
    "finetune" time (after the once-per-scene set-up). Recipients per hour = 3600 x recipients / wall time.
-3. ``compare``: every run's copies against the first run's (``--gpus`` order; normally 1 GPU): bitwise equal
+   ``--local`` runs ``gsw fingerprint --local`` (one process, no Ray), ``--limit N`` only the first N
+   recipients, ``--first-gpu K`` on GPUs K.. (for a run beside another); the run is named by its GPU count,
+   ``local`` and ``xN`` (or ``--tag``).
+3. ``compare --runs NAME...``: every run's copies against the first run's (normally 1 GPU): bitwise equal
    parameters or the largest difference; then each copy of each run on the held-out views (never used by
    the job): bit accuracy of each view's render with its registered message, PSNR against the original
-   model's render; scaling efficiency = (rate at G GPUs) / (G x rate at 1 GPU).
+   model's render (and, from the job's report, the copy's PSNR on its embedding views); scaling efficiency =
+   (rate at G GPUs) / (G x rate at 1 GPU).
 
 Results: ``WORKDIR/run_G.json`` and ``--out`` (the summary JSON; a table on stdout).
 
@@ -24,7 +28,7 @@ Usage on a 2-GPU machine (lego photos in DIR; Ray with its data extra importable
     python benchmarks/fingerprint_multi_gpu.py prepare --data DIR --workdir /tmp/fp27
     python benchmarks/fingerprint_multi_gpu.py run --gpus 1 --workdir /tmp/fp27
     python benchmarks/fingerprint_multi_gpu.py run --gpus 2 --workdir /tmp/fp27
-    python benchmarks/fingerprint_multi_gpu.py compare --gpus 1 2 --workdir /tmp/fp27 --out fp_multi_gpu.json
+    python benchmarks/fingerprint_multi_gpu.py compare --runs 1 2 --workdir /tmp/fp27 --out fp_multi_gpu.json
 CPU smoke test (built-in scene, 2 Ray CPU workers):
     python benchmarks/fingerprint_multi_gpu.py prepare --scene builtin --size 64 --recipients 4 --workdir /tmp/fp27
     python benchmarks/fingerprint_multi_gpu.py run --gpus 0 --workers 1 --batch 2 --task-size 2 --epochs 1 \\
@@ -52,6 +56,11 @@ def _write_json(path: Path, obj) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(obj, indent=1) + "\n")
     tmp.replace(path)
+
+
+def _mean(values) -> float | None:
+    values = [v for v in values if v is not None]
+    return sum(values) / len(values) if values else None
 
 
 def _machine() -> dict:
@@ -105,20 +114,32 @@ def prepare(args) -> None:
     print(f"prepared {work}: {len(g)} Gaussians, {len(cams)} embedding / {len(held)} held-out views", flush=True)
 
 
+def run_tag(args) -> str:
+    """The run's name: its GPU count, ``local`` for ``--local``, ``xN`` for ``--limit N``, or ``--tag``."""
+    if args.tag:
+        return args.tag
+    return f"{args.gpus[0]}" + ("local" if args.local else "") + (f"x{args.limit}" if args.limit else "")
+
+
 def run(args) -> None:
     work = Path(args.workdir)
-    g = args.gpus[0]
-    out, reg = work / f"out_{g}", work / f"marks_{g}.sqlite"
+    g, tag = args.gpus[0], run_tag(args)
+    out, reg = work / f"out_{tag}", work / f"marks_{tag}.sqlite"
     if out.exists() or reg.exists():
         raise SystemExit(f"{out} or {reg} exists: a run is timed from scratch; remove them first")
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     if g > 0:
-        env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(g))
-    prep = json.loads((work / "prepare.json").read_text())
-    cmd = [sys.executable, "-m", "gsw", "fingerprint", str(work / "model"), "--recipients", str(work / "recipients.csv"),
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(str(args.first_gpu + i) for i in range(g))
+    recipients = work / "recipients.csv"
+    if args.limit:
+        recipients = work / f"recipients_{tag}.csv"
+        recipients.write_text("".join((work / "recipients.csv").read_text().splitlines(keepends=True)[:args.limit + 1]))
+    cmd = [sys.executable, "-m", "gsw", "fingerprint", str(work / "model"), "--recipients", str(recipients),
            "--output", str(out), "--registry", str(reg), "--batch", str(args.batch), "--task-size", str(args.task_size),
            "--epochs", str(args.epochs), "--device", args.device, "--no-progress", "--json"]
     cmd += ["--white"]  # lego's and the built-in scene's background
+    if args.local:
+        cmd += ["--local"]
     if args.early_stop != "none":
         cmd += ["--early-stop", args.early_stop]
     if args.workers:  # CPU: Ray's CPUs (a test of the path, not a measurement)
@@ -135,12 +156,12 @@ def run(args) -> None:
     n = sum(r["status"] == "embedded" for r in report["recipients"])
     first = json.loads((Path(report["recipients"][0]["folder"]) / "watermark.json").read_text())
     scene = {k: first.get(k) for k in ("gaussians_in", "gaussians_out", "pruned", "split", "setup_timings")}
-    res = dict(gpus=g, command=" ".join(cmd), wall_s=wall, recipients=n, runner=report["runner"],
+    res = dict(tag=tag, gpus=g, local=args.local, command=" ".join(cmd), wall_s=wall, recipients=n, runner=report["runner"],
                timings=report["timings"], recipients_per_hour=3600 * n / wall,
                recipients_per_hour_finetune=3600 * n / report["timings"]["finetune"],
                recipients_per_gpu_hour=3600 * n / wall / max(g, 1), scene=scene, report=report, machine=_machine(),
                stderr_tail=proc.stderr[-2000:])
-    _write_json(work / f"run_{g}.json", res)
+    _write_json(work / f"run_{tag}.json", res)
     print(json.dumps({k: v for k, v in res.items() if k not in ("report", "stderr_tail", "command")}), flush=True)
 
 
@@ -165,16 +186,17 @@ def compare(args) -> None:
     dec = load_decoder(args.bits).to(dev)
     with torch.no_grad():
         originals = [rasterize(orig, c, background=bg).image.clamp(0, 1) for c in held]
-    runs = {g: json.loads((work / f"run_{g}.json").read_text()) for g in args.gpus}
-    base = args.gpus[0]
+    runs = {t: json.loads((work / f"run_{t}.json").read_text()) for t in args.runs}
+    base = args.runs[0]
     per_run = {}
-    for g in args.gpus:
+    for g in args.runs:
         with open_registry(work / f"marks_{g}.sqlite", create=False) as reg:
             messages = {m.label: m.message.float() for m in reg.list()}
         rows = []
         for r in sorted(runs[g]["report"]["recipients"], key=lambda r: r["name"]):
             copy = load_inria_model(Path(r["folder"])).gaussians.to(dev)
-            row = dict(name=r["name"], steps=r["steps"], stopped_early=r["stopped_early"])
+            row = dict(name=r["name"], steps=r["steps"], stopped_early=r["stopped_early"], train_bits=r.get("bit_accuracy"),
+                       train_psnr=r.get("psnr"))
             if g != base:
                 ref = load_inria_model(work / f"out_{base}" / r["name"]).gaussians.to(dev)
                 pa, pb = copy.parameters(), ref.parameters()
@@ -193,13 +215,14 @@ def compare(args) -> None:
             rows.append(row)
         per_run[g] = rows
     summary = []
-    rate1 = runs[base]["recipients_per_hour"] / max(base, 1)
-    for g in args.gpus:
+    rate1 = runs[base]["recipients_per_hour"] / max(runs[base]["gpus"], 1)
+    for g in args.runs:
         rows = per_run[g]
-        s = dict(gpus=g, recipients=len(rows), wall_s=runs[g]["wall_s"], finetune_s=runs[g]["timings"]["finetune"],
+        s = dict(run=g, gpus=runs[g]["gpus"], recipients=len(rows), wall_s=runs[g]["wall_s"], finetune_s=runs[g]["timings"]["finetune"],
                  recipients_per_hour=runs[g]["recipients_per_hour"],
                  recipients_per_gpu_hour=runs[g]["recipients_per_gpu_hour"],
-                 scaling_efficiency=runs[g]["recipients_per_hour"] / (max(g, 1) * rate1),
+                 scaling_efficiency=runs[g]["recipients_per_hour"] / (max(runs[g]["gpus"], 1) * rate1),
+                 mean_train_psnr=_mean(r["train_psnr"] for r in rows),
                  mean_bits=sum(r["held_out_bits"] for r in rows) / len(rows),
                  worst_recipient_bits=min(r["held_out_bits"] for r in rows),
                  mean_psnr=sum(r["held_out_psnr"] for r in rows) / len(rows),
@@ -213,17 +236,18 @@ def compare(args) -> None:
                      same_held_out_bits=sum(r["held_out_bits"] == same[r["name"]]["held_out_bits"] for r in rows),
                      same_steps=sum(r["steps"] == same[r["name"]]["steps"] for r in rows))
         summary.append(s)
-    res = dict(prepare=prep, runs={g: {k: v for k, v in runs[g].items() if k != "report"} for g in args.gpus},
+    res = dict(prepare=prep, runs={g: {k: v for k, v in runs[g].items() if k != "report"} for g in args.runs},
                summary=summary, rows=per_run, machine=_machine())
     _write_json(Path(args.out) if args.out else work / "compare.json", res)
-    print("| GPUs | recipients | wall s | recipients/h | per GPU-h | scaling | held-out bits mean / worst | PSNR mean / "
-          "worst | meets | identical to 1 GPU |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| run | GPUs | recipients | wall s | recipients/h | per GPU-h | scaling | held-out bits mean / worst | PSNR mean / "
+          "worst | train PSNR | meets | identical to 1 GPU |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for s in summary:
-        ident = "-" if s["gpus"] == base else f"{s['bitwise_identical']} of {s['recipients']} (max diff {s['max_abs_diff']:.2g})"
-        print(f"| {s['gpus']} | {s['recipients']} | {s['wall_s']:.1f} | {s['recipients_per_hour']:.0f} | "
+        ident = "-" if s["run"] == base else f"{s['bitwise_identical']} of {s['recipients']} (max diff {s['max_abs_diff']:.2g})"
+        print(f"| {s['run']} | {s['gpus']} | {s['recipients']} | {s['wall_s']:.1f} | {s['recipients_per_hour']:.0f} | "
               f"{s['recipients_per_gpu_hour']:.0f} | {s['scaling_efficiency']:.3f} | {100 * s['mean_bits']:.2f} / "
               f"{100 * s['worst_recipient_bits']:.2f} % | {s['mean_psnr']:.2f} / {s['worst_recipient_psnr']:.2f} dB | "
+              f"{'-' if s['mean_train_psnr'] is None else format(s['mean_train_psnr'], '.2f')} | "
               f"{s['meeting_99_and_37']} | {ident} |")
 
 
@@ -240,7 +264,12 @@ def main() -> int:
     ap.add_argument("--recipients", type=int, default=64)
     ap.add_argument("--bits", type=int, default=32)
     ap.add_argument("--seed", type=int, default=27, help="messages of the recipients file")
-    ap.add_argument("--gpus", type=int, nargs="+", default=[1], help="run: GPUs (0: CPU); compare: the runs")
+    ap.add_argument("--gpus", type=int, nargs=1, default=[1], help="run: GPUs (0: CPU)")
+    ap.add_argument("--first-gpu", type=int, default=0, help="run: the first GPU's index (the run takes --gpus from it)")
+    ap.add_argument("--local", action="store_true", help="run: gsw fingerprint --local (one process, no Ray)")
+    ap.add_argument("--limit", type=int, default=0, help="run: only the first N recipients")
+    ap.add_argument("--tag", default=None, help="run: the run's name (default: GPUs, 'local', 'xN')")
+    ap.add_argument("--runs", nargs="+", default=["1"], help="compare: the runs' names, the base first")
     ap.add_argument("--workers", type=int, default=0, help="run on the CPU: Ray CPUs")
     ap.add_argument("--batch", type=int, default=16, help="pool slots per task")
     ap.add_argument("--task-size", type=int, default=16, help="recipients per Ray task")

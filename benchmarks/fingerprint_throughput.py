@@ -270,6 +270,8 @@ def main() -> int:
                     help="only time `gsw scan` over renders of the unmarked model against MARKS random marks")
     ap.add_argument("--scan-images", type=int, default=64)
     ap.add_argument("--scan-cpu-images", type=int, default=32)
+    ap.add_argument("--no-photos", action="store_true",
+                    help="lego: FGD from the model's own renders (as `gsw fingerprint` on a model folder without --images)")
     ap.add_argument("--budget-s", type=float, default=100.0, help="no new setting after this many seconds of sweep")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--tag", default=None)
@@ -280,6 +282,8 @@ def main() -> int:
     dev = resolve_device(args.device)
     t_start = time.perf_counter()
     g, cams, held, bg, images, train_info = _scene(args, dev)
+    if args.no_photos:
+        images = None
     with torch.no_grad():
         held_orig = [rasterize(g, cam, background=bg).image.clamp(0, 1) for cam in held]
     res = dict(scene=args.scene, gaussians=len(g), size=f"{cams[0].width}x{cams[0].height}", views=len(cams),

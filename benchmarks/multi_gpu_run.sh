@@ -26,7 +26,7 @@ for g in $GPUS; do
   step "fingerprint_$g" python3 benchmarks/fingerprint_multi_gpu.py run --gpus "$g" --workdir "$W/fp"
 done
 # shellcheck disable=SC2086
-step compare python3 benchmarks/fingerprint_multi_gpu.py compare --gpus $GPUS --workdir "$W/fp" \
+step compare python3 benchmarks/fingerprint_multi_gpu.py compare --runs $GPUS --workdir "$W/fp" \
   --out "$W/fingerprint_multi_gpu.json"
 for g in $GPUS; do
   modes=ray

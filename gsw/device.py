@@ -6,9 +6,12 @@ Every place that takes a device name (training, embedding, the evaluation grid, 
 
 from __future__ import annotations
 
+import contextlib
+from typing import Iterator
+
 import torch
 
-__all__ = ["DEVICE_CHOICES", "parse_device", "resolve_device"]
+__all__ = ["DEVICE_CHOICES", "deterministic", "parse_device", "resolve_device"]
 
 #: How a device is named (the ``--device`` help of the command line).
 DEVICE_CHOICES = "auto|cpu|cuda|cuda:N"
@@ -72,3 +75,18 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
         raise RuntimeError(f"device {str(device)!r} requested but torch sees {torch.cuda.device_count()} "
                            "CUDA device(s)")
     return torch.device("cuda", index)
+
+
+@contextlib.contextmanager
+def deterministic() -> Iterator[None]:
+    """Inside: cuDNN picks deterministic convolution algorithms and no autotuning (the decoder's and LPIPS's
+    convolutions), restored on exit. With gsw's rasterizer, whose backward sums in a fixed order on both
+    backends, the same inputs then give the same bits on every run and every GPU of one model (what
+    fingerprinting relies on: a copy does not depend on which worker or how many GPUs made it).
+    """
+    saved = torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark
+    torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = saved

@@ -26,8 +26,9 @@ def _config(scene) -> EmbedConfig:
 
 def _run(scene, names, out, reg, **kw):
     kw.setdefault("use_ray", False)
+    kw.setdefault("device", "cpu")
     return gsw.fingerprint(scene.gaussians, scene.cameras, names, out, reg, config=_config(scene), batch_size=2,
-                           device="cpu", progress=False, **kw)
+                           progress=False, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -144,3 +145,27 @@ def test_without_ray(tmp_path, monkeypatch) -> None:
     assert any("pip install gsw[ray]" in m for m in messages)
     with pytest.raises(ImportError, match=r"pip install gsw\[ray\]"):
         _run(_scene(), ["d1"], tmp_path / "out", tmp_path / "r.sqlite", use_ray=True)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_same_job_same_bits(device, tmp_path) -> None:
+    """Two runs of one job (same scene, messages and settings) write bitwise-identical copies: the rasterizer's
+    backward sums in a fixed order and the decoder's convolutions run deterministically (gsw.device.deterministic),
+    so a copy does not depend on the run, the worker or the GPU count that made it (#27)."""
+    import torch
+
+    from gsw.data import load_inria_model
+
+    if device == "cuda" and not (torch.cuda.is_available() and gsw.build_info()["cuda"]):
+        pytest.skip("needs a CUDA device and a CUDA build of gsw")
+    scene = default_scene(width=48, height=48, n_cameras=3, detail=0.3, seed=1, device=device)
+    from gsw.fingerprint.plan import Recipient
+
+    names = [Recipient("r0", "0f1e2d3c"), Recipient("r1", "a5a5a5a5")]
+    copies = []
+    for run in ("a", "b"):
+        _run(scene, names, tmp_path / run, tmp_path / f"{run}.sqlite", device=device)
+        copies.append([load_inria_model(tmp_path / run / r.name).gaussians for r in names])
+    for x, y in zip(*copies):
+        for key, value in x.parameters().items():
+            assert torch.equal(value, y.parameters()[key]), key

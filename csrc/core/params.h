@@ -109,6 +109,31 @@ struct RasterGradParams {
   T* v_depths = nullptr;       // [N]
 };
 
+// Blend backward, second pass of both backends: Gaussian i's cotangents are the sum of its
+// intersections' records (kBlendGrads values per sorted position, in kBlendGrads order), added
+// in intersection order e = entry_offsets[i] .. entry_offsets[i + 1] - 1 from zero. A fixed order
+// with no atomics: the gradients are the same bits on every run.
+template <typename T>
+GSW_HD void reduce_blend_grads(const TileBins& bins, const T* records, const RasterGradParams<T>& g,
+                               int64_t i) {
+  T acc[kBlendGrads];
+  GSW_UNROLL
+  for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
+  for (int32_t e = bins.entry_offsets[i]; e < bins.entry_offsets[i + 1]; ++e) {
+    const T* r = records + int64_t(kBlendGrads) * bins.entry_slots[e];
+    GSW_UNROLL
+    for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
+  }
+  g.v_means2d[2 * i] = acc[0];
+  g.v_means2d[2 * i + 1] = acc[1];
+  GSW_UNROLL
+  for (int k = 0; k < 3; ++k) g.v_conics[3 * i + k] = acc[2 + k];
+  g.v_opacities[i] = acc[5];
+  GSW_UNROLL
+  for (int k = 0; k < 3; ++k) g.v_colors[3 * i + k] = acc[6 + k];
+  g.v_depths[i] = acc[9];
+}
+
 // Per-Gaussian contribution of the blending weights w_i(p) = alpha_i(p) T_i(p) under a weight
 // map: V[i, c] = sum_p weights[c, p] w_i(p); hits[i] = #pixels with w_i(p) > 0;
 // max_weight[i] = max_p w_i(p).

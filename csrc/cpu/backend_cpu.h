@@ -33,14 +33,11 @@ void fill_bins(const BinParams<T>& p, TileLists& lists, int32_t* tile_offsets, i
 
 template <typename T>
 void rasterize_forward(const RasterParams<T>& p);
-// `scratch` holds M * kSplatGradSize values.
+// `scratch` holds M * kBlendGrads values (core/constants.h): one record per intersection.
 template <typename T>
 void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch);
 // `scratch` holds M * (C + 2) values.
 template <typename T>
 void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* scratch);
-
-// Per-intersection gradient record: mean2d (2), conic (3), opacity, colour (3), depth.
-constexpr int kSplatGradSize = kBlendGrads;
 
 }  // namespace gsw::cpu

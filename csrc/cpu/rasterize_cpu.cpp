@@ -415,7 +415,7 @@ GSW_CPU_INLINE void load_backward_pixels(const RasterParams<T>& p, const RasterG
 
 // Backward of splat s (tile-local index j) over NB aligned lane blocks at once (blk[b].lanes: pixels
 // on the splat's chord that blended splat j or a splat behind it): steps the blocks' pixels back
-// over it (blend_backward_step) and adds its cotangents per lane to l (rows in kSplatGradSize
+// over it (blend_backward_step) and adds its cotangents per lane to l (rows in kBlendGrads
 // record order).
 template <int NB, bool kDepth, bool kFinalT, typename T>
 GSW_CPU_INLINE void backward_blocks(const SplatLanes<T>& sl, const PackedSplat<T>& s, const BlockCentres<T>& cen,
@@ -454,12 +454,12 @@ GSW_CPU_INLINE void backward_blocks(const SplatLanes<T>& sl, const PackedSplat<T
 }
 
 // The back-to-front walk of one tile over its splats [0, max_n): each splat's cotangent record
-// into out (kSplatGradSize values per splat).
+// into out (kBlendGrads values per splat).
 template <bool kDepth, bool kFinalT, typename T>
 GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T>>& splats, BackwardPixels<T>& px,
                               T* out) {
   using V = VecT<T>;
-  constexpr int S = kSplatGradSize;
+  constexpr int S = kBlendGrads;
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   const BlockCentres<T> cen(x_centre0, y_centre0);
   RowBits active[TILE_SIZE] = {};  // the pixels that blended splat j or a splat behind it
@@ -491,7 +491,7 @@ template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
                                   std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* scratch) {
-  constexpr int S = kSplatGradSize;
+  constexpr int S = kBlendGrads;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
   T* out = scratch + int64_t(S) * v.start;
@@ -523,7 +523,6 @@ void rasterize_forward(const RasterParams<T>& p) {
 
 template <typename T>
 void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch) {
-  constexpr int S = kSplatGradSize;
   const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
   const auto recs = pack_gaussians(p);
   parallel_dynamic(num_tiles, [&](int64_t tile) {
@@ -531,20 +530,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     thread_local std::vector<int32_t> count;
     backward_tile(p, g, recs.get(), tile, splats, count, scratch);
   });
-  parallel_items(p.N, [&](int64_t i) {
-    T acc[S];
-    for (int k = 0; k < S; ++k) acc[k] = T(0);
-    for (int32_t e = p.bins.entry_offsets[i]; e < p.bins.entry_offsets[i + 1]; ++e) {
-      const T* r = scratch + int64_t(S) * p.bins.entry_slots[e];
-      for (int k = 0; k < S; ++k) acc[k] += r[k];
-    }
-    g.v_means2d[2 * i] = acc[0];
-    g.v_means2d[2 * i + 1] = acc[1];
-    for (int k = 0; k < 3; ++k) g.v_conics[3 * i + k] = acc[2 + k];
-    g.v_opacities[i] = acc[5];
-    for (int k = 0; k < 3; ++k) g.v_colors[3 * i + k] = acc[6 + k];
-    g.v_depths[i] = acc[9];
-  });
+  parallel_items(p.N, [&](int64_t i) { reduce_blend_grads(p.bins, scratch, g, i); });
 }
 
 template <typename T>

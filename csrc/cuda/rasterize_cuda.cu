@@ -34,12 +34,15 @@
 // skips it (one vote); otherwise a transposed butterfly (warp_sum_transposed: 12 shuffles instead
 // of ten warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
 // shared-memory slot for the splat. After each batch one thread per splat adds up the warps'
-// slots and adds the tile's totals to the Gaussian's gradients: one atomic per tile and nonzero
-// value instead of one per warp and value. The alpha of each pixel is the forward's bit for bit
-// (the same gaussian_power / splat_alpha), so exactly the splats the forward blended are undone;
-// the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian), as on the CPU.
-// backward_legacy_kernel keeps the former design (one pixel per thread, one atomic per warp and
-// value) for A/B benchmarks (GSW_CUDA_BACKWARD, see rasterize_backward).
+// slots (in warp order) and stores the tile's totals as the intersection's record (kBlendGrads
+// values at its sorted position; zeros where no pixel blended it, and for the splats behind the
+// tile's last blended one); a second kernel sums each Gaussian's records in intersection order
+// (reduce_blend_grads, core/params.h, the CPU's reduction). No float atomics: the gradients are
+// the same bits on every run, for M * kBlendGrads values of scratch. The alpha of each pixel is
+// the forward's bit for bit (the same gaussian_power / splat_alpha), so exactly the splats the
+// forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
+// as on the CPU. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the tile totals to the
+// gradients with one atomic per value instead: no scratch, not bitwise deterministic.
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
@@ -344,8 +347,6 @@ __global__ void __launch_bounds__(kContribBlock)
 
 // ------------------------------------------------------------------ backward
 
-// Per-splat cotangents of the blend backward, in record order (kBlendGrads, core/constants.h).
-constexpr int kSplatGrads = kBlendGrads;
 // Pixels per thread of backward_kernel unless GSW_CUDA_BACKWARD says otherwise (see
 // rasterize_backward).
 constexpr int kBackwardPixels = 4;
@@ -394,7 +395,7 @@ struct BackwardShared {
   int32_t gid[kThreads];
   // part[w][q][k]: warp w's sum of cotangent q of staged splat k, valid where hit[w][k] != 0.
   // The + 1 puts the ten values a warp stores for one splat into ten different banks.
-  T part[kWarps][kSplatGrads][kThreads + 1];
+  T part[kWarps][kBlendGrads][kThreads + 1];
   int32_t hit[kWarps][kThreads];
   int max_n;
 };
@@ -419,9 +420,9 @@ __device__ __forceinline__ void backward_splat(BackwardShared<T, PX>& sh, int k,
   }
   if (!__any_sync(kFullMask, any)) return;  // warp-uniform: no pixel of the warp blended it
   const SplatColor<T> col = sh.col[k];
-  T v[kSplatGrads];  // this thread's sums over its pixels
+  T v[kBlendGrads];  // this thread's sums over its pixels
 #pragma unroll
-  for (int q = 0; q < kSplatGrads; ++q) v[q] = T(0);
+  for (int q = 0; q < kBlendGrads; ++q) v[q] = T(0);
 #pragma unroll
   for (int i = 0; i < PX; ++i) {
     if (!(a[i] > T(0))) continue;
@@ -449,33 +450,40 @@ __device__ __forceinline__ T* splat_grad_ptr(const RasterGradParams<T>& g, int q
   return g.v_depths + gid;
 }
 
-// After a batch: the block's totals of staged splat k (the warps' slots, in warp order) added to
-// the outputs with one atomic per nonzero value.
-template <typename T, int PX>
+// After a batch: the block's totals of staged splat k (the warps' slots, in warp order), stored
+// as its intersection's record `rec` (zeros when no warp blended it) or, Atomic, added to the
+// outputs with one atomic per nonzero value.
+template <typename T, int PX, bool Atomic>
 __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
-                                            const BackwardShared<T, PX>& sh, int k) {
-  T v[kSplatGrads];
+                                            const BackwardShared<T, PX>& sh, int k, T* rec) {
+  T v[kBlendGrads];
 #pragma unroll
-  for (int q = 0; q < kSplatGrads; ++q) v[q] = T(0);
+  for (int q = 0; q < kBlendGrads; ++q) v[q] = T(0);
   bool hit = false;
 #pragma unroll
   for (int w = 0; w < BackwardShared<T, PX>::kWarps; ++w) {
     if (sh.hit[w][k] == 0) continue;
     hit = true;
 #pragma unroll
-    for (int q = 0; q < kSplatGrads; ++q) v[q] += sh.part[w][q][k];
+    for (int q = 0; q < kBlendGrads; ++q) v[q] += sh.part[w][q][k];
   }
-  if (!hit) return;
-  const int32_t gid = sh.gid[k];
+  if constexpr (Atomic) {
+    if (!hit) return;
+    const int32_t gid = sh.gid[k];
 #pragma unroll
-  for (int q = 0; q < kSplatGrads; ++q)
-    if (v[q] != T(0)) atomicAdd(splat_grad_ptr(g, q, gid), v[q]);
+    for (int q = 0; q < kBlendGrads; ++q)
+      if (v[q] != T(0)) atomicAdd(splat_grad_ptr(g, q, gid), v[q]);
+  } else {
+#pragma unroll
+    for (int q = 0; q < kBlendGrads; ++q) rec[q] = v[q];
+  }
 }
 
 // Blend backward with PX vertically adjacent pixels per thread (see the file comment).
-template <typename T, int PX>
+// `records` (unless Atomic): [M, kBlendGrads], every row written.
+template <typename T, int PX, bool Atomic>
 __global__ void __launch_bounds__(kTilePixels / PX)
-    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g) {
+    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, T* __restrict__ records) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
@@ -512,79 +520,22 @@ __global__ void __launch_bounds__(kTilePixels / PX)
     __syncthreads();
     for (int k = min(hi, warp_n) - lo - 1; k >= 0; --k) backward_splat(sh, k, lo + k, pxc, px);
     __syncthreads();  // every warp has stored its sums of the batch
-    if (lo + t < hi) flush_splat(g, sh, t);
+    if (lo + t < hi) flush_splat<T, PX, Atomic>(g, sh, t, records + int64_t(kBlendGrads) * (c.start + lo + t));
+  }
+  if constexpr (!Atomic) {  // the splats behind every pixel's last blended one have no batch
+    for (int64_t i = int64_t(c.start) + max_n + t; i < c.end; i += kThreads) {
+#pragma unroll
+      for (int q = 0; q < kBlendGrads; ++q) records[int64_t(kBlendGrads) * i + q] = T(0);
+    }
   }
 }
 
-// The former backward (GSW_CUDA_BACKWARD=legacy, for A/B benchmarks): one pixel per thread, the
-// ten cotangents summed over the warp with ten warp_sum()s and added with one atomic per warp and
-// value.
+// Second pass: each Gaussian's records summed in intersection order (one thread per Gaussian).
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
-    backward_legacy_kernel(const RasterParams<T> p, const RasterGradParams<T> g) {
-  __shared__ SplatGeo<T> s_geo[kBatch];
-  __shared__ SplatColor<T> s_col[kBatch];
-  __shared__ int32_t s_id[kBatch];
-  __shared__ int s_max_n;
-  const PixelCtx<1> c = pixel_ctx<1>(p);
-  const T pxc = T(c.px) + T(0.5);
-  const int lane = threadIdx.x & 31;
-  BackPixel<T> px = load_back_pixel(p, g, c, 0);
-
-  if (threadIdx.x == 0) s_max_n = 0;
-  __syncthreads();
-  const unsigned wmax = __reduce_max_sync(kFullMask, static_cast<unsigned>(px.n));
-  if (lane == 0 && wmax > 0) atomicMax(&s_max_n, static_cast<int>(wmax));
-  __syncthreads();
-  const int max_n = s_max_n;
-
-  for (int hi = max_n; hi > 0; hi -= kBatch) {
-    const int lo = hi > kBatch ? hi - kBatch : 0;
-    __syncthreads();  // the previous batch is consumed
-    if (lo + static_cast<int>(threadIdx.x) < hi) {
-      const int32_t gid = p.bins.gauss_ids[c.start + lo + threadIdx.x];
-      s_id[threadIdx.x] = gid;
-      s_geo[threadIdx.x] = load_geo(p, gid);
-      s_col[threadIdx.x] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2],
-                            p.depths[gid]};
-    }
-    __syncthreads();
-    for (int k = hi - lo - 1; k >= 0; --k) {
-      const int j = lo + k;  // tile-local index
-      const SplatGeo<T> s = s_geo[k];
-      const Sym2<T> conic{s.ca, s.cb, s.cc};
-      const T power = gaussian_power(conic, s.mx, s.my, pxc, px.pyc);
-      const T G = splat_gaussian(power);
-      const T a = j < px.n ? splat_alpha_from_gaussian(s.opacity, power, G) : T(0);
-      const bool blended = a > T(0);
-      if (!__any_sync(kFullMask, blended)) continue;  // warp-uniform
-      T v[kSplatGrads];
-#pragma unroll
-      for (int q = 0; q < kSplatGrads; ++q) v[q] = T(0);
-      if (blended) {
-        const SplatColor<T> col = s_col[k];
-        add_blend_grad(blend_backward_step(SplatAtPixel<T>{conic, s.mx - pxc, s.my - px.pyc, G, s.opacity, a,
-                                                           {col.r, col.g, col.b}, col.depth},
-                                           px.cot, px.st),
-                       v);
-      }
-#pragma unroll
-      for (int q = 0; q < kSplatGrads; ++q) v[q] = warp_sum(v[q]);
-      if (lane == 0) {
-        const int32_t gid = s_id[k];
-        atomicAdd(g.v_means2d + 2 * gid, v[0]);
-        atomicAdd(g.v_means2d + 2 * gid + 1, v[1]);
-        atomicAdd(g.v_conics + 3 * gid, v[2]);
-        atomicAdd(g.v_conics + 3 * gid + 1, v[3]);
-        atomicAdd(g.v_conics + 3 * gid + 2, v[4]);
-        atomicAdd(g.v_opacities + gid, v[5]);
-        atomicAdd(g.v_colors + 3 * gid, v[6]);
-        atomicAdd(g.v_colors + 3 * gid + 1, v[7]);
-        atomicAdd(g.v_colors + 3 * gid + 2, v[8]);
-        atomicAdd(g.v_depths + gid, v[9]);
-      }
-    }
-  }
+    reduce_blend_grads_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const T* __restrict__ records) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < p.N) reduce_blend_grads(p.bins, records, g, i);
 }
 
 template <typename T>
@@ -594,9 +545,10 @@ int64_t num_tiles(const RasterParams<T>& p) {
 
 // Which blend backward runs: a benchmarking switch, read at every call from the environment
 // variable GSW_CUDA_BACKWARD: "px4" / "px2" (backward_kernel with 4 / 2 pixels per thread; float64
-// runs px4 for px2, whose shared memory would not fit) or "legacy" (backward_legacy_kernel, the
-// former design); unset or empty: kBackwardPixels. Anything else is an error.
-enum class BackwardVariant { kLegacy, kPx2, kPx4 };
+// runs px4 for px2, whose shared memory would not fit) or "atomic" (px4 adding the tile totals
+// with atomics: the former design, not bitwise deterministic); unset or empty: kBackwardPixels.
+// Anything else is an error.
+enum class BackwardVariant { kAtomic, kPx2, kPx4 };
 static_assert(kBackwardPixels == 2 || kBackwardPixels == 4, "the variants are px2 and px4");
 
 BackwardVariant backward_variant() {
@@ -605,8 +557,8 @@ BackwardVariant backward_variant() {
     return kBackwardPixels == 2 ? BackwardVariant::kPx2 : BackwardVariant::kPx4;
   if (std::strcmp(e, "px4") == 0) return BackwardVariant::kPx4;
   if (std::strcmp(e, "px2") == 0) return BackwardVariant::kPx2;
-  if (std::strcmp(e, "legacy") == 0) return BackwardVariant::kLegacy;
-  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be px4, px2 or legacy (or unset), not '") + e + "'");
+  if (std::strcmp(e, "atomic") == 0) return BackwardVariant::kAtomic;
+  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be px4, px2 or atomic (or unset), not '") + e + "'");
 }
 
 }  // namespace
@@ -622,29 +574,35 @@ void rasterize_forward(const RasterParams<T>& p) {
 template <typename T>
 void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) {
   cudaStream_t stream = current_stream();
-  const size_t n = size_t(p.N) * sizeof(T);
-  GSW_CUDA_CHECK(cudaMemsetAsync(g.v_means2d, 0, 2 * n, stream));
-  GSW_CUDA_CHECK(cudaMemsetAsync(g.v_conics, 0, 3 * n, stream));
-  GSW_CUDA_CHECK(cudaMemsetAsync(g.v_colors, 0, 3 * n, stream));
-  GSW_CUDA_CHECK(cudaMemsetAsync(g.v_opacities, 0, n, stream));
-  GSW_CUDA_CHECK(cudaMemsetAsync(g.v_depths, 0, n, stream));
   const int64_t tiles = num_tiles(p);
-  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
-  const unsigned grid = static_cast<unsigned>(tiles);
-  switch (backward_variant()) {
-    case BackwardVariant::kLegacy:
-      backward_legacy_kernel<T><<<grid, kBlock, 0, stream>>>(p, g);
-      break;
-    case BackwardVariant::kPx2:
-      if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024) {
-        backward_kernel<T, 2><<<grid, kTilePixels / 2, 0, stream>>>(p, g);
-        break;
-      }
-      [[fallthrough]];  // float64: px2's shared memory would not fit
-    case BackwardVariant::kPx4:
-      backward_kernel<T, 4><<<grid, kTilePixels / 4, 0, stream>>>(p, g);
-      break;
+  const BackwardVariant variant = backward_variant();
+  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0 || variant == BackwardVariant::kAtomic) {
+    const size_t n = size_t(p.N) * sizeof(T);
+    GSW_CUDA_CHECK(cudaMemsetAsync(g.v_means2d, 0, 2 * n, stream));
+    GSW_CUDA_CHECK(cudaMemsetAsync(g.v_conics, 0, 3 * n, stream));
+    GSW_CUDA_CHECK(cudaMemsetAsync(g.v_colors, 0, 3 * n, stream));
+    GSW_CUDA_CHECK(cudaMemsetAsync(g.v_opacities, 0, n, stream));
+    GSW_CUDA_CHECK(cudaMemsetAsync(g.v_depths, 0, n, stream));
+    if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   }
+  const unsigned grid = static_cast<unsigned>(tiles);
+  if (variant == BackwardVariant::kAtomic) {
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, nullptr);
+    GSW_KERNEL_CHECK();
+    return;
+  }
+  DeviceBuffer records(size_t(p.bins.M) * kBlendGrads * sizeof(T));
+  T* rec = records.as<T>();
+  bool px2 = variant == BackwardVariant::kPx2;
+  if constexpr (sizeof(BackwardShared<T, 2>) > 48 * 1024) px2 = false;  // float64: px2's shared memory would not fit
+  if (px2) {
+    if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
+      backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, stream>>>(p, g, rec);
+  } else {
+    backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, rec);
+  }
+  GSW_KERNEL_CHECK();
+  reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, rec);
   GSW_KERNEL_CHECK();
 }
 

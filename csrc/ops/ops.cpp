@@ -466,7 +466,7 @@ py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const 
       no_cuda();
 #endif
     } else {
-      Tensor scratch = torch::empty({bins.gauss_ids.numel(), cpu::kSplatGradSize}, means2d.options());
+      Tensor scratch = torch::empty({bins.gauss_ids.numel(), kBlendGrads}, means2d.options());
       cpu::rasterize_backward(p, g, scratch.data_ptr<scalar_t>());
     }
   });

@@ -50,13 +50,16 @@ def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Ca
     Returns:
         Their :class:`~gsw.fingerprint.batched.CopyResult`, in order (models on the CPU).
     """
+    from gsw.device import deterministic
     from gsw.fingerprint.batched import finetune_batch
     from gsw.fingerprint.shared import worker_scene
     from gsw.mark.message import message_from_hex
 
-    scene = worker_scene(shared, device)
-    messages = torch.stack([message_from_hex(m, shared.num_bits) for _, m in batch])
-    return finetune_batch(scene, [n for n, _ in batch], messages, on_step, slots=slots, stop=stop, on_copy=on_copy)
+    with deterministic():  # a copy is the same bits whichever worker and GPU makes it
+        scene = worker_scene(shared, device)
+        messages = torch.stack([message_from_hex(m, shared.num_bits) for _, m in batch])
+        return finetune_batch(scene, [n for n, _ in batch], messages, on_step, slots=slots, stop=stop,
+                              on_copy=on_copy)
 
 
 def run_local(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
