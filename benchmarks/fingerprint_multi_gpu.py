@@ -6,11 +6,12 @@ Three steps, each one command (so that each fits one device call; ``--workdir`` 
    as ``fingerprint_throughput.py``), saves it as an INRIA model folder ``WORKDIR/model`` (the embedding
    views' cameras), the held-out cameras ``WORKDIR/held_out.json`` and ``WORKDIR/recipients.csv``: ``--recipients``
    recipients whose 32-bit messages are drawn from ``--seed`` (given in the file, so that every run embeds
-   the same messages; the job itself never writes them outside its registry).
+   the same messages; the job itself never writes them outside its registry); lego's photos stay (as PNG)
+   for FGD.
 2. ``run --gpus G``: the ``gsw fingerprint`` command a user runs, in a subprocess, with
    ``CUDA_VISIBLE_DEVICES`` set to the first G GPUs: a local Ray cluster (one task per ``--task-size``
    recipients, ``num_gpus=1`` each, so one worker per GPU), a pool of ``--batch`` slots per task, the early-
-   stopping rule ``--early-stop``; output ``WORKDIR/out_G``, registry ``WORKDIR/marks_G.sqlite``. Timed from
+   stopping rule ``--early-stop``, lego's photos as ``--images`` (unless ``--no-photos``); output ``WORKDIR/out_G``, registry ``WORKDIR/marks_G.sqlite``. Timed from
    the command's start to its exit (Ray's start, the set-up and every write included) and, apart, its own
    "finetune" time (after the once-per-scene set-up). Recipients per hour = 3600 x recipients / wall time.
    ``--local`` runs ``gsw fingerprint --local`` (one process, no Ray), ``--limit N`` only the first N
@@ -93,6 +94,7 @@ def prepare(args) -> None:
         from power_lego import png_dataset  # a WebP copy of the photos (power_lego.py --pack-webp) back to PNG
 
         data = png_dataset(Path(args.data), work / "lego_png")
+        photos = str(data)
         ns = argparse.Namespace(data=str(data), size=args.size, train_seconds=args.train_seconds)
         g, train_set, test_set, info = _train_lego(ns, dev)
         cams, held = train_set.cameras, test_set.cameras
@@ -100,7 +102,7 @@ def prepare(args) -> None:
         from gsw.scenes import default_cameras, default_scene
 
         sc = default_scene(width=args.size, height=args.size, n_cameras=args.views, device=dev)
-        g, cams, info = sc.gaussians, sc.cameras, None
+        g, cams, info, photos = sc.gaussians, sc.cameras, None, None
         held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=180.0 / args.views)
     save_inria_model(work / "model", g.to("cpu"), cams, iteration=0)
     save_inria_cameras(held, work / "held_out.json")
@@ -108,7 +110,7 @@ def prepare(args) -> None:
     rows = ["recipient,message"] + [f"r{i:03d},{rng.getrandbits(args.bits):0{args.bits // 4}x}"
                                     for i in range(args.recipients)]
     (work / "recipients.csv").write_text("\n".join(rows) + "\n")
-    _write_json(work / "prepare.json", dict(scene=args.scene, training=info, gaussians=len(g), views=len(cams),
+    _write_json(work / "prepare.json", dict(scene=args.scene, photos=photos, training=info, gaussians=len(g), views=len(cams),
                                            held_out_views=len(held), size=f"{cams[0].width}x{cams[0].height}",
                                            recipients=args.recipients, machine=_machine()))
     print(f"prepared {work}: {len(g)} Gaussians, {len(cams)} embedding / {len(held)} held-out views", flush=True)
@@ -118,7 +120,8 @@ def run_tag(args) -> str:
     """The run's name: its GPU count, ``local`` for ``--local``, ``xN`` for ``--limit N``, or ``--tag``."""
     if args.tag:
         return args.tag
-    return f"{args.gpus[0]}" + ("local" if args.local else "") + (f"x{args.limit}" if args.limit else "")
+    return (f"{args.gpus[0]}" + ("local" if args.local else "") + ("nophotos" if args.no_photos else "")
+            + (f"x{args.limit}" if args.limit else ""))
 
 
 def run(args) -> None:
@@ -140,6 +143,9 @@ def run(args) -> None:
     cmd += ["--white"]  # lego's and the built-in scene's background
     if args.local:
         cmd += ["--local"]
+    prep = json.loads((work / "prepare.json").read_text())
+    if prep.get("photos") and not args.no_photos:  # the training photos, for FGD (as a user with them runs it)
+        cmd += ["--images", prep["photos"]]
     if args.early_stop != "none":
         cmd += ["--early-stop", args.early_stop]
     if args.workers:  # CPU: Ray's CPUs (a test of the path, not a measurement)
@@ -267,6 +273,8 @@ def main() -> int:
     ap.add_argument("--gpus", type=int, nargs=1, default=[1], help="run: GPUs (0: CPU)")
     ap.add_argument("--first-gpu", type=int, default=0, help="run: the first GPU's index (the run takes --gpus from it)")
     ap.add_argument("--local", action="store_true", help="run: gsw fingerprint --local (one process, no Ray)")
+    ap.add_argument("--no-photos", action="store_true",
+                    help="run: without --images (FGD from the model's own renders; lego's photos are used by default)")
     ap.add_argument("--limit", type=int, default=0, help="run: only the first N recipients")
     ap.add_argument("--tag", default=None, help="run: the run's name (default: GPUs, 'local', 'xN')")
     ap.add_argument("--runs", nargs="+", default=["1"], help="compare: the runs' names, the base first")
