@@ -137,7 +137,16 @@ def test_sweep_removes_only_gsw_temporaries_of_dead_processes(tmp_path) -> None:
     assert len(notices) == 1 and str(dead) in notices[0] and "interrupted gsw run" in notices[0]
 
 
-def test_sigint_removes_the_temporary_and_raises_keyboardinterrupt(tmp_path) -> None:
+@pytest.fixture
+def sigint_default():
+    """SIGINT as in an interactive Python (KeyboardInterrupt), whatever the test runner inherited: a job started in
+    the background of a non-interactive shell starts with SIGINT ignored."""
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, inherited)
+
+
+def test_sigint_removes_the_temporary_and_raises_keyboardinterrupt(tmp_path, sigint_default) -> None:
     before = signal.getsignal(signal.SIGINT)
     with pytest.raises(KeyboardInterrupt):
         with atomic_output(tmp_path / "out", folder=True, replace=False) as tmp:
@@ -148,3 +157,16 @@ def test_sigint_removes_the_temporary_and_raises_keyboardinterrupt(tmp_path) -> 
                 pass
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGINT) is before  # restored
+
+
+def test_an_ignored_sigint_stays_ignored(tmp_path) -> None:
+    """A process told to ignore SIGINT (nohup, a background job) keeps ignoring it while a temporary exists."""
+    inherited = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with atomic_output(tmp_path / "out", folder=True, replace=False) as tmp:
+            (tmp / "a.txt").write_text("whole")
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)  # ignored: the write goes on and commits
+        assert (tmp_path / "out" / "a.txt").read_text() == "whole"
+    finally:
+        signal.signal(signal.SIGINT, inherited)
