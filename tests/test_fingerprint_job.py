@@ -67,6 +67,9 @@ def test_copies_registered_and_marked(job) -> None:
                 assert mark.message_hex.encode() not in data, f
     rep = {r.name: r for r in report.recipients}
     assert rep["bob"].mark_id == marks["bob"].id and 0 <= rep["bob"].bit_accuracy <= 1 and rep["bob"].psnr > 20
+    # when each copy reached the writer, and the one pool's scene preparation (paid once, before the first batch)
+    assert 0 < rep["alice"].finished_s <= report.timings["finetune"]
+    assert all(r.worker_setup_s == rep["alice"].worker_setup_s > 0 for r in report.recipients)
 
 
 def test_rerun_skips_finished_and_adds_new(job, tmp_path) -> None:

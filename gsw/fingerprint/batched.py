@@ -216,6 +216,8 @@ class CopyResult:
         stopped_early: whether the stopping rule finished it before the step cap.
         message_weight: its message weight at the end (differs from the configured one under control).
         refusals: early stops refused by the confirmation before it finished.
+        worker_setup_s: seconds its worker spent on the scene (models and original renders on the device, the
+            loss) before its batch began: 0 when the worker had it cached from an earlier batch.
     """
 
     name: str
@@ -229,6 +231,7 @@ class CopyResult:
     stopped_early: bool = False
     message_weight: float | None = None
     refusals: int = 0
+    worker_setup_s: float = 0.0
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:

@@ -43,6 +43,9 @@ class RecipientReport:
         steps: its optimisation steps (embedded only).
         stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
         refusals: early stops refused by the rule's confirmation (embedded only).
+        finished_s: seconds after the fine-tunes began when its copy reached the writer (embedded only; with
+            Ray, a task's copies arrive together when the task ends).
+        worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
     """
 
     name: str
@@ -57,6 +60,8 @@ class RecipientReport:
     steps: int | None = None
     stopped_early: bool | None = None
     refusals: int | None = None
+    finished_s: float | None = None
+    worker_setup_s: float | None = None
 
 
 @dataclass
@@ -132,6 +137,8 @@ class _Writer:
         self.origins: dict[str, str] = {}  # "random" (drawn, or from a key) / "chosen" (given in the file)
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gsw-fingerprint-writer")
         self.pending: list = []  # (result, future of its model hash)
+        self.started = time.perf_counter()  # reset when the fine-tunes begin
+        self.arrived: dict[str, float] = {}
 
     def _write(self, r) -> str:
         from gsw.cli.metadata import watermark_record
@@ -144,6 +151,8 @@ class _Writer:
         return self.folder.write_copy(r.name, r.gaussians, cams, rec)
 
     def __call__(self, results: list) -> None:
+        now = time.perf_counter() - self.started
+        self.arrived.update((r.name, now) for r in results)
         self.pending += [(r, self.pool.submit(self._write, r)) for r in results]
         self._register(wait=False)
 
@@ -173,7 +182,8 @@ class _Writer:
             self.folder.mark_done(r.name, h, mark_id)
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
-                                                   r.seconds, r.steps, r.stopped_early, r.refusals)
+                                                   r.seconds, r.steps, r.stopped_early, r.refusals,
+                                                   self.arrived.get(r.name), r.worker_setup_s)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
@@ -285,7 +295,7 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
                              bar)
             writer.messages = {r.name: r.message for r in todo}
             writer.origins = {p.name: "chosen" if p.message is not None else "random" for p in people}
-            t0 = time.perf_counter()
+            t0 = writer.started = time.perf_counter()
             try:
                 if runner == "ray":
                     def on_result(results: list) -> None:

@@ -10,6 +10,7 @@ is installed.
 from __future__ import annotations
 
 import importlib.util
+import time
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import torch
@@ -56,10 +57,18 @@ def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Ca
     from gsw.mark.message import message_from_hex
 
     with deterministic():  # a copy is the same bits whichever worker and GPU makes it
+        t0 = time.perf_counter()
         scene = worker_scene(shared, device)
+        setup_s = time.perf_counter() - t0
+
+        def with_setup(copy):
+            copy.worker_setup_s = setup_s
+            if on_copy is not None:
+                on_copy(copy)
+
         messages = torch.stack([message_from_hex(m, shared.num_bits) for _, m in batch])
         return finetune_batch(scene, [n for n, _ in batch], messages, on_step, slots=slots, stop=stop,
-                              on_copy=on_copy)
+                              on_copy=with_setup)
 
 
 def run_local(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
