@@ -245,8 +245,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     people = _recipients(recipients)
     dev = resolve_device(device if device is not None else "auto")
     dec_sha = decoder_sha256(num_bits, decoder)
-    folder = JobFolder(output_dir, scene_hash=scene_hash(model, cameras, num_bits, cfg), decoder_sha256=dec_sha,
-                       num_bits=num_bits)
+    folder = JobFolder(output_dir, scene_hash=scene_hash(model, cameras, num_bits, cfg, images),
+                       decoder_sha256=dec_sha, num_bits=num_bits)
     reg = registry if isinstance(registry, Registry) else open_registry(registry)
     try:
         pool = dict(slots=batch_size, stop=early_stop, task_size=task_size or batch_size)

@@ -10,6 +10,7 @@ LPIPS network, reused by every recipient batch that worker runs.
 from __future__ import annotations
 
 import hashlib
+import uuid
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -24,9 +25,11 @@ from gsw.mark.embed import EmbedConfig, prepare_embedding
 __all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "worker_scene"]
 
 
-def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, config: EmbedConfig) -> str:
+def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, config: EmbedConfig,
+               images: Sequence[Tensor] | None = None) -> str:
     """``"scene-sha256:<hex>"`` of what makes two jobs' copies interchangeable: the model's tensors
-    (:func:`gsw.registry.hash_gaussians`), the cameras, the message length and the embedding settings."""
+    (:func:`gsw.registry.hash_gaussians`), the cameras, the message length, the embedding settings and the
+    training images given to FGD (or their absence: FGD prunes differently with and without them)."""
     from gsw.registry import hash_gaussians
 
     h = hashlib.sha256(hash_gaussians(gaussians).encode())
@@ -35,6 +38,11 @@ def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, c
         h.update(repr((float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), int(cam.width),
                        int(cam.height))).encode())
     h.update(f"bits={int(num_bits)};config={config!r}".encode())
+    if images is not None:
+        h.update(b"images")
+        for im in images:
+            h.update(repr(tuple(im.shape)).encode())
+            h.update(im.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
     return f"scene-sha256:{h.hexdigest()}"
 
 
@@ -64,6 +72,8 @@ class SharedScene:
         scene_hash: :func:`scene_hash`.
         decoder_sha256: :func:`decoder_sha256`.
         stats: Gaussian counts and the set-up timings (recorded in each copy's ``watermark.json``).
+        token: unique per :func:`prepare_scene` call: a worker reuses its prepared scene only for the same job
+            (two jobs of one model may differ in what FGD made of it).
     """
 
     original: Gaussians
@@ -75,6 +85,7 @@ class SharedScene:
     scene_hash: str
     decoder_sha256: str
     stats: dict[str, Any] = field(default_factory=dict)
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
 
 def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: int = 32,
@@ -104,7 +115,7 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
                  split=setup.split.num_split if setup.split else 0, setup_timings=setup.timings)
     return SharedScene(gaussians.detach().to("cpu"), setup.model.to("cpu"), list(cameras), cfg, num_bits,
                        None if decoder is None else decoder.to("cpu"),
-                       scene_hash(gaussians, cameras, num_bits, cfg), decoder_sha256(num_bits, decoder), stats)
+                       scene_hash(gaussians, cameras, num_bits, cfg, images), decoder_sha256(num_bits, decoder), stats)
 
 
 @dataclass
@@ -126,11 +137,12 @@ class WorkerScene:
     loss: torch.nn.Module
 
 
-_CACHE: dict[tuple[str, str, str], WorkerScene] = {}
+_CACHE: dict[tuple[str, str], WorkerScene] = {}
 
 
 def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene:
-    """The :class:`WorkerScene` of ``shared`` on ``device``, built once per process and reused.
+    """The :class:`WorkerScene` of ``shared`` on ``device``, built once per job (:attr:`SharedScene.token`) and
+    device in a process, and reused by the job's later batches there.
 
     Args:
         shared: the scene.
@@ -141,7 +153,7 @@ def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene
     from gsw.render.rasterize import rasterize
 
     device = torch.device(device)
-    key = (shared.scene_hash, shared.decoder_sha256, str(device))
+    key = (shared.token, str(device))
     if key not in _CACHE:
         _CACHE.clear()  # one scene at a time per worker
         cfg = shared.config

@@ -1,0 +1,44 @@
+"""gsw.fingerprint.shared: the scene hash and the per-worker scene cache."""
+
+from __future__ import annotations
+
+import torch
+
+from gsw.fingerprint.batched import pool_config
+from gsw.fingerprint.shared import prepare_scene, scene_hash, worker_scene
+from gsw.mark.loss import LossWeights
+from gsw.render.rasterize import rasterize
+from gsw.scenes import default_scene
+
+
+def _scene():
+    sc = default_scene(width=32, height=32, n_cameras=2, detail=0.2, seed=0)
+    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0),
+                      background=tuple(float(v) for v in sc.background))
+    return sc, cfg
+
+
+def test_scene_hash_sees_the_images() -> None:
+    sc, cfg = _scene()
+    photos = [rasterize(sc.gaussians, c, background=sc.background).image for c in sc.cameras]
+    dimmer = [0.5 * im for im in photos]
+    plain = scene_hash(sc.gaussians, sc.cameras, 32, cfg)
+    assert plain == scene_hash(sc.gaussians, sc.cameras, 32, cfg, None)
+    assert len({plain, scene_hash(sc.gaussians, sc.cameras, 32, cfg, photos),
+                scene_hash(sc.gaussians, sc.cameras, 32, cfg, dimmer)}) == 3
+    assert scene_hash(sc.gaussians, sc.cameras, 32, cfg, photos) == scene_hash(sc.gaussians, sc.cameras, 32, cfg,
+                                                                               [im.clone() for im in photos])
+
+
+def test_a_worker_reuses_its_scene_only_for_the_same_job() -> None:
+    """Two jobs of one model whose FGD differs (here: with and without images) each get their own worker scene
+    in one process; the batches of one job share theirs."""
+    sc, cfg = _scene()
+    black = [torch.zeros(3, c.height, c.width) for c in sc.cameras]  # photos that make FGD prune differently
+    a = prepare_scene(sc.gaussians, sc.cameras, config=cfg)
+    b = prepare_scene(sc.gaussians, sc.cameras, config=cfg, images=black)
+    assert a.stats["pruned"] != b.stats["pruned"]
+    wa = worker_scene(a, "cpu")
+    assert worker_scene(a, "cpu") is wa
+    wb = worker_scene(b, "cpu")
+    assert wb is not wa and len(wb.model) == len(b.model) != len(a.model)
