@@ -56,6 +56,24 @@ def test_prune_contribution_is_the_gradient_of_the_mean_reduced_loss() -> None:
     got = fgd_prune(g, [cam], [target])[1].max_contribution
     assert torch.allclose(got, expected, rtol=1e-6, atol=1e-15)
 
+def test_prune_without_images_keeps_dark_gaussians_that_hide_the_background() -> None:
+    """Without images the weighting is the model's alpha: opaque black Gaussians in front of a white background
+    make the render and stay; weighting by the model's own render (the earlier rule, what passing the render as
+    ``images`` does) scores them by their colour, zero, and prunes every one."""
+    cam = _cams(1, 40)[0]
+    g = random_gaussians(12, sh_degree=0, seed=4, extent=0.5, scale_range=(0.08, 0.15), opacity_range=(0.8, 0.95))
+    g.sh[:] = (0.0 - 0.5) / 0.28209479177387814  # SH DC of colour 0: black
+    white = (1.0, 1.0, 1.0)
+    own = rasterize(g, cam, background=white)
+    seen = own.radii > 0
+    assert int(seen.sum()) >= 6 and float(own.alpha.max()) > 0.5
+    by_colour = fgd_prune(g, [cam], [own.image], background=white)[1]
+    assert by_colour.num_removed == len(g)  # the old rule: an empty model
+    pruned, by_alpha = fgd_prune(g, [cam], background=white)
+    assert (by_alpha.max_contribution[seen] > by_alpha.threshold).all()
+    assert (rasterize(pruned, cam, background=white).image - own.image).abs().max() < 1e-3
+
+
 def test_high_frequency_scores_see_both_directions() -> None:
     h = w = 32
     x = torch.arange(w, dtype=torch.float32)
