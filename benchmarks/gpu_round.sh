@@ -9,7 +9,8 @@
 #   GPU 0: fingerprint_multi_gpu.py prepare (lego trained 60 s);
 #   GPUs 0-2, while the suite runs (no Ray there): why `gsw fingerprint` copies read 32 dB held-out when the
 #          in-process pool reads 37 (BENCHMARKS.md, #27): the same saved model through the API with the photos
-#          (GPU 0), the API without photos (GPU 1), `gsw fingerprint --local` on 16 recipients (GPU 2);
+#          (GPU 0), the API without photos (GPU 1), `gsw fingerprint --local` without `--images` on 16 recipients
+#          (GPU 2);
 #   then `gsw fingerprint` on 1, 2 and 4 GPUs through Ray (the 4-GPU run alone on the host), compare, and
 #          `gsw scan` over 10,000 files on 1, 2 and 4 GPUs (benchmarks/multi_gpu_run.sh's steps).
 #
@@ -42,14 +43,14 @@ step diag_api_nophotos on_gpu 1 python3 benchmarks/fingerprint_throughput.py --s
   --data "$W/fp/lego_png" --setting "k=16 n=16 stop=$ES" --no-photos --device cuda --tag diag_api_nophotos \
   --out "$W" &
 d1=$!
-step diag_cli_local $FP run --gpus 1 --first-gpu 2 --local --limit 16 --workdir "$W/fp" &
+step diag_cli_local $FP run --gpus 1 --first-gpu 2 --local --no-photos --limit 16 --workdir "$W/fp" &
 d2=$!
 wait $suite $gbuild
 LEGO_PLY="$W/fp/model/point_cloud/iteration_0/point_cloud.ply"
 step bench_cuda on_gpu 3 python3 benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward atomic px4 \
   --ply "$LEGO_PLY" --cases frustum:100000:800x800 heavy:100000:800x800 frustum:1000000:1920x1080 \
   heavy:1000000:1920x1080 frustum:3000000:1920x1080 heavy:3000000:1920x1080 frustum:1000000:3840x2160 \
-  heavy:1000000:3840x2160 ply:0:800x800 ply:0:1600x1600 ply:0:1920x1080 \
+  heavy:1000000:3840x2160 ply:0:800x800 ply:0:1600x1600 \
   --out "$W/cuda_bench.json" --md "$W/cuda_bench.md" &
 bench=$!
 wait $d0 $d1 $d2
@@ -57,7 +58,7 @@ step fingerprint_1 $FP run --gpus 1 --workdir "$W/fp"
 step fingerprint_2 $FP run --gpus 2 --workdir "$W/fp"
 wait $bench
 step fingerprint_4 $FP run --gpus 4 --workdir "$W/fp"
-step compare $FP compare --runs 1 2 4 1localx16 --workdir "$W/fp" --out "$W/fingerprint_multi_gpu.json"
+step compare $FP compare --runs 1 2 4 1localnophotosx16 --workdir "$W/fp" --out "$W/fingerprint_multi_gpu.json"
 for g in 1 2 4; do
   modes=ray
   extra=()
