@@ -28,16 +28,17 @@ def main() -> int:
     import gsw
     from gsw.data import load_inria_model
     from gsw.data.loaders import load_nerf_synthetic
-    from gsw.decoder.dwt import ll_subband
     from gsw.decoder.zoo import load_decoder
     from gsw.device import resolve_device
     from gsw.fingerprint.batched import pool_config
     from gsw.fingerprint.plan import Recipient
     from gsw.mark.fgd import fgd_prune
-    from gsw.metrics.image import psnr
     from gsw.registry import open_registry
     from gsw.render.rasterize import rasterize
     from gsw.train import TrainConfig, train
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from fingerprint_throughput import held_out_scores
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "lego"))
@@ -64,19 +65,13 @@ def main() -> int:
         orig = [rasterize(g, c, background=bg).image.clamp(0, 1) for c in te.cameras]
         own = [rasterize(g, c, background=bg).image for c in tr.cameras]
     photos = [im.to(dev) for im in tr.images]
+    dec = load_decoder(32).to(dev)
 
-    def held_out(model, message=None, dec=None):
-        accs, ps = [], []
-        with torch.no_grad():
-            for cam, a in zip(te.cameras, orig):
-                img = rasterize(model, cam, background=bg).image.clamp(0, 1)
-                ps.append(float(psnr(img, a)))
-                if message is not None:
-                    bits = (dec(ll_subband(img[None]))[0] > 0).float().cpu()
-                    accs.append(float((bits == message).float().mean()))
+    def held_out(model, message=None):
+        """(mean bit accuracy or None, mean PSNR) on the held-out views."""
+        accs, ps = held_out_scores(model, orig, te.cameras, bg, message, dec)
         return (sum(accs) / len(accs) if accs else None), sum(ps) / len(ps)
 
-    dec = load_decoder(32).to(dev)
     recipients = [Recipient(f"r{i}", f"{(0x0f1e2d3c * (i + 1)) & 0xffffffff:08x}") for i in range(args.recipients)]
     for name, images in (("photos", photos), ("no photos (alpha)", None), ("own render (earlier rule)", own)):
         pruned, rep = fgd_prune(g, tr.cameras, images, background=bg)
@@ -92,7 +87,7 @@ def main() -> int:
             row["job_s"] = time.perf_counter() - t0
             row["copies"] = []
             for r in job.recipients:
-                bits, p = held_out(load_inria_model(r.folder).gaussians.to(dev), messages[r.name], dec)
+                bits, p = held_out(load_inria_model(r.folder).gaussians.to(dev), messages[r.name])
                 row["copies"].append(dict(name=r.name, train_psnr=r.psnr, held_out_bits=bits, held_out_psnr=p))
         out["rows"].append(row)
         print(json.dumps(row), flush=True)

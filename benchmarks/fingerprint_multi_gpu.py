@@ -176,12 +176,13 @@ def compare(args) -> None:
 
     from gsw.camera_io import load_inria_cameras
     from gsw.data import load_inria_model
-    from gsw.decoder.dwt import ll_subband
     from gsw.decoder.zoo import load_decoder
     from gsw.device import resolve_device
-    from gsw.metrics.image import psnr
     from gsw.registry import open_registry
     from gsw.render.rasterize import rasterize
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from fingerprint_throughput import held_out_scores
 
     work = Path(args.workdir)
     dev = resolve_device(args.device)
@@ -210,13 +211,7 @@ def compare(args) -> None:
                 row["max_abs_diff_vs_base"] = max(diffs)
                 with open_registry(work / f"marks_{base}.sqlite", create=False) as reg:
                     row["same_message"] = bool(torch.equal(reg.get(r["name"]).message.float(), messages[r["name"]]))
-            accs, ps = [], []
-            with torch.no_grad():
-                for cam, a in zip(held, originals):
-                    img = rasterize(copy, cam, background=bg).image.clamp(0, 1)
-                    bits = (dec(ll_subband(img[None]))[0] > 0).float().cpu()
-                    accs.append(float((bits == messages[r["name"]]).float().mean()))
-                    ps.append(float(psnr(img, a)))
+            accs, ps = held_out_scores(copy, originals, held, bg, messages[r["name"]], dec)
             row.update(held_out_bits=sum(accs) / len(accs), held_out_min_bits=min(accs), held_out_psnr=sum(ps) / len(ps))
             rows.append(row)
         per_run[g] = rows
@@ -274,7 +269,7 @@ def main() -> int:
     ap.add_argument("--first-gpu", type=int, default=0, help="run: the first GPU's index (the run takes --gpus from it)")
     ap.add_argument("--local", action="store_true", help="run: gsw fingerprint --local (one process, no Ray)")
     ap.add_argument("--no-photos", action="store_true",
-                    help="run: without --images (FGD from the model's own renders; lego's photos are used by default)")
+                    help="run: without --images (FGD without the photos; lego's photos are used by default)")
     ap.add_argument("--limit", type=int, default=0, help="run: only the first N recipients")
     ap.add_argument("--tag", default=None, help="run: the run's name (default: GPUs, 'local', 'xN')")
     ap.add_argument("--runs", nargs="+", default=["1"], help="compare: the runs' names, the base first")

@@ -110,18 +110,22 @@ def parse_setting(text: str) -> dict:
 
 
 @torch.no_grad()
-def _held_out(copy, originals, cams, bg, message, dec):
-    """(bit accuracy per view, PSNR per view) of one copy on the held-out views."""
+def held_out_scores(copy, originals, cams, bg, message=None, dec=None):
+    """(bit accuracy per view, PSNR per view) of one copy on the held-out views ``cams``, against the original
+    model's renders ``originals`` ([3, H, W] each, clamped); without ``message`` only the PSNRs (accuracies ``[]``).
+    Used by this script, ``fingerprint_multi_gpu.py`` and ``fgd_without_photos.py``."""
     from gsw.decoder.dwt import ll_subband
     from gsw.metrics.image import psnr
     from gsw.render.rasterize import rasterize
 
     accs, psnrs = [], []
-    for cam, a in zip(cams, originals):
-        b = rasterize(copy, cam, background=bg).image.clamp(0, 1)
-        bits = (dec(ll_subband(b[None]))[0] > 0).float().cpu()
-        accs.append(float((bits == message).float().mean()))
-        psnrs.append(float(psnr(b, a)))
+    with torch.no_grad():
+        for cam, a in zip(cams, originals):
+            b = rasterize(copy, cam, background=bg).image.clamp(0, 1)
+            if message is not None:
+                bits = (dec(ll_subband(b[None]))[0] > 0).float().cpu()
+                accs.append(float((bits == message).float().mean()))
+            psnrs.append(float(psnr(b, a)))
     return accs, psnrs
 
 
@@ -173,7 +177,7 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     rows = []
     for r in report.recipients:
         copy = load_inria_model(r.folder).gaussians.to(dev)
-        accs, ps = _held_out(copy, held_orig, held, bg, messages[r.name].float(), dec)
+        accs, ps = held_out_scores(copy, held_orig, held, bg, messages[r.name].float(), dec)
         rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
                          seconds=r.seconds, train_bits=r.bit_accuracy,
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
@@ -206,7 +210,7 @@ def bench_baseline(args, dev, g, cams, held, held_orig, bg, images) -> dict:
         res = embed(g, cams, message=m, num_bits=args.bits, images=images, config=cfg, progress=False)
         _sync(dev)
         total += time.perf_counter() - t0
-        accs, ps = _held_out(res.gaussians, held_orig, held, bg, m, load_decoder(args.bits).to(dev))
+        accs, ps = held_out_scores(res.gaussians, held_orig, held, bg, m, load_decoder(args.bits).to(dev))
         rows.append(dict(steps=cfg.epochs * len(cams), stopped_early=False, held_out_bits=accs, held_out_psnr=ps,
                          timings=res.timings))
     return dict(seconds=total, recipients_per_hour=3600 * len(rows) / total, summary=_summary(rows), rows=rows)
@@ -271,7 +275,7 @@ def main() -> int:
     ap.add_argument("--scan-images", type=int, default=64)
     ap.add_argument("--scan-cpu-images", type=int, default=32)
     ap.add_argument("--no-photos", action="store_true",
-                    help="lego: FGD from the model's own renders (as `gsw fingerprint` on a model folder without --images)")
+                    help="lego: FGD without the photos (as `gsw fingerprint` on a model folder without --images)")
     ap.add_argument("--budget-s", type=float, default=100.0, help="no new setting after this many seconds of sweep")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--tag", default=None)

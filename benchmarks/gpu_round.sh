@@ -18,14 +18,7 @@
 set -uo pipefail
 W=${1:?WORKDIR}
 LEGO=${2:?LEGO_DIR}
-export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 PYTHONUNBUFFERED=1
-mkdir -p "$W"
-log() { echo "[$(date -u +%T)] $*" | tee -a "$W/progress.log"; }
-step() {  # step NAME COMMAND...
-  local name=$1; shift
-  log "start $name"
-  if "$@" >"$W/$name.log" 2>&1; then log "done $name"; else log "FAILED $name (exit $?)"; fi
-}
+. benchmarks/steps.sh
 on_gpu() { local g=$1; shift; CUDA_VISIBLE_DEVICES=$g "$@"; }
 FP="python3 benchmarks/fingerprint_multi_gpu.py"
 ES="min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99"
@@ -59,12 +52,4 @@ step fingerprint_2 $FP run --gpus 2 --workdir "$W/fp"
 wait $bench
 step fingerprint_4 $FP run --gpus 4 --workdir "$W/fp"
 step compare $FP compare --runs 1 2 4 1localnophotosx16 --workdir "$W/fp" --out "$W/fingerprint_multi_gpu.json"
-for g in 1 2 4; do
-  modes=ray
-  extra=()
-  if [ "$g" = 1 ]; then modes=per-source,batched,ray; extra=(--per-source-images 500); fi
-  step "scan_$g" python3 benchmarks/scan_throughput.py --images 10000 --model "$W/fp/model" --marks 64 \
-    --device cuda --gpus "$g" --readers 8 --modes "$modes" "${extra[@]}" --workdir "$W/scan10k" \
-    --out "$W/scan_cuda_${g}gpu.json"
-done
-log "all done"
+FINGERPRINT=0 GPUS="1 2 4" bash benchmarks/multi_gpu_run.sh "$W" "$LEGO"  # the scans

@@ -2,7 +2,7 @@
 # The #27 run on one host with several GPUs: `gsw fingerprint` (lego 800x800, 32 bits, --recipients
 # recipients) and `gsw scan` (10,000 files against 64 marks) on each GPU count of $GPUS, through Ray.
 #
-#   GPUS="1 2" bash benchmarks/multi_gpu_run.sh WORKDIR LEGO_DIR
+#   GPUS="1 2" bash benchmarks/multi_gpu_run.sh WORKDIR LEGO_DIR     (FINGERPRINT=0: scans only; SCANS=0: no scans)
 #
 # Steps (each logged to WORKDIR/progress.log; results WORKDIR/*.json): fingerprint_multi_gpu.py prepare
 # (trains lego 60 s), run on each GPU count, compare; then scan_throughput.py over a crawl of 10,000 files
@@ -13,22 +13,18 @@ set -uo pipefail
 W=${1:?WORKDIR}
 LEGO=${2:?LEGO_DIR}
 GPUS=${GPUS:-"1 2"}
+FINGERPRINT=${FINGERPRINT:-1}  # 0: the scans only (of an earlier run's WORKDIR/fp/model)
 SCANS=${SCANS:-1}  # 0: the fingerprint runs only
-export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 PYTHONUNBUFFERED=1
-mkdir -p "$W"
-log() { echo "[$(date -u +%T)] $*" | tee -a "$W/progress.log"; }
-step() {  # step NAME COMMAND...: runs it, its output in WORKDIR/NAME.log
-  local name=$1; shift
-  log "start $name"
-  if "$@" >"$W/$name.log" 2>&1; then log "done $name"; else log "FAILED $name (exit $?)"; fi
-}
-step prepare python3 benchmarks/fingerprint_multi_gpu.py prepare --data "$LEGO" --workdir "$W/fp"
-for g in $GPUS; do
-  step "fingerprint_$g" python3 benchmarks/fingerprint_multi_gpu.py run --gpus "$g" --workdir "$W/fp"
-done
-# shellcheck disable=SC2086
-step compare python3 benchmarks/fingerprint_multi_gpu.py compare --runs $GPUS --workdir "$W/fp" \
-  --out "$W/fingerprint_multi_gpu.json"
+. benchmarks/steps.sh
+if [ "$FINGERPRINT" != 0 ]; then
+  step prepare python3 benchmarks/fingerprint_multi_gpu.py prepare --data "$LEGO" --workdir "$W/fp"
+  for g in $GPUS; do
+    step "fingerprint_$g" python3 benchmarks/fingerprint_multi_gpu.py run --gpus "$g" --workdir "$W/fp"
+  done
+  # shellcheck disable=SC2086
+  step compare python3 benchmarks/fingerprint_multi_gpu.py compare --runs $GPUS --workdir "$W/fp" \
+    --out "$W/fingerprint_multi_gpu.json"
+fi
 [ "$SCANS" = 0 ] && { log "all done (no scans)"; exit 0; }
 for g in $GPUS; do
   modes=ray

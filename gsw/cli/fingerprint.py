@@ -94,7 +94,10 @@ def _add_ray_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _use_ray(args: argparse.Namespace) -> bool | None:
-    return False if args.local else (True if args.address else None)
+    """False for ``--local``; True for ``--address`` or (scan) ``--workers``; None: the library's default."""
+    if args.local:
+        return False
+    return True if args.address or getattr(args, "workers", None) else None
 
 
 def cmd_fingerprint(args: argparse.Namespace) -> int:
@@ -172,8 +175,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         marks = reg.list()
     device = resolve_device(args.device)
     rows = scan(args.inputs, marks, fpr=args.fpr, device=None if device.type == "cpu" else device,
-                frames=args.frames, use_ray=True if args.workers and not args.local else _use_ray(args),
-                address=args.address, workers=args.workers,
+                frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers,
                 batch_size=args.batch_size, readers=args.readers)
     _write_report(rows, args.output)
     hits = [r for r in rows if r.identified]
