@@ -31,7 +31,7 @@ Usage on a 2-GPU machine (lego photos in DIR; Ray with its data extra importable
     python benchmarks/fingerprint_multi_gpu.py run --gpus 2 --workdir /tmp/fp27
     python benchmarks/fingerprint_multi_gpu.py compare --runs 1 2 --workdir /tmp/fp27 --out fp_multi_gpu.json
 CPU smoke test (built-in scene, 2 Ray CPU workers):
-    python benchmarks/fingerprint_multi_gpu.py prepare --scene builtin --size 64 --recipients 4 --workdir /tmp/fp27
+    python benchmarks/fingerprint_multi_gpu.py prepare --scene builtin --size 64 --recipients 4 --device cpu --workdir /tmp/fp27
     python benchmarks/fingerprint_multi_gpu.py run --gpus 0 --workers 1 --batch 2 --task-size 2 --epochs 1 \\
         --device cpu --workdir /tmp/fp27
 """
@@ -62,6 +62,11 @@ def _write_json(path: Path, obj) -> None:
 def _mean(values) -> float | None:
     values = [v for v in values if v is not None]
     return sum(values) / len(values) if values else None
+
+
+def _quartiles(values: list[float]) -> list[float] | None:
+    v = sorted(values)
+    return [round(v[round(q * (len(v) - 1))], 2) for q in (0.0, 0.25, 0.5, 0.75, 1.0)] if v else None
 
 
 def _machine() -> dict:
@@ -228,7 +233,12 @@ def compare(args) -> None:
                  worst_recipient_bits=min(r["held_out_bits"] for r in rows),
                  mean_psnr=sum(r["held_out_psnr"] for r in rows) / len(rows),
                  worst_recipient_psnr=min(r["held_out_psnr"] for r in rows),
-                 meeting_99_and_37=sum(r["held_out_bits"] >= 0.99 and r["held_out_psnr"] >= 37 for r in rows))
+                 meeting_99_and_37=sum(r["held_out_bits"] >= 0.99 and r["held_out_psnr"] >= 37 for r in rows),
+                 timings=runs[g]["timings"])
+        recs = runs[g]["report"]["recipients"]  # where the fine-tune time went: workers' set-up, copies' arrival
+        s.update(worker_setup_s=sorted({round(r["worker_setup_s"], 2) for r in recs if r.get("worker_setup_s")}),
+                 worker_warm_s=sorted({round(r["worker_warm_s"], 2) for r in recs if r.get("worker_warm_s")}),
+                 copies_arrived_s=_quartiles([r["finished_s"] for r in recs if r.get("finished_s") is not None]))
         if g != base:
             same = {r["name"]: r for r in per_run[base]}
             s.update(bitwise_identical=sum(r["max_abs_diff_vs_base"] == 0 for r in rows),

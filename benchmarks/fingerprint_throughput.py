@@ -193,6 +193,52 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     return out
 
 
+def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
+    """torch.profiler over ``--profile`` steps of one pool of ``k`` slots (after 20 warm-up steps): the device
+    time of each labelled phase of a step (``gsw.pool.*``, :meth:`gsw.fingerprint.batched._Pool.step`) and of
+    the top operators; the table goes to ``<tag>_profile.txt``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from gsw.device import deterministic
+    from gsw.fingerprint.batched import _Pool, pool_config
+    from gsw.fingerprint.shared import prepare_scene, worker_scene
+    from gsw.mark.loss import LossWeights, lpips_weights
+    from gsw.mark.message import random_message
+
+    lp = None if setting["lpips"] == "none" else setting["lpips"]
+    weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
+    cfg = pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+    k = setting["k"]
+    with deterministic():
+        scene = worker_scene(prepare_scene(g, cams, num_bits=args.bits, config=cfg, images=images, device=dev), dev)
+        pool = _Pool(scene, torch.stack([random_message(args.bits, seed=i) for i in range(k)]), k, None)
+        for j in range(k):
+            pool.fill(j, j)
+        for _ in range(20):
+            pool.step()
+        _sync(dev)
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+        t0 = time.perf_counter()
+        with profile(activities=acts) as prof:
+            for _ in range(args.profile):
+                pool.step()
+            _sync(dev)
+        wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    dev_us = (lambda e: getattr(e, "device_time_total", 0.0)) if dev.type == "cuda" else (lambda e: e.cpu_time_total)
+    phases = {e.key: dev_us(e) / 1e3 / args.profile for e in events if e.key.startswith("gsw.pool.")}
+    top = sorted((e for e in events if not e.key.startswith("gsw.pool.")), key=dev_us, reverse=True)[:25]
+    table = events.table(sort_by="device_time_total" if dev.type == "cuda" else "cpu_time_total", row_limit=40)
+    folder = Path(args.out) if args.out else ROOT / "benchmarks" / "results"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{args.tag or f'fingerprint_{args.scene}_{dev.type}'}_profile.txt").write_text(table)
+    out = dict(setting=setting["text"], k=k, steps=args.profile, ms_per_step_wall=1000 * wall / args.profile,
+               ms_per_recipient_step_wall=1000 * wall / args.profile / k, phase_device_ms_per_step=phases,
+               top_ops_device_ms_per_step={e.key: dev_us(e) / 1e3 / args.profile for e in top})
+    print(json.dumps(out), flush=True)
+    return out
+
+
 def bench_baseline(args, dev, g, cams, held, held_orig, bg, images) -> dict:
     """One-at-a-time ``gsw.embed`` (set-up included, as a separate ``gsw embed`` per recipient)."""
     from gsw.decoder.zoo import load_decoder
@@ -274,6 +320,8 @@ def main() -> int:
                     help="only time `gsw scan` over renders of the unmarked model against MARKS random marks")
     ap.add_argument("--scan-images", type=int, default=64)
     ap.add_argument("--scan-cpu-images", type=int, default=32)
+    ap.add_argument("--profile", type=int, default=0, metavar="STEPS",
+                    help="only profile STEPS pool steps of the first setting (torch.profiler; no job is run)")
     ap.add_argument("--no-photos", action="store_true",
                     help="lego: FGD without the photos (as `gsw fingerprint` on a model folder without --images)")
     ap.add_argument("--budget-s", type=float, default=100.0, help="no new setting after this many seconds of sweep")
@@ -293,6 +341,10 @@ def main() -> int:
     res = dict(scene=args.scene, gaussians=len(g), size=f"{cams[0].width}x{cams[0].height}", views=len(cams),
                held_out_views=len(held), training=train_info, settings=vars(args), machine=_machine(dev),
                sweep=[], baseline=None)
+    if args.profile:
+        res["profile"] = profile_pool(args, dev, g, cams, bg, images, settings[0])
+        _write(args, dev, res)
+        return 0
     if args.scan_only:
         from gsw.mark.message import random_message
 

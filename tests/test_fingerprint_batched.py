@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import gsw.fingerprint.batched as batched
 from gsw.decoder.zoo import load_decoder
 from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch, pool_config
 from gsw.fingerprint.shared import prepare_scene, worker_scene
@@ -135,7 +136,8 @@ class _RightInBatches(_Confident):
         return out if ll.shape[0] > 1 else torch.cat([-out[:, :1], out[:, 1:]], dim=1)
 
 
-def test_confirmation_on_the_embedding_views() -> None:
+def test_confirmation_on_the_embedding_views(monkeypatch) -> None:
+    monkeypatch.setattr(batched, "SCORE_CHUNK", 1)  # the score decodes one view at a time (see _RightInBatches)
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
     cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)

@@ -23,7 +23,7 @@ if not os.environ.get("CI"):
 import ray  # noqa: E402
 
 from gsw.fingerprint.plan import Recipient  # noqa: E402
-from gsw.fingerprint.run import map_ray  # noqa: E402
+from gsw.fingerprint.run import RayWorkers, map_ray  # noqa: E402
 
 VIEWS = 6
 NAMES = ["r1", "r2", "r3", "r4"]
@@ -62,6 +62,8 @@ def job(cluster, scene, tmp_path_factory):
 def test_four_recipients_on_two_workers(job, scene) -> None:
     root, report = job
     assert report.runner == "ray" and report.names("embedded") == NAMES
+    # the workers warmed up (original renders, loss) while the driver ran the set-up
+    assert all(r.worker_warm_s > 0 for r in report.recipients) and report.timings["ray_start"] > 0
     from gsw.data import load_inria_model
 
     copy = load_inria_model(root / "out" / "r3").gaussians
@@ -100,6 +102,39 @@ def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
     assert (tmp_path / "died").exists()
     failed = map_ray(dies_once, str(tmp_path / "again"), [3], lambda i, r: None, max_retries=0)
     assert [i for i, _ in failed] == [0]
+
+
+def test_workers_warm_once_and_take_the_payloads_in_turn(cluster, tmp_path) -> None:
+    """Two workers warm up once each when they start and run five payloads between them; the one whose worker
+    died runs again; the one that raises is not run again."""
+    def _warmed(folder: str) -> None:  # nested: shipped to the workers by value
+        open(os.path.join(folder, f"warm-{os.getpid()}"), "w").close()
+
+    def _pid_unless_marked(marker: str, payload: int) -> tuple[int, int]:
+        if payload == 3 and not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)
+        if payload == 4:
+            raise ValueError("payload 4 is bad")
+        return payload, os.getpid()
+
+    workers = RayWorkers(2, warm=_warmed, warm_args=(str(tmp_path),), max_retries=2)
+    got: dict = {}
+    try:
+        failed = workers.map(_pid_unless_marked, str(tmp_path / "died"), [0, 1, 2, 3, 4],
+                             lambda i, r: got.__setitem__(i, r))
+    finally:
+        workers.shutdown()
+    assert [i for i, _ in failed] == [4] and "payload 4 is bad" in str(failed[0][1])
+    assert sorted(got) == [0, 1, 2, 3] and all(got[i][0] == i for i in got)
+    warmed = {int(p.name.split("-")[1]) for p in tmp_path.glob("warm-*")}
+    assert 2 <= len(warmed) <= 3  # two starts (and the restart of the worker that died, when it came in time)
+    assert {pid for _, pid in got.values()} <= warmed  # every payload ran in a warmed worker
+
+
+def test_no_room_for_a_gpu_worker(cluster) -> None:
+    with pytest.raises(RuntimeError, match="no room for a worker of 1 GPU"):
+        map_ray(lambda shared, payload: payload, "unused", [0], lambda i, r: None, num_gpus=1)
 
 
 def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path, monkeypatch) -> None:

@@ -1,11 +1,12 @@
-"""gsw.fingerprint.shared: the scene hash and the per-worker scene cache."""
+"""gsw.fingerprint.shared: the scene hash, the per-worker scene cache and the warm-up."""
 
 from __future__ import annotations
 
 import torch
 
 from gsw.fingerprint.batched import pool_config
-from gsw.fingerprint.shared import prepare_scene, scene_hash, worker_scene
+import gsw.fingerprint.shared as shared_module
+from gsw.fingerprint.shared import prepare_scene, scene_hash, warm_worker, worker_scene
 from gsw.mark.loss import LossWeights
 from gsw.render.rasterize import rasterize
 from gsw.scenes import default_scene
@@ -42,3 +43,20 @@ def test_a_worker_reuses_its_scene_only_for_the_same_job() -> None:
     assert worker_scene(a, "cpu") is wa
     wb = worker_scene(b, "cpu")
     assert wb is not wa and len(wb.model) == len(b.model) != len(a.model)
+
+
+def test_a_warmed_worker_uses_its_parts_for_that_job_only() -> None:
+    """What :func:`warm_worker` prepared before the scene existed is what the job's worker scene uses, and
+    equals what the worker would have built; another job's token builds its own."""
+    sc, cfg = _scene()
+    warm_worker("job-1", sc.gaussians, sc.cameras, cfg, 32, None, "cpu")
+    warmed = dict(shared_module._WARM)
+    shared = prepare_scene(sc.gaussians, sc.cameras, config=cfg, token="job-1")
+    ws = worker_scene(shared, "cpu")
+    (originals, loss, seconds), = warmed.values()
+    assert ws.loss is loss and all(a is b for a, b in zip(ws.originals, originals)) and ws.warm_s == seconds > 0
+    cold = prepare_scene(sc.gaussians, sc.cameras, config=cfg)  # a new token: built in the worker
+    warm_worker("job-2", sc.gaussians, sc.cameras, cfg, 32, None, "cpu")
+    wc = worker_scene(cold, "cpu")
+    assert wc.loss is not loss and wc.warm_s == 0 and not shared_module._WARM  # job-2's parts dropped: one job a worker
+    assert all(torch.equal(a, b) for a, b in zip(wc.originals, originals))

@@ -46,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X' "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
     fp.add_argument("--task-size", type=positive_int, default=None,
-                    help="recipients per Ray task (default: --batch)")
+                    help="recipients handed to a Ray worker at a time (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
     fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp",
                     help="gradient mask (the pool's recipe is the paper's; default %(default)s)")
@@ -59,8 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--seed", type=int, default=0, help="view order seed (messages are drawn from os.urandom)")
     add_device_option(fp)
     _add_ray_options(fp)
-    fp.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs per Ray task (default %(default)s)")
-    fp.add_argument("--max-retries", type=int, default=3, help="retries of a Ray task whose worker dies")
+    fp.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs per Ray worker (default %(default)s: one worker per GPU)")
+    fp.add_argument("--max-retries", type=int, default=3, help="reruns of a batch whose Ray worker dies (and restarts of a worker)")
     fp.add_argument("--no-progress", action="store_true")
     fp.add_argument("--json", action="store_true", help="print the report as JSON")
     fp.set_defaults(func=cmd_fingerprint, model_attack_prob=0.0, psnr_target=None)  # the pool has neither

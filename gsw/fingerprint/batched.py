@@ -23,6 +23,7 @@ from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
+from torch.autograd.profiler import record_function
 
 from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
@@ -218,6 +219,8 @@ class CopyResult:
         refusals: early stops refused by the confirmation before it finished.
         worker_setup_s: seconds its worker spent on the scene (models and original renders on the device, the
             loss) before its batch began: 0 when the worker had it cached from an earlier batch.
+        worker_warm_s: seconds its worker's warm-up took (:func:`gsw.fingerprint.shared.warm_worker`: the
+            original renders and the loss, made while the driver ran the set-up); 0 without one.
     """
 
     name: str
@@ -232,6 +235,7 @@ class CopyResult:
     message_weight: float | None = None
     refusals: int = 0
     worker_setup_s: float = 0.0
+    worker_warm_s: float = 0.0
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
@@ -310,24 +314,28 @@ class _Pool:
         cams, originals, bg = self.scene.shared.cameras, self.scene.originals, self.cfg.background
         slots = self.active()
         views = [self.slots[j].next_view(len(cams)) for j in slots]
-        renders = [rasterize(g, cams[v], background=bg, validate=False).image
-                   for g, v in zip(self.params.slot_models(slots), views)]
-        decoded = [self._decoder_input(self.slots[j], r) for j, r in zip(slots, renders)]
+        with record_function("gsw.pool.render"):  # labels for torch.profiler (benchmarks/fingerprint_throughput.py)
+            renders = [rasterize(g, cams[v], background=bg, validate=False).image
+                       for g, v in zip(self.params.slot_models(slots), views)]
+            decoded = [self._decoder_input(self.slots[j], r) for j, r in zip(slots, renders)]
         targets = [originals[v] for v in views]
         # one batched pass when every view has the same size (attacked images may not: one pass per slot)
         batched = self.uniform and self.attacks is None
         groups = [list(range(len(slots)))] if batched else [[i] for i in range(len(slots))]
         total = 0.0
-        for g in groups:
-            r = torch.stack([renders[i] for i in g])
-            t = torch.stack([targets[i] for i in g])
-            d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
-            idx, msgs = self._indices(tuple(slots[i] for i in g))
-            part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx])
-            self.monitor.observe(idx, logits, msgs, r, t)
-            total = total + part
-        total.backward()
-        self.params.step(slots)
+        with record_function("gsw.pool.loss"):
+            for g in groups:
+                r = torch.stack([renders[i] for i in g])
+                t = torch.stack([targets[i] for i in g])
+                d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
+                idx, msgs = self._indices(tuple(slots[i] for i in g))
+                part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx])
+                self.monitor.observe(idx, logits, msgs, r, t)
+                total = total + part
+        with record_function("gsw.pool.backward"):
+            total.backward()
+        with record_function("gsw.pool.adam"):
+            self.params.step(slots)
 
 
 def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Callable[[int], None] | None = None, *,
@@ -397,6 +405,10 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
                                   pool.monitor.rejections[j])
 
 
+#: Views decoded together when a copy is scored (same-size views only).
+SCORE_CHUNK = 16
+
+
 @torch.no_grad()
 def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:
     """(mean, worst) bit accuracy and (mean, worst) PSNR of one copy over the embedding views."""
@@ -405,11 +417,11 @@ def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float,
     from gsw.render.rasterize import rasterize
 
     bg = scene.shared.config.background
-    accs, psnrs = [], []
-    for cam, orig in zip(scene.shared.cameras, scene.originals):
-        img = rasterize(copy, cam, background=bg).image.clamp(0, 1)
-        logits = scene.loss.decoder(ll_subband(img[None]))[0]
-        accs.append(((logits > 0).float() == target).float().mean())
-        psnrs.append(psnr(img, orig.clamp(0, 1)))
-    acc, ps = torch.stack(accs).cpu(), torch.stack(psnrs).cpu()
+    images = [rasterize(copy, cam, background=bg, validate=False).image.clamp(0, 1) for cam in scene.shared.cameras]
+    psnrs = torch.stack([psnr(img, orig.clamp(0, 1)) for img, orig in zip(images, scene.originals)])
+    uniform = len({tuple(im.shape) for im in images}) == 1
+    step = SCORE_CHUNK if uniform else 1
+    logits = torch.cat([scene.loss.decoder(ll_subband(torch.stack(images[i:i + step])))
+                        for i in range(0, len(images), step)])
+    acc, ps = ((logits > 0).float() == target).float().mean(dim=1).cpu(), psnrs.cpu()
     return float(acc.mean()), float(acc.min()), float(ps.mean()), float(ps.min())

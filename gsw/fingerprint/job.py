@@ -2,17 +2,19 @@
 
 Flow: check the recipients, the output folder (:class:`~gsw.fingerprint.store.JobFolder`) and the registry
 before any work; skip finished recipients; run the once-per-scene work (FGD) once
-(:func:`~gsw.fingerprint.shared.prepare_scene`); fine-tune the others in a pool of slots
-(:mod:`gsw.fingerprint.batched`) in this process or as Ray tasks (:mod:`gsw.fingerprint.run`); for every
-finished copy, in this process: write its folder atomically (on a writer thread while the fine-tunes go
-on), register it, then write its completion marker.
+(:func:`~gsw.fingerprint.shared.prepare_scene`; on Ray the workers start and warm up meanwhile); fine-tune the
+others in a pool of slots (:mod:`gsw.fingerprint.batched`) in this process or on Ray workers
+(:mod:`gsw.fingerprint.run`); for every finished copy, in this process: write its folder atomically (on
+writer threads while the fine-tunes go on), register it, then write its completion marker.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
+import uuid
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -27,6 +29,10 @@ from gsw.fingerprint.batched import pool_config
 from gsw.mark.embed import EmbedConfig
 
 __all__ = ["RecipientReport", "FingerprintReport", "fingerprint"]
+
+#: Threads writing copies (a copy is a few hundred ms of PLY encoding, file writes and fsyncs, most of it
+#: outside the GIL: with one thread the copies of the last batches wait in line at the end of a job).
+WRITER_THREADS = min(8, os.cpu_count() or 1)
 
 
 @dataclass
@@ -46,6 +52,7 @@ class RecipientReport:
         finished_s: seconds after the fine-tunes began when its copy reached the writer (embedded only; with
             Ray, a task's copies arrive together when the task ends).
         worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
+        worker_warm_s: seconds its worker's warm-up took, while the driver ran the set-up (Ray; 0 without).
     """
 
     name: str
@@ -62,6 +69,7 @@ class RecipientReport:
     refusals: int | None = None
     finished_s: float | None = None
     worker_setup_s: float | None = None
+    worker_warm_s: float | None = None
 
 
 @dataclass
@@ -123,9 +131,10 @@ def _choose_runner(use_ray: bool | None, address: str | None, batches: int, log:
 class _Writer:
     """The one writer: copies, registry records and completion markers.
 
-    Each copy's folder is written (atomically) on one background thread while the fine-tunes go on; once
-    written, it is registered and marked complete in the calling thread (the registry's), at the next call,
-    or at :meth:`flush`. The order per recipient stays: folder, registry record, completion marker.
+    Each copy's folder is written (atomically) on background threads (:data:`WRITER_THREADS`) while the
+    fine-tunes go on; once written, it is registered and marked complete in the calling thread (the
+    registry's), in arrival order, at the next call or at :meth:`flush`. The order per recipient stays:
+    folder, registry record, completion marker.
     """
 
     def __init__(self, folder, registry, shared, record: dict, reports: dict, bar) -> None:
@@ -135,7 +144,7 @@ class _Writer:
             folder, registry, shared, record, reports, bar)
         self.messages: dict[str, str] = {}
         self.origins: dict[str, str] = {}  # "random" (drawn, or from a key) / "chosen" (given in the file)
-        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gsw-fingerprint-writer")
+        self.pool = ThreadPoolExecutor(max_workers=WRITER_THREADS, thread_name_prefix="gsw-fingerprint-writer")
         self.pending: list = []  # (result, future of its model hash)
         self.started = time.perf_counter()  # reset when the fine-tunes begin
         self.arrived: dict[str, float] = {}
@@ -157,17 +166,18 @@ class _Writer:
         self._register(wait=False)
 
     def flush(self) -> None:
-        """Waits for every copy and registers it; stops the thread."""
+        """Waits for every copy and registers it; stops the threads."""
         try:
             self._register(wait=True)
         finally:
             self.pool.shutdown(wait=True)
 
     def _register(self, wait: bool) -> None:
-        ready = [(r, f) for r, f in self.pending if wait or f.done()]
+        n = len(self.pending) if wait else next((i for i, (_, f) in enumerate(self.pending) if not f.done()),
+                                                 len(self.pending))
+        ready, self.pending = self.pending[:n], self.pending[n:]  # arrival order: a written prefix
         if not ready:
             return
-        self.pending = [(r, f) for r, f in self.pending if not (wait or f.done())]
         cams, cfg, k = self.shared.cameras, self.shared.config, self.shared.num_bits
         sizes = {(c.width, c.height) for c in cams}
         width, height = next(iter(sizes)) if len(sizes) == 1 else (None, None)
@@ -183,7 +193,7 @@ class _Writer:
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
                                                    r.seconds, r.steps, r.stopped_early, r.refusals,
-                                                   self.arrived.get(r.name), r.worker_setup_s)
+                                                   self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
@@ -213,14 +223,14 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
             recipient's slot is refilled with the next one, :mod:`gsw.fingerprint.batched`).
         early_stop: per-recipient early stopping (:class:`~gsw.fingerprint.stopping.EarlyStop`); None: every
             recipient runs ``config.epochs`` passes over the views.
-        task_size: recipients per Ray task (default: ``batch_size``); in one process all recipients go
-            through one pool.
+        task_size: recipients handed to a Ray worker at a time (default: ``batch_size``); in one process all
+            recipients go through one pool.
         device: where to compute (default: :func:`gsw.device.resolve_device` "auto").
-        use_ray: True: Ray tasks; False: this process; None: Ray when installed and there are several
+        use_ray: True: Ray workers; False: this process; None: Ray when installed and there are several
             batches (or an ``address``).
         address: a Ray cluster to join (default: a local Ray cluster).
-        gpus_per_task: GPUs per Ray task on CUDA (e.g. 0.5 runs two batches per GPU).
-        max_retries: retries of a Ray task whose worker dies.
+        gpus_per_task: GPUs per Ray worker on CUDA (default one worker per GPU; 0.5 runs two per GPU).
+        max_retries: reruns of a batch whose Ray worker dies (and restarts of a worker).
         progress: show one progress bar for the job (and messages) on stderr.
         log: where messages go (default: stderr when ``progress``).
 
@@ -260,7 +270,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
 def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, pool, dev, use_ray, address,
          gpus_per_task, max_retries, progress, log, start) -> FingerprintReport:
     """The body of :func:`fingerprint` once the inputs are checked."""
-    from gsw.fingerprint.run import run_local, run_ray
+    from gsw.fingerprint.run import ray_workers, run_local, run_ray
     from gsw.fingerprint.shared import prepare_scene
     from gsw.progress import Progress
 
@@ -285,31 +295,41 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
         size = pool["task_size"]
         batches = [[(r.name, r.message) for r in todo[i:i + size]] for i in range(0, len(todo), size)]
         runner = _choose_runner(use_ray, address, len(batches), log)
-        t0 = time.perf_counter()
-        shared = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
-                               device=dev)
-        timings["setup"] = time.perf_counter() - t0
-        steps = cfg.epochs * len(cameras)
-        with Progress(len(todo) * steps, "fingerprint", enabled=progress) as bar:
-            writer = _Writer(folder, reg, shared, {"decoder": _decoder_fingerprint(num_bits, decoder)}, reports,
-                             bar)
-            writer.messages = {r.name: r.message for r in todo}
-            writer.origins = {p.name: "chosen" if p.message is not None else "random" for p in people}
-            t0 = writer.started = time.perf_counter()
-            try:
-                if runner == "ray":
-                    def on_result(results: list) -> None:
-                        writer(results)
-                        bar.update(len(results) * steps)
+        with contextlib.ExitStack() as stack:
+            token = uuid.uuid4().hex
+            workers = None
+            if runner == "ray":  # the workers start (and warm up) while the set-up runs here
+                t0 = time.perf_counter()
+                workers = stack.enter_context(ray_workers(
+                    address, dev.type, len(batches), gpus_per_task=gpus_per_task, max_retries=max_retries,
+                    warm_args=(token, model.detach().to("cpu"), list(cameras), cfg, num_bits,
+                               None if decoder is None else decoder.to("cpu"))))
+                timings["ray_start"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            shared = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
+                                   device=dev, token=token)
+            timings["setup"] = time.perf_counter() - t0
+            steps = cfg.epochs * len(cameras)
+            with Progress(len(todo) * steps, "fingerprint", enabled=progress) as bar:
+                writer = _Writer(folder, reg, shared, {"decoder": _decoder_fingerprint(num_bits, decoder)}, reports,
+                                 bar)
+                writer.messages = {r.name: r.message for r in todo}
+                writer.origins = {p.name: "chosen" if p.message is not None else "random" for p in people}
+                t0 = writer.started = time.perf_counter()
+                try:
+                    if workers is not None:
+                        def on_result(results: list) -> None:
+                            writer(results)
+                            bar.update(len(results) * steps)
 
-                    run_ray(shared, batches, dev.type, on_result, address=address, gpus_per_task=gpus_per_task,
-                            max_retries=max_retries, slots=pool["slots"], stop=pool["stop"])
-                else:
-                    run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
-                              stop=pool["stop"])
-            finally:
-                writer.flush()  # the copies finished so far are registered even when a batch failed
-            timings["finetune"] = time.perf_counter() - t0
+                        run_ray(workers, shared, batches, dev.type, on_result, slots=pool["slots"],
+                                stop=pool["stop"])
+                    else:
+                        run_local(shared, batches, str(dev), writer, on_step=bar.update, slots=pool["slots"],
+                                  stop=pool["stop"])
+                finally:
+                    writer.flush()  # the copies finished so far are registered even when a batch failed
+                timings["finetune"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return FingerprintReport([reports[p.name] for p in people], runner, folder.scene_hash, timings)
 

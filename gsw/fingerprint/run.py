@@ -1,24 +1,27 @@
-"""Running recipient batches: in this process, or as Ray tasks on a local or remote Ray cluster.
+"""Running recipient batches: in this process, or on Ray workers of a local or remote Ray cluster.
 
 Both runners call ``on_result`` in the calling process (the driver) for every finished batch: the one
-writer of output folders and registry records. :func:`map_ray` is the generic part: one Ray task per
-payload (``num_gpus`` / ``num_cpus`` each, retried up to ``max_retries`` times when its worker dies), results
-handled as they arrive. Ray is optional (``pip install gsw[ray]``); :func:`ray_available` says whether it
-is installed.
+writer of output folders and registry records. :class:`RayWorkers` is the generic part: a pool of Ray
+actors (``num_gpus`` / ``num_cpus`` each) started before the work exists, so that their start overlaps the
+driver's set-up, then fed one payload per free worker; a payload whose worker dies runs again (up to
+``max_retries`` times). Ray is optional (``pip install gsw[ray]``); :func:`ray_available` says whether it is
+installed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import time
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import torch
 
 if TYPE_CHECKING:
     from gsw.fingerprint.stopping import EarlyStop
 
-__all__ = ["SCALE_OUT_HINT", "BatchFailure", "connect_ray", "ray_available", "map_ray", "run_batch", "run_local", "run_ray"]
+__all__ = ["SCALE_OUT_HINT", "BatchFailure", "RayWorkers", "connect_ray", "ray_available", "map_ray", "ray_workers",
+           "run_batch", "run_local", "run_ray"]
 
 #: What to tell a user who runs without Ray.
 SCALE_OUT_HINT = ("Ray is not installed: running in one process. To spread recipients over several GPUs or "
@@ -62,7 +65,7 @@ def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Ca
         setup_s = time.perf_counter() - t0
 
         def with_setup(copy):
-            copy.worker_setup_s = setup_s
+            copy.worker_setup_s, copy.worker_warm_s = setup_s, scene.warm_s
             if on_copy is not None:
                 on_copy(copy)
 
@@ -82,49 +85,165 @@ def run_local(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
 
 
 def _ray_task(shared, batch, device, slots=None, stop=None):  # pragma: no cover - runs in a Ray worker
-    if device.startswith("cuda"):
-        device = "cuda"  # Ray sets CUDA_VISIBLE_DEVICES to the task's GPU
-    return run_batch(shared, batch, device, slots=slots, stop=stop)
+    return run_batch(shared, batch, _worker_device(device), slots=slots, stop=stop)
+
+
+def _worker_device(device: str) -> str:
+    return "cuda" if device.startswith("cuda") else device  # Ray sets CUDA_VISIBLE_DEVICES to the worker's GPU
+
+
+def _warm(token, original, cameras, config, num_bits, decoder, device):  # pragma: no cover - in a Ray worker
+    from gsw.device import deterministic
+    from gsw.fingerprint.shared import warm_worker
+
+    with deterministic():
+        warm_worker(token, original, cameras, config, num_bits, decoder, _worker_device(device))
+
+
+class _Worker:  # pragma: no cover - a Ray actor
+    """One process holding its resources (a GPU) for the whole job: warms up once, then runs payloads."""
+
+    def __init__(self, warm: Callable[..., Any] | None, *warm_args: Any) -> None:
+        if warm is not None:
+            warm(*warm_args)
+
+    def run(self, fn: Callable[..., Any], shared: Any, payload: Any, args: Sequence[Any]) -> Any:
+        return fn(shared, payload, *args)
+
+
+def _actor_died(err: BaseException) -> bool:
+    import ray.exceptions
+
+    return isinstance(err, ray.exceptions.RayActorError)
+
+
+class RayWorkers:
+    """A pool of Ray actors (``num_gpus`` / ``num_cpus`` each) on the connected cluster, started at once so that
+    their start (process, imports, CUDA, ``warm(*warm_args)``) overlaps what the caller does next; then
+    :meth:`map` hands out payloads to whichever worker is free.
+
+    A worker whose process dies is restarted by Ray (up to ``max_retries`` times, running ``warm`` again) and
+    the payload it held is run again (up to ``max_retries`` times per payload); a payload that raises is not
+    run again. ``shutdown`` ends the workers.
+    """
+
+    def __init__(self, count: int, *, num_gpus: float = 0.0, num_cpus: float = 1.0, max_retries: int = 3,
+                 warm: Callable[..., Any] | None = None, warm_args: Sequence[Any] = ()) -> None:
+        import ray
+
+        if count < 1:
+            raise ValueError(f"a pool needs at least one worker, got {count}")
+        self.max_retries = max_retries
+        actor = ray.remote(_Worker).options(num_gpus=num_gpus, num_cpus=num_cpus, max_restarts=max_retries,
+                                            max_task_retries=0)
+        self._refs = [ray.put(a) for a in warm_args]  # stored once, read by every worker (and its restarts)
+        self.actors = [actor.remote(warm, *self._refs) for _ in range(count)]
+
+    @staticmethod
+    def capacity(num_gpus: float, num_cpus: float) -> int:
+        """How many workers of this size the connected cluster holds now (0: none fits)."""
+        import ray
+
+        res = ray.cluster_resources()
+        return int(res.get("GPU", 0.0) // num_gpus) if num_gpus > 0 else int(res.get("CPU", 0.0) // num_cpus)
+
+    def map(self, fn: Callable[..., Any], shared: Any, payloads: Sequence[Any],
+            on_result: Callable[[int, Any], None], args: Sequence[Any] = ()) -> list[tuple[int, BaseException]]:
+        """Runs ``fn(shared, payload, *args)`` on the workers, one payload per free worker; ``shared`` goes
+        into the object store once; ``on_result(index, result)`` runs here as results arrive.
+
+        Returns:
+            (index, error) of the payloads that failed.
+        """
+        import ray
+
+        shared_ref = ray.put(shared)
+        queue = list(range(len(payloads)))
+        runs: dict[int, int] = {}  # payload -> times started
+        deaths = {id(a): 0 for a in self.actors}
+        idle, running, failed = list(self.actors), {}, []
+        while queue or running:
+            while idle and queue:
+                a, i = idle.pop(0), queue.pop(0)
+                runs[i] = runs.get(i, 0) + 1
+                running[a.run.remote(fn, shared_ref, payloads[i], tuple(args))] = (a, i)
+            if not running:  # every worker is gone
+                failed += [(i, RuntimeError("no Ray worker left: each died more than max_retries times"))
+                           for i in queue]
+                break
+            done, _ = ray.wait(list(running), num_returns=1)
+            a, i = running.pop(done[0])
+            try:
+                result = ray.get(done[0])
+            except Exception as err:  # noqa: BLE001 - the payload raised, or its worker died
+                if _actor_died(err):
+                    deaths[id(a)] += 1
+                    if runs[i] <= self.max_retries:
+                        queue.insert(0, i)
+                    else:
+                        failed.append((i, err))
+                    if deaths[id(a)] <= self.max_retries:
+                        idle.append(a)  # Ray restarts it
+                else:
+                    failed.append((i, err))
+                    idle.append(a)
+                continue
+            idle.append(a)
+            on_result(i, result)
+        return sorted(failed, key=lambda f: f[0])
+
+    def shutdown(self) -> None:
+        import ray
+
+        for a in self.actors:
+            ray.kill(a)
+        self.actors = []
 
 
 def map_ray(fn: Callable[..., Any], shared: Any, payloads: Sequence[Any], on_result: Callable[[int, Any], None], *,
             num_gpus: float = 0.0, num_cpus: float = 1.0, max_retries: int = 3,
             args: Sequence[Any] = ()) -> list[tuple[int, BaseException]]:
-    """Runs ``fn(shared, payload, *args)`` as one Ray task per payload on the connected Ray cluster.
-
-    ``shared`` is put into the object store once. ``on_result(index, result)`` runs in this process as
-    results arrive (in completion order). A task whose worker process dies is retried up to ``max_retries``
-    times by Ray; a task that raises is not retried.
+    """Runs ``fn(shared, payload, *args)`` for every payload on a :class:`RayWorkers` pool of the connected Ray
+    cluster (as many workers as fit, at most one per payload). ``on_result(index, result)`` runs in this
+    process as results arrive (in completion order). A payload whose worker process dies is run again up to
+    ``max_retries`` times; a payload that raises is not.
 
     Args:
         fn: a picklable function.
         shared: the common argument.
-        payloads: one per task.
+        payloads: the work.
         on_result: the single writer.
-        num_gpus, num_cpus: resources of each task.
+        num_gpus, num_cpus: resources of each worker.
         max_retries: retries after a worker failure.
         args: further arguments of every call.
 
     Returns:
-        (index, error) of the tasks that failed.
+        (index, error) of the payloads that failed.
+
+    Raises:
+        RuntimeError: the cluster has no room for one worker of this size.
     """
+    workers = RayWorkers(_pool_size(len(payloads), num_gpus, num_cpus), num_gpus=num_gpus, num_cpus=num_cpus,
+                         max_retries=max_retries)
+    try:
+        return workers.map(fn, shared, payloads, on_result, args)
+    finally:
+        workers.shutdown()
+
+
+def _pool_size(payloads: int, num_gpus: float, num_cpus: float) -> int:
+    fits = RayWorkers.capacity(num_gpus, num_cpus)
+    if fits < 1:
+        what = f"{num_gpus} GPU" if num_gpus > 0 else f"{num_cpus} CPU"
+        raise RuntimeError(f"the Ray cluster has no room for a worker of {what} (its resources: "
+                           f"{_resources()}); use --device cpu, or a cluster with GPUs")
+    return max(1, min(payloads, fits))
+
+
+def _resources() -> dict:
     import ray
 
-    task = ray.remote(fn).options(num_gpus=num_gpus, num_cpus=num_cpus, max_retries=max_retries,
-                                  retry_exceptions=False)
-    shared_ref = ray.put(shared)
-    pending = {task.remote(shared_ref, p, *args): i for i, p in enumerate(payloads)}
-    failed = []
-    while pending:
-        done, _ = ray.wait(list(pending), num_returns=1)
-        index = pending.pop(done[0])
-        try:
-            result = ray.get(done[0])
-        except Exception as err:  # a task that raised, or died more than max_retries times
-            failed.append((index, err))
-            continue
-        on_result(index, result)
-    return failed
+    return ray.cluster_resources()
 
 
 def connect_ray(address: str | None, **init_kwargs: Any) -> bool:
@@ -141,26 +260,43 @@ def connect_ray(address: str | None, **init_kwargs: Any) -> bool:
     return True
 
 
-def run_ray(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str, on_result: Callable[[list], None], *,
-            address: str | None = None, gpus_per_task: float = 1.0, max_retries: int = 3, slots: int | None = None,
-            stop: EarlyStop | None = None) -> None:
-    """Runs the batches as Ray tasks (``num_gpus=gpus_per_task`` each on a CUDA device), each a pool of
-    ``slots`` slots (default: the batch's size) with the early-stopping rule ``stop``.
+@contextlib.contextmanager
+def ray_workers(address: str | None, device: str, batches: int, *, gpus_per_task: float = 1.0,
+                max_retries: int = 3, warm_args: Sequence[Any] | None = None) -> Iterator[RayWorkers]:
+    """Connects to Ray (``address``, or a new local cluster) and starts the job's workers: one per GPU share
+    (``gpus_per_task``) on CUDA, one per CPU otherwise, at most ``batches``; each runs
+    :func:`~gsw.fingerprint.shared.warm_worker` with ``warm_args`` (token, original model, cameras, config,
+    bits, decoder) as it starts. Ends the workers (and a cluster it started) on exit.
 
     Raises:
-        BatchFailure: batches that failed after their retries (the others were handed to ``on_result``).
+        RuntimeError: the cluster has no room for one worker.
     """
     import ray
 
     started = connect_ray(address)
     try:
-        gpu = device.startswith("cuda")
-        failed = map_ray(_ray_task, shared, batches, lambda _i, res: on_result(res),
-                         num_gpus=gpus_per_task if gpu else 0.0, num_cpus=1.0, max_retries=max_retries,
-                         args=(device, slots, stop))
+        num_gpus = gpus_per_task if device.startswith("cuda") else 0.0
+        workers = RayWorkers(_pool_size(batches, num_gpus, 1.0), num_gpus=num_gpus, num_cpus=1.0,
+                             max_retries=max_retries, warm=None if warm_args is None else _warm,
+                             warm_args=() if warm_args is None else (*warm_args, device))
+        try:
+            yield workers
+        finally:
+            workers.shutdown()
     finally:
         if started:
             ray.shutdown()
+
+
+def run_ray(workers: RayWorkers, shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
+            on_result: Callable[[list], None], *, slots: int | None = None, stop: EarlyStop | None = None) -> None:
+    """Runs the batches on ``workers`` (:func:`ray_workers`), each a pool of ``slots`` slots (default: the
+    batch's size) with the early-stopping rule ``stop``.
+
+    Raises:
+        BatchFailure: batches that failed after their retries (the others were handed to ``on_result``).
+    """
+    failed = workers.map(_ray_task, shared, batches, lambda _i, res: on_result(res), args=(device, slots, stop))
     if failed:
         names = [n for i, _ in failed for n, _m in batches[i]]
         raise BatchFailure(f"{len(failed)} batch(es) failed ({', '.join(names)}): {failed[0][1]}; rerun the same "

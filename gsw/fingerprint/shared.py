@@ -10,6 +10,7 @@ LPIPS network, reused by every recipient batch that worker runs.
 from __future__ import annotations
 
 import hashlib
+import time
 import uuid
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -22,7 +23,7 @@ from gsw.gaussians import Gaussians
 from gsw.fingerprint.batched import check_pool_config, pool_config
 from gsw.mark.embed import EmbedConfig, prepare_embedding
 
-__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "worker_scene"]
+__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "warm_worker", "worker_scene"]
 
 
 def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, config: EmbedConfig,
@@ -90,7 +91,8 @@ class SharedScene:
 
 def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: int = 32,
                   config: EmbedConfig | None = None, images: Sequence[Tensor] | None = None,
-                  decoder: torch.nn.Module | None = None, device: str | torch.device | None = None) -> SharedScene:
+                  decoder: torch.nn.Module | None = None, device: str | torch.device | None = None,
+                  token: str | None = None) -> SharedScene:
     """Runs the once-per-scene work (checks, FGD) on ``device`` and returns it as a :class:`SharedScene`.
 
     Args:
@@ -101,6 +103,8 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
         images: optional [3, H, W] training images for FGD phase 1.
         decoder: a custom decoder (default: the shipped one).
         device: where to run FGD (default: where the model is).
+        token: the scene's :attr:`SharedScene.token` (default: a new one); the token given to
+            :func:`warm_worker` before, so that workers use what they prepared.
 
     Raises:
         ValueError: as :func:`gsw.mark.embed.prepare_embedding`.
@@ -115,7 +119,8 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
                  split=setup.split.num_split if setup.split else 0, setup_timings=setup.timings)
     return SharedScene(gaussians.detach().to("cpu"), setup.model.to("cpu"), list(cameras), cfg, num_bits,
                        None if decoder is None else decoder.to("cpu"),
-                       scene_hash(gaussians, cameras, num_bits, cfg, images), decoder_sha256(num_bits, decoder), stats)
+                       scene_hash(gaussians, cameras, num_bits, cfg, images), decoder_sha256(num_bits, decoder), stats,
+                       **({} if token is None else dict(token=token)))
 
 
 @dataclass
@@ -128,6 +133,7 @@ class WorkerScene:
         model: the FGD'd model on ``device``.
         originals: per camera, the [3, H, W] render of the input model.
         loss: the watermark loss (decoder + LPIPS) on ``device``.
+        warm_s: seconds :func:`warm_worker` took to make ``originals`` and ``loss`` (0: made with the scene).
     """
 
     shared: SharedScene
@@ -135,33 +141,66 @@ class WorkerScene:
     model: Gaussians
     originals: list[Tensor]
     loss: torch.nn.Module
+    warm_s: float = 0.0
 
 
 _CACHE: dict[tuple[str, str], WorkerScene] = {}
+#: Warmed parts (original renders, loss, seconds taken) by (job token, device), made before the job's scene exists.
+_WARM: dict[tuple[str, str], tuple[list[Tensor], torch.nn.Module, float]] = {}
+
+
+def _parts(original: Gaussians, cameras: Sequence[Camera], config: EmbedConfig, num_bits: int,
+           decoder: torch.nn.Module | None, device: torch.device) -> tuple[list[Tensor], torch.nn.Module]:
+    """The device-side parts that need only the input model: its renders and the loss (decoder + LPIPS)."""
+    from gsw.mark.detect import load_decoder_for
+    from gsw.mark.loss import WatermarkLoss
+    from gsw.render.rasterize import rasterize
+
+    original = original.to(device)
+    with torch.no_grad():
+        originals = [rasterize(original, cam, background=config.background).image for cam in cameras]
+    dec = load_decoder_for(num_bits, decoder, device)
+    loss = WatermarkLoss(dec, config.weights, config.lpips_net, config.logit_scale).to(device)
+    return originals, loss
+
+
+def warm_worker(token: str, original: Gaussians, cameras: Sequence[Camera], config: EmbedConfig, num_bits: int,
+                decoder: torch.nn.Module | None, device: str | torch.device) -> None:
+    """Prepares, in a worker process, what :func:`worker_scene` will need for job ``token`` that does not
+    depend on FGD (the input model's renders, the decoder, LPIPS; CUDA started): run while the driver
+    prepares the scene, so that a worker's start overlaps the set-up instead of following it.
+
+    Args:
+        token: the :attr:`SharedScene.token` the job's scene will carry.
+        original: the input model (the job's :attr:`SharedScene.original`).
+        cameras, config, num_bits, decoder: as the job's :func:`prepare_scene`.
+        device: the worker's device.
+    """
+    t0 = time.perf_counter()
+    device = torch.device(device)
+    _WARM.clear()
+    parts = _parts(original, cameras, config, num_bits, decoder, device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    _WARM[(token, str(device))] = (*parts, time.perf_counter() - t0)
 
 
 def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene:
     """The :class:`WorkerScene` of ``shared`` on ``device``, built once per job (:attr:`SharedScene.token`) and
-    device in a process, and reused by the job's later batches there.
+    device in a process (from :func:`warm_worker`'s parts when it ran), and reused by the job's later
+    batches there.
 
     Args:
         shared: the scene.
         device: a torch device.
     """
-    from gsw.mark.detect import load_decoder_for
-    from gsw.mark.loss import WatermarkLoss
-    from gsw.render.rasterize import rasterize
-
     device = torch.device(device)
     key = (shared.token, str(device))
     if key not in _CACHE:
         _CACHE.clear()  # one scene at a time per worker
-        cfg = shared.config
-        original = shared.original.to(device)
-        with torch.no_grad():
-            originals = [rasterize(original, cam, background=cfg.background).image for cam in shared.cameras]
-        dec = load_decoder_for(shared.num_bits, shared.decoder, device)
-        loss = WatermarkLoss(dec, cfg.weights, cfg.lpips_net, cfg.logit_scale).to(device)
-        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss)
+        warmed = _WARM.pop(key, None)
+        _WARM.clear()
+        originals, loss, warm_s = warmed if warmed is not None else (
+            *_parts(shared.original, shared.cameras, shared.config, shared.num_bits, shared.decoder, device), 0.0)
+        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss, warm_s)
     return _CACHE[key]
-
