@@ -99,3 +99,45 @@ def test_constant_image_and_dtype():
 def test_gradient_is_adjoint():
     x = torch.randn(1, 1, 8, 8, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda t: ll_subband(t, 2), (x,), fast_mode=True)
+
+
+@pytest.mark.parametrize("shape", [(3, 40, 24), (2, 3, 37, 50), (2, 2, 3, 16, 8), (1, 3, 2, 3)])
+def test_ll_subband_is_dwt2s_ll(shape):
+    """The LL-only path (half the correlations) equals dwt2's LL, for any leading dims and padded sizes."""
+    x = torch.randn(*shape, dtype=torch.float64)
+    for level in (1, 2):  # equal to rounding (the correlations' summation order may differ)
+        torch.testing.assert_close(ll_subband(x, level), dwt2(x, level)[0], rtol=0, atol=1e-12)
+
+
+def test_gradients_of_every_subband():
+    x = torch.randn(2, 3, 12, 20, dtype=torch.float64, requires_grad=True)
+    for pick in (lambda t: dwt2(t, 2)[0], lambda t: dwt2(t, 2)[1][0][1], lambda t: dwt2(t, 2)[1][1][2]):
+        assert torch.autograd.gradcheck(pick, (x,), fast_mode=True)
+
+
+def test_bad_input():
+    with pytest.raises(TypeError, match="floating-point"):
+        ll_subband(torch.zeros(1, 3, 8, 8, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="level"):
+        ll_subband(torch.zeros(1, 3, 8, 8), 0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_is_exact_float32_even_with_tf32_allowed():
+    """cuDNN may run float32 convolutions in TF32 (10-bit mantissa); the DWT's correlations never do, forward
+    and backward, so CUDA matches the float64 transform to float32 rounding."""
+    x = torch.rand(2, 3, 64, 48, dtype=torch.float64)
+    prev = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = True
+    try:
+        xc = x.float().cuda().requires_grad_(True)
+        ll, highs = dwt2(xc, 2)
+        (ll.square().sum() + highs[0][2].sum()).backward()
+        assert torch.backends.cudnn.allow_tf32  # restored
+    finally:
+        torch.backends.cudnn.allow_tf32 = prev
+    x64 = x.clone().requires_grad_(True)
+    ll64, highs64 = dwt2(x64, 2)
+    (ll64.square().sum() + highs64[0][2].sum()).backward()
+    assert float((ll.double().cpu() - ll64).abs().max()) < 1e-5
+    assert float((xc.grad.double().cpu() - x64.grad).abs().max()) < 1e-4

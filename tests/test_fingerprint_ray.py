@@ -132,9 +132,11 @@ def test_workers_warm_once_and_take_the_payloads_in_turn(cluster, tmp_path) -> N
     assert {pid for _, pid in got.values()} <= warmed  # every payload ran in a warmed worker
 
 
-def test_no_room_for_a_gpu_worker(cluster) -> None:
-    with pytest.raises(RuntimeError, match="no room for a worker of 1 GPU"):
-        map_ray(lambda shared, payload: payload, "unused", [0], lambda i, r: None, num_gpus=1)
+def test_no_room_for_a_worker(cluster) -> None:
+    """A worker larger than the cluster (more GPUs than it has, here or on a GPU machine) is refused at once."""
+    gpus = ray.cluster_resources().get("GPU", 0.0) + 1
+    with pytest.raises(RuntimeError, match=f"no room for a worker of {gpus} GPU"):
+        map_ray(lambda shared, payload: payload, "unused", [0], lambda i, r: None, num_gpus=gpus)
 
 
 def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path, monkeypatch) -> None:

@@ -40,7 +40,9 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 import functools
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -60,6 +62,8 @@ __all__ = [
 WAVELET = "bior4.4"
 MODE = "periodization"
 LEVELS = 2  #: the decoder reads the LL subband of this level
+
+Highs = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 def _poly_in_z_from_y_factor(root: complex) -> np.ndarray:
@@ -108,27 +112,77 @@ def _filters(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, to
     return (torch.tensor(ana, dtype=dtype, device=device), torch.tensor(syn.T, dtype=dtype, device=device))
 
 
-def _wrap_pad_last(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
-    """Circular padding of the last dim, valid for any length (also shorter than the pad)."""
-    n = x.shape[-1]
-    idx = torch.arange(-left, n + right, device=x.device) % n
-    return x.index_select(-1, idx)
+def _wrap_pad(x: torch.Tensor, dim: int, left: int, right: int) -> torch.Tensor:
+    """Circular padding of dim ``dim``, valid for any length (also shorter than the pad)."""
+    n = x.shape[dim]
+    return x.index_select(dim, torch.arange(-left, n + right, device=x.device) % n)
 
 
-def _analysis_last(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """One analysis step along the last dim (even length N) -> (low [.., N/2], high [.., N/2])."""
-    ana, _ = _filters(x.dtype, x.device)
-    # a[o] = sum_{m=-4..4} h[m] x[2o+m];  d[o] = sum_{m=-4..4} h1[m] x[2o+1+m]  (h1 zero at |m| = 4)
-    xp = _wrap_pad_last(x, 4, 5)  # xp[i] = x[i-4], length N+9
-    lo = xp[..., :-1].unfold(-1, 9, 2) @ ana[:, 0]
-    hi = xp[..., 1:].unfold(-1, 9, 2) @ ana[:, 1]
-    return lo, hi
+@functools.lru_cache(maxsize=16)
+def _bank(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The analysis pair as 10-tap correlation kernels on the wrap-padded signal ``xp[i] = x[i-4]``: row 0
+    low-pass (``a[o] = sum_k xp[2o+k] h[k-4]``, taps 0..8), row 1 high-pass (``d[o] = sum_k xp[2o+1+k]
+    h1[k-4]``, taps 1..9), [2, 10]."""
+    ana, _ = _filters(dtype, device)
+    bank = torch.zeros(2, 10, dtype=dtype, device=device)
+    bank[0, :9], bank[1, 1:] = ana[:, 0], ana[:, 1]
+    return bank
+
+
+@contextlib.contextmanager
+def _exact_fp32() -> Iterator[None]:
+    """cuDNN convolutions in IEEE float32 (no TF32): the watermark is a small fraction of the LL values."""
+    prev = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32 = prev
+
+
+class _Correlate(torch.autograd.Function):
+    """``conv2d(x, weight, stride, groups)`` with both passes in exact float32 (see :func:`_exact_fp32`); the
+    filters are constants (no gradient)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, stride: tuple[int, int], groups: int) -> torch.Tensor:
+        ctx.save_for_backward(weight)
+        ctx.shape, ctx.stride, ctx.groups = x.shape, stride, groups
+        with _exact_fp32():
+            return F.conv2d(x, weight, stride=stride, groups=groups)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (weight,) = ctx.saved_tensors
+        with _exact_fp32():
+            gx = torch.nn.grad.conv2d_input(ctx.shape, weight, grad.contiguous(), stride=ctx.stride,
+                                            groups=ctx.groups)
+        return gx, None, None, None
+
+
+def _analysis_level(x: torch.Tensor, highs: bool) -> tuple[torch.Tensor, Highs | None]:
+    """One 2-D analysis level of ``x`` [..., H, W] (H, W even): ``(LL, (LH, HL, HH))``, or ``(LL, None)``
+    when ``highs`` is False (the LL path alone: half the work).
+
+    Two strided correlations over the wrap-padded image: along the width (low and high pass), then along
+    the height of each result (grouped).
+    """
+    lead, (h, w) = x.shape[:-2], x.shape[-2:]
+    bank = _bank(x.dtype, x.device)
+    rows = bank if highs else bank[:1]
+    y = _wrap_pad(x.reshape(-1, 1, h, w), -1, 4, 5)
+    y = _Correlate.apply(y, rows.view(-1, 1, 1, 10), (1, 2), 1)  # [N, 1 or 2, H, W/2]: lo_w (, hi_w)
+    cols = bank.repeat(2, 1) if highs else bank[:1]
+    y = _Correlate.apply(_wrap_pad(y, -2, 4, 5), cols.view(-1, 1, 10, 1), (2, 1), y.shape[1])
+    out = y.reshape(*lead, y.shape[1], h // 2, w // 2)  # LL (, LH, HL, HH)
+    return out[..., 0, :, :], ((out[..., 1, :, :], out[..., 2, :, :], out[..., 3, :, :]) if highs else None)
 
 
 def _synthesis_last(lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`_analysis_last`: x[n] = sum_o lo[o] g[n-2o] + hi[o] g1[n-2o-1] (polyphase)."""
+    """Inverse of one analysis step along the last dim (:func:`_analysis_level`'s low and high pass):
+    x[n] = sum_o lo[o] g[n-2o] + hi[o] g1[n-2o-1] (polyphase)."""
     _, syn = _filters(lo.dtype, lo.device)
-    w = torch.cat([_wrap_pad_last(lo, 2, 2).unfold(-1, 5, 1), _wrap_pad_last(hi, 2, 2).unfold(-1, 5, 1)], dim=-1)
+    w = torch.cat([_wrap_pad(lo, -1, 2, 2).unfold(-1, 5, 1), _wrap_pad(hi, -1, 2, 2).unfold(-1, 5, 1)], dim=-1)
     out = w @ syn  # [..., N/2, 2]: even and odd samples
     return out.flatten(-2)
 
@@ -147,8 +201,6 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
     y = F.pad(x.unsqueeze(0) if squeeze else x, (0, pw, 0, ph), mode=mode)
     return y.squeeze(0) if squeeze else y
 
-
-Highs = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 def dwt2(x: torch.Tensor, levels: int = LEVELS) -> tuple[torch.Tensor, list[Highs]]:
@@ -170,11 +222,8 @@ def dwt2(x: torch.Tensor, levels: int = LEVELS) -> tuple[torch.Tensor, list[High
     ll = pad_to_multiple(x, 2**levels)
     highs: list[Highs] = []
     for _ in range(levels):
-        lo_w, hi_w = _analysis_last(ll)  # along width
-        ll_t, lh_t = _analysis_last(lo_w.transpose(-1, -2))  # along height
-        hl_t, hh_t = _analysis_last(hi_w.transpose(-1, -2))
-        ll = ll_t.transpose(-1, -2)
-        highs.append((lh_t.transpose(-1, -2), hl_t.transpose(-1, -2), hh_t.transpose(-1, -2)))
+        ll, level = _analysis_level(ll, highs=True)
+        highs.append(level)
     return ll, highs
 
 
@@ -207,5 +256,12 @@ def ll_subband(x: torch.Tensor, level: int = LEVELS) -> torch.Tensor:
     """
     if x.dtype in (torch.float16, torch.bfloat16):
         x = x.float()
+    if level < 1:
+        raise ValueError(f"level must be >= 1, got {level}")
+    if not x.is_floating_point():
+        raise TypeError(f"ll_subband expects a floating-point tensor, got {x.dtype}")
     with torch.autocast(device_type=x.device.type, enabled=False):
-        return dwt2(x, levels=level)[0]
+        ll = pad_to_multiple(x, 2**level)
+        for _ in range(level):
+            ll, _ = _analysis_level(ll, highs=False)
+        return ll

@@ -232,18 +232,15 @@ def map_ray(fn: Callable[..., Any], shared: Any, payloads: Sequence[Any], on_res
 
 
 def _pool_size(payloads: int, num_gpus: float, num_cpus: float) -> int:
-    fits = RayWorkers.capacity(num_gpus, num_cpus)
-    if fits < 1:
-        what = f"{num_gpus} GPU" if num_gpus > 0 else f"{num_cpus} CPU"
-        raise RuntimeError(f"the Ray cluster has no room for a worker of {what} (its resources: "
-                           f"{_resources()}); use --device cpu, or a cluster with GPUs")
-    return max(1, min(payloads, fits))
-
-
-def _resources() -> dict:
+    """Workers for ``payloads``: as many as the connected cluster holds, at most one per payload."""
     import ray
 
-    return ray.cluster_resources()
+    fits = RayWorkers.capacity(num_gpus, num_cpus)
+    if fits < 1:
+        what = f"{num_gpus} GPU (use --device cpu, or a cluster with GPUs)" if num_gpus > 0 else f"{num_cpus} CPU"
+        raise RuntimeError(f"the Ray cluster has no room for a worker of {what}; its resources: "
+                           f"{ray.cluster_resources()}")
+    return max(1, min(payloads, fits))
 
 
 def connect_ray(address: str | None, **init_kwargs: Any) -> bool:
