@@ -285,7 +285,7 @@ def main() -> int:
     ap.add_argument("--runs", nargs="+", default=["1"], help="compare: the runs' names, the base first")
     ap.add_argument("--workers", type=int, default=0, help="run on the CPU: Ray CPUs")
     ap.add_argument("--batch", type=int, default=16, help="pool slots per task")
-    ap.add_argument("--task-size", type=int, default=16, help="recipients per Ray task")
+    ap.add_argument("--task-size", type=int, default=16, help="recipients handed to a Ray worker at a time")
     ap.add_argument("--epochs", type=int, default=8)
     ap.add_argument("--early-stop", default=EARLY_STOP, help="gsw fingerprint --early-stop, or 'none'")
     ap.add_argument("--device", default="cuda")

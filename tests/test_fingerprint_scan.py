@@ -123,3 +123,18 @@ def test_ray_only_by_default_where_it_adds_gpus(monkeypatch) -> None:
                                         (2, "cuda", n - 1, False), (2, "cpu", 10 * n, False), (2, None, 10 * n, False)]:
         monkeypatch.setattr(torch.cuda, "device_count", lambda g=gpus: g)
         assert ray_by_default(sources, device) is want, (gpus, device, sources)
+
+
+@pytest.mark.parametrize("sources, workers, batch", [(10_000, 4, 64), (10_000, 2, 64), (10_000, 1, 64), (7, 3, 4),
+                                                     (1, 4, 64), (5_000, 3, 4)])
+def test_ray_blocks_are_shared_evenly(sources, workers, batch) -> None:
+    """Every worker gets the same number of calls of at most RAY_SOURCES_PER_CALL x batch sources, covering all."""
+    from gsw.fingerprint.scan import RAY_SOURCES_PER_CALL, ray_block_size
+
+    size = ray_block_size(sources, workers, batch)
+    calls = -(-sources // size)
+    assert 1 <= size <= RAY_SOURCES_PER_CALL * batch and calls * size >= sources
+    if sources >= workers:  # calls dealt in turn: no worker gets a whole call more than another
+        per_worker = [sum(min(size, sources - c * size) for c in range(w, calls, workers)) for w in range(workers)]
+        assert max(per_worker) - min(per_worker) < size
+    assert ray_block_size(10_000, 4, 64) == 834  # 12 calls, 3 per worker (was 10 calls of 1,024)

@@ -19,8 +19,8 @@ A file that cannot be read (or that the decoder cannot read) gets a row with its
 scanned. On a cluster (an ``address``), when asked (``use_ray=True``), or by default with at least
 :data:`RAY_DATA_MIN_SOURCES` sources on CUDA with several GPUs visible (:func:`ray_by_default`), and with Ray Data
 installed (``pip install gsw[ray]``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU
-on CUDA or per CPU), each running the same pipeline on blocks of :data:`RAY_SOURCES_PER_CALL` x ``batch_size``
-sources; the rows come back in input order. On one GPU or a CPU the default is this process: Ray Data was slower
+on CUDA or per CPU), each running the same pipeline on blocks of sources, as many blocks for every worker
+(:func:`ray_block_size`); the rows come back in input order. On one GPU or a CPU the default is this process: Ray Data was slower
 there in every measurement (BENCHMARKS.md, #26 / #27).
 """
 
@@ -43,7 +43,7 @@ if TYPE_CHECKING:
     from gsw.mark.identify import IdentifyPlan, SourceReadings
 
 __all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
-           "expand_inputs", "ray_by_default", "scan", "scan_sources"]
+           "expand_inputs", "ray_block_size", "ray_by_default", "scan", "scan_sources"]
 
 #: Sources from which :func:`scan` uses Ray Data by default on several GPUs (:func:`ray_by_default`).
 RAY_DATA_MIN_SOURCES = 256
@@ -54,8 +54,17 @@ RAY_DATA_MIN_SOURCES = 256
 DEFAULT_BATCH_SIZES = {"cuda": 64, "cpu": 4}
 #: Threads reading (decoding the files of) sources ahead of the decoder.
 DEFAULT_READERS = 4
-#: A Ray Data worker is handed this many x ``batch_size`` sources per call.
+#: A Ray Data worker is handed at most this many x ``batch_size`` sources per call (:func:`ray_block_size`).
 RAY_SOURCES_PER_CALL = 16
+
+
+def ray_block_size(sources: int, workers: int, batch_size: int) -> int:
+    """Sources per Ray Data call: at most :data:`RAY_SOURCES_PER_CALL` x ``batch_size``, and the same number of
+    calls for every worker (10,000 sources in calls of 1,024 on 4 workers left one worker a third call of
+    1,024 while the others had done 2,048 each; 12 calls of 834 give every worker 2,502)."""
+    cap = RAY_SOURCES_PER_CALL * batch_size
+    calls = workers * -(-sources // (workers * cap))  # a multiple of the workers
+    return max(1, -(-sources // max(1, calls)))
 
 
 def _suffixes() -> tuple[str, ...]:
@@ -309,8 +318,8 @@ def _ray_data_available() -> bool:
 
 def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
               workers: int | None, batch_size: int, readers: int) -> list[ScanRow]:
-    """Ray Data: one worker per GPU (or CPU), each scanning blocks of :data:`RAY_SOURCES_PER_CALL` x
-    ``batch_size`` sources; rows put back in input order. A GPU worker gets its share of the cluster's CPUs
+    """Ray Data: one worker per GPU (or CPU), each scanning blocks of sources (:func:`ray_block_size`); rows put
+    back in input order. A GPU worker gets its share of the cluster's CPUs
     (reading, decoding files and the CPU side of the tests), as ``num_cpus`` and torch threads."""
     import ray
 
@@ -323,7 +332,7 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
         cpus = max(1, int((resources.get("CPU", 1) - 1) // n)) if gpu else 1  # one CPU left to Ray Data
         ds = ray.data.from_items([{"path": str(p)} for p in paths])
         ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu, cpus),
-                            batch_size=RAY_SOURCES_PER_CALL * batch_size, concurrency=n,
+                            batch_size=ray_block_size(len(paths), n, batch_size), concurrency=n,
                             num_gpus=1 if gpu else 0, num_cpus=cpus)
         by_path = {r["source"]: ScanRow(**r) for r in ds.iter_rows()}
     finally:
