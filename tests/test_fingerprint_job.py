@@ -72,6 +72,32 @@ def test_copies_registered_and_marked(job) -> None:
     assert all(r.worker_setup_s == rep["alice"].worker_setup_s > 0 for r in report.recipients)
 
 
+def test_a_slow_write_does_not_reorder_the_registry(tmp_path, monkeypatch) -> None:
+    """Copies are written on several threads; the first copy's write is slowest here, yet every recipient is
+    registered (and marked done) in the order its copy arrived, each after its own folder."""
+    import time
+
+    from gsw.fingerprint import job as job_module
+    from gsw.fingerprint.store import JobFolder
+
+    monkeypatch.setattr(job_module, "WRITER_THREADS", 3)
+    write = JobFolder.write_copy
+
+    def slow_first(self, name, *args, **kwargs):
+        time.sleep(1.0 if name == "alice" else 0.0)
+        return write(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(JobFolder, "write_copy", slow_first)
+    scene = _scene()
+    report = _run(scene, ["alice", "bob", "carol"], tmp_path / "out", tmp_path / "marks.sqlite")
+    by_arrival = sorted(report.recipients, key=lambda r: r.finished_s)
+    assert [r.mark_id for r in by_arrival] == sorted(r.mark_id for r in report.recipients)
+    with open_registry(tmp_path / "marks.sqlite") as reg:
+        assert {m.label: m.model_hash for m in reg.list()} == {
+            n: hash_model_file(tmp_path / "out" / n / "point_cloud" / "iteration_0" / "point_cloud.ply")
+            for n in ("alice", "bob", "carol")}
+
+
 def test_rerun_skips_finished_and_adds_new(job, tmp_path) -> None:
     scene, out, reg = _copy_job(job, tmp_path)
     ply = out / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply"
