@@ -125,17 +125,21 @@ def test_bad_input():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_is_exact_float32_even_with_tf32_allowed():
     """cuDNN may run float32 convolutions in TF32 (10-bit mantissa); the DWT's correlations never do, forward
-    and backward, so CUDA matches the float64 transform to float32 rounding."""
+    and backward, so CUDA matches the float64 transform to float32 rounding, and repeats bit for bit."""
     x = torch.rand(2, 3, 64, 48, dtype=torch.float64)
-    prev = torch.backends.cudnn.allow_tf32
-    torch.backends.cudnn.allow_tf32 = True
+    prev = torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic
+    torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic = True, False
     try:
-        xc = x.float().cuda().requires_grad_(True)
-        ll, highs = dwt2(xc, 2)
-        (ll.square().sum() + highs[0][2].sum()).backward()
-        assert torch.backends.cudnn.allow_tf32  # restored
+        grads = []
+        for _ in range(2):
+            xc = x.float().cuda().requires_grad_(True)
+            ll, highs = dwt2(xc, 2)
+            (ll.square().sum() + highs[0][2].sum()).backward()
+            grads.append(xc.grad)
+        assert torch.backends.cudnn.allow_tf32 and not torch.backends.cudnn.deterministic  # restored
+        assert torch.equal(grads[0], grads[1])  # deterministic algorithms whatever the caller's flags
     finally:
-        torch.backends.cudnn.allow_tf32 = prev
+        torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic = prev
     x64 = x.clone().requires_grad_(True)
     ll64, highs64 = dwt2(x64, 2)
     (ll64.square().sum() + highs64[0][2].sum()).backward()

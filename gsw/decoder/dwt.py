@@ -131,18 +131,19 @@ def _bank(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
 
 @contextlib.contextmanager
 def _exact_fp32() -> Iterator[None]:
-    """cuDNN convolutions in IEEE float32 (no TF32): the watermark is a small fraction of the LL values."""
-    prev = torch.backends.cudnn.allow_tf32
-    torch.backends.cudnn.allow_tf32 = False
+    """cuDNN convolutions in IEEE float32 (no TF32: the watermark is a small fraction of the LL values) with
+    deterministic algorithms (the same image gives the same subbands and gradients on every run)."""
+    prev = torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic
+    torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic = False, True
     try:
         yield
     finally:
-        torch.backends.cudnn.allow_tf32 = prev
+        torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic = prev
 
 
 class _Correlate(torch.autograd.Function):
-    """``conv2d(x, weight, stride, groups)`` with both passes in exact float32 (see :func:`_exact_fp32`); the
-    filters are constants (no gradient)."""
+    """``conv2d(x, weight, stride, groups)`` with both passes in exact float32 and deterministic (see
+    :func:`_exact_fp32`); the filters are constants (no gradient)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, stride: tuple[int, int], groups: int) -> torch.Tensor:
