@@ -50,7 +50,7 @@ class RecipientReport:
         stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
         refusals: early stops refused by the rule's confirmation (embedded only).
         finished_s: seconds after the fine-tunes began when its copy reached the writer (embedded only; with
-            Ray, a task's copies arrive together when the task ends).
+            Ray, a batch's copies arrive together when the batch ends).
         worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
         worker_warm_s: seconds its worker's warm-up took, while the driver ran the set-up (Ray; 0 without).
     """
@@ -80,7 +80,8 @@ class FingerprintReport:
         recipients: one report per recipient, in input order.
         runner: "ray", "local" or "none" (nothing to do).
         scene_hash: the job's scene hash.
-        timings: seconds of "setup" (FGD), "finetune" (all batches) and "total".
+        timings: seconds of "ray_start" (Ray and its workers started; on Ray only), "setup" (FGD), "finetune" (all
+            batches, from the end of the set-up) and "total".
     """
 
     recipients: list[RecipientReport]
