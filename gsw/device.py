@@ -11,7 +11,7 @@ from typing import Iterator
 
 import torch
 
-__all__ = ["DEVICE_CHOICES", "deterministic", "parse_device", "resolve_device"]
+__all__ = ["DEVICE_CHOICES", "cudnn_flags", "deterministic", "parse_device", "resolve_device"]
 
 #: How a device is named (the ``--device`` help of the command line).
 DEVICE_CHOICES = "auto|cpu|cuda|cuda:N"
@@ -78,15 +78,24 @@ def resolve_device(device: str | torch.device = "auto") -> torch.device:
 
 
 @contextlib.contextmanager
-def deterministic() -> Iterator[None]:
+def cudnn_flags(**flags: bool) -> Iterator[None]:
+    """Inside: the given ``torch.backends.cudnn`` flags (e.g. ``deterministic=True``, ``allow_tf32=False``), each
+    restored on exit (the others untouched)."""
+    cudnn = torch.backends.cudnn
+    saved = {name: getattr(cudnn, name) for name in flags}
+    for name, value in flags.items():
+        setattr(cudnn, name, value)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            setattr(cudnn, name, value)
+
+
+def deterministic() -> contextlib.AbstractContextManager[None]:
     """Inside: cuDNN picks deterministic convolution algorithms and no autotuning (the decoder's and LPIPS's
     convolutions), restored on exit. With gsw's rasterizer, whose backward sums in a fixed order on both
     backends, the same inputs then give the same bits on every run and every GPU of one model (what
     fingerprinting relies on: a copy does not depend on which worker or how many GPUs made it).
     """
-    saved = torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark
-    torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
-    try:
-        yield
-    finally:
-        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = saved
+    return cudnn_flags(deterministic=True, benchmark=False)

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 import torch
 
-import gsw.fingerprint.batched as batched
 from gsw.decoder.zoo import load_decoder
 from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch, pool_config
 from gsw.fingerprint.shared import prepare_scene, worker_scene
@@ -137,7 +138,8 @@ class _RightInBatches(_Confident):
 
 
 def test_confirmation_on_the_embedding_views(monkeypatch) -> None:
-    monkeypatch.setattr(batched, "SCORE_CHUNK", 1)  # the score decodes one view at a time (see _RightInBatches)
+    # the score decodes one view at a time (see _RightInBatches); gsw.mark.embed the module, not the function
+    monkeypatch.setattr(sys.modules["gsw.mark.embed"], "SCORE_CHUNK", 1)
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
     cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)

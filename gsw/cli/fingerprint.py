@@ -59,8 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--seed", type=int, default=0, help="view order seed (messages are drawn from os.urandom)")
     add_device_option(fp)
     _add_ray_options(fp)
-    fp.add_argument("--gpus-per-task", type=float, default=1.0, help="GPUs per Ray worker (default %(default)s: one worker per GPU)")
-    fp.add_argument("--max-retries", type=int, default=3, help="reruns of a batch whose Ray worker dies (and restarts of a worker)")
+    fp.add_argument("--gpus-per-task", type=float, default=1.0,
+                    help="GPUs per Ray worker (default %(default)s: one worker per GPU)")
+    fp.add_argument("--max-retries", type=int, default=3,
+                    help="reruns of a batch whose Ray worker dies (and restarts of a worker)")
     fp.add_argument("--no-progress", action="store_true")
     fp.add_argument("--json", action="store_true", help="print the report as JSON")
     fp.set_defaults(func=cmd_fingerprint, model_attack_prob=0.0, psnr_target=None)  # the pool has neither

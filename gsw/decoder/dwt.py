@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -129,16 +128,12 @@ def _bank(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     return bank
 
 
-@contextlib.contextmanager
-def _exact_fp32() -> Iterator[None]:
+def _exact_fp32() -> contextlib.AbstractContextManager[None]:
     """cuDNN convolutions in IEEE float32 (no TF32: the watermark is a small fraction of the LL values) with
     deterministic algorithms (the same image gives the same subbands and gradients on every run)."""
-    prev = torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic
-    torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic = False, True
-    try:
-        yield
-    finally:
-        torch.backends.cudnn.allow_tf32, torch.backends.cudnn.deterministic = prev
+    from gsw.device import cudnn_flags
+
+    return cudnn_flags(allow_tf32=False, deterministic=True)
 
 
 class _Correlate(torch.autograd.Function):

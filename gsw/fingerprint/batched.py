@@ -27,7 +27,7 @@ from torch.autograd.profiler import record_function
 
 from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
-from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, paper_config
+from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, final_scores, paper_config
 
 __all__ = ["POOL_LPIPS", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch", "pool_config"]
 
@@ -405,23 +405,8 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
                                   pool.monitor.rejections[j])
 
 
-#: Views decoded together when a copy is scored (same-size views only).
-SCORE_CHUNK = 16
-
-
-@torch.no_grad()
 def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:
     """(mean, worst) bit accuracy and (mean, worst) PSNR of one copy over the embedding views."""
-    from gsw.decoder.dwt import ll_subband
-    from gsw.metrics.image import psnr
-    from gsw.render.rasterize import rasterize
-
-    bg = scene.shared.config.background
-    images = [rasterize(copy, cam, background=bg, validate=False).image.clamp(0, 1) for cam in scene.shared.cameras]
-    psnrs = torch.stack([psnr(img, orig.clamp(0, 1)) for img, orig in zip(images, scene.originals)])
-    uniform = len({tuple(im.shape) for im in images}) == 1
-    step = SCORE_CHUNK if uniform else 1
-    logits = torch.cat([scene.loss.decoder(ll_subband(torch.stack(images[i:i + step])))
-                        for i in range(0, len(images), step)])
-    acc, ps = ((logits > 0).float() == target).float().mean(dim=1).cpu(), psnrs.cpu()
+    acc, ps = (v.cpu() for v in final_scores(copy, scene.shared.cameras, scene.originals, scene.loss.decoder, target,
+                                             scene.shared.config.background))
     return float(acc.mean()), float(acc.min()), float(ps.mean()), float(ps.min())

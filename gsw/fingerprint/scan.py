@@ -20,8 +20,8 @@ scanned. On a cluster (an ``address``), when asked (``use_ray=True``), or by def
 :data:`RAY_DATA_MIN_SOURCES` sources on CUDA with several GPUs visible (:func:`ray_by_default`), and with Ray Data
 installed (``pip install gsw[ray]``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU
 on CUDA or per CPU), each running the same pipeline on blocks of sources, as many blocks for every worker
-(:func:`ray_block_size`); the rows come back in input order. On one GPU or a CPU the default is this process: Ray Data was slower
-there in every measurement (BENCHMARKS.md, #26 / #27).
+(:func:`ray_block_size`); the rows come back in input order. On one GPU or a CPU the default is this process:
+Ray Data was slower there in every measurement (BENCHMARKS.md, #26 / #27).
 """
 
 from __future__ import annotations

@@ -120,7 +120,7 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
     return SharedScene(gaussians.detach().to("cpu"), setup.model.to("cpu"), list(cameras), cfg, num_bits,
                        None if decoder is None else decoder.to("cpu"),
                        scene_hash(gaussians, cameras, num_bits, cfg, images), decoder_sha256(num_bits, decoder), stats,
-                       **({} if token is None else dict(token=token)))
+                       token or uuid.uuid4().hex)
 
 
 @dataclass

@@ -278,7 +278,8 @@ def embed(gaussians: Gaussians, cameras: Sequence[Camera] | None = None, *, mess
 
     t0 = time.perf_counter()
     result = params.gaussians().detach()
-    accs, psnrs = _final_scores(result, cameras, originals, dec, bits.to(device), cfg.background)
+    accs, psnrs = (v.tolist() for v in final_scores(result, cameras, originals, dec, bits.to(device),
+                                                     cfg.background))
     timings["evaluate"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     return EmbedResult(result, bits, message_to_hex(bits) if num_bits % 4 == 0 else "", prune, split,
@@ -436,14 +437,30 @@ def _finetune(params: _Trainable, views: _Views, loss_fn: WatermarkLoss, target:
     return history
 
 
+#: Views decoded together when a model is scored on its views (same-size views only).
+SCORE_CHUNK = 16
+
+
 @torch.no_grad()
-def _final_scores(result: Gaussians, cameras: Sequence[Camera], originals: Sequence[Tensor],
-                  dec: torch.nn.Module, target: Tensor,
-                  bg: tuple[float, float, float]) -> tuple[list[float], list[float]]:
-    """Per training view, the bit accuracy decoded from the final render and its PSNR against the original."""
-    accs, psnrs = [], []
-    for cam, orig in zip(cameras, originals):
-        img = rasterize(result, cam, background=bg).image.clamp(0, 1)
-        accs.append(float(((dec.decode_image(img.unsqueeze(0))[0] > 0).float() == target).float().mean()))
-        psnrs.append(float(psnr(img, orig.clamp(0, 1))))
-    return accs, psnrs
+def final_scores(result: Gaussians, cameras: Sequence[Camera], originals: Sequence[Tensor],
+                 dec: torch.nn.Module, target: Tensor, bg: tuple[float, float, float]) -> tuple[Tensor, Tensor]:
+    """Per view, the bit accuracy decoded from the render of ``result`` and its PSNR against the original.
+
+    Args:
+        result: the watermarked model.
+        cameras: the views; ``originals`` their [3, H, W] renders of the input model.
+        dec: the decoder (LL subbands -> logits).
+        target: [k] the message.
+        bg: background colour.
+
+    Returns:
+        ([V] bit accuracies, [V] PSNRs in dB), on the model's device; views of one size are decoded
+        :data:`SCORE_CHUNK` at a time.
+    """
+    from gsw.decoder.dwt import ll_subband
+
+    images = [rasterize(result, cam, background=bg, validate=False).image.clamp(0, 1) for cam in cameras]
+    psnrs = torch.stack([psnr(img, orig.clamp(0, 1)) for img, orig in zip(images, originals)])
+    step = SCORE_CHUNK if len({tuple(im.shape) for im in images}) == 1 else 1
+    logits = torch.cat([dec(ll_subband(torch.stack(images[i:i + step]))) for i in range(0, len(images), step)])
+    return ((logits > 0).float() == target).float().mean(dim=1), psnrs
