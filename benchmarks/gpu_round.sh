@@ -5,10 +5,10 @@
 #
 #   GPU 3: the whole test suite with this CUDA build (unless SUITE_PID: started earlier, e.g. right after the build);
 #   GPU 0: fingerprint_multi_gpu.py prepare (lego trained 60 s), then the pool's profile (torch.profiler);
-#   GPUs 1-2, while the suite runs: `gsw.fingerprint` in one process on the saved lego model, 16 recipients, with
-#          the photos (GPU 1) and without (GPU 2: FGD weighs by the model's alpha), held-out quality (#26);
-#   then, the host otherwise idle: `gsw fingerprint` through Ray on 1, 4 and 2 GPUs, compare; `gsw scan` over
-#          10,000 files on 1, 2 and 4 GPUs (benchmarks/multi_gpu_run.sh's steps).
+#   GPUs 1-2, while the suite runs: `gsw.fingerprint` in one process on the saved lego model with the photos,
+#          held-out quality (#26): GPU 1 K = 16 with the PSNR control at 37.4 and 37.6 dB, GPU 2 K = 32 at 37.6 dB;
+#   then, the host otherwise idle: `gsw scan` over 10,000 files on 1, 2 and 4 GPUs (Ray Data; on 1 and 4 GPUs
+#          also with 4 torch threads per worker), then `gsw fingerprint` through Ray on 4 and 1 GPUs, compare.
 #
 # Progress in WORKDIR/progress.log, each step's output in WORKDIR/<step>.log, results WORKDIR/*.json / *.txt.
 #
@@ -28,6 +28,7 @@ on_gpu() { local g=$1; shift; CUDA_VISIBLE_DEVICES=$g "$@"; }
 FP="python3 benchmarks/fingerprint_multi_gpu.py"
 TP="python3 benchmarks/fingerprint_throughput.py --scene lego --device cuda --out $W"
 ES="min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99"
+ES376=${ES/37.4/37.6}
 
 if [ -z "${SUITE_PID:-}" ]; then
   step suite on_gpu 3 python3 -m pytest -q -p no:cacheprovider -rfE tests &
@@ -35,17 +36,25 @@ if [ -z "${SUITE_PID:-}" ]; then
 fi
 step prepare on_gpu 0 $FP prepare --data "$LEGO" --workdir "$W/fp"
 PHOTOS=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['photos'])" "$W/fp/prepare.json")
-M=(--model "$W/fp/model" --data "$PHOTOS" --setting "k=16 n=16 stop=$ES")
-step tp_photos on_gpu 1 $TP "${M[@]}" --tag tp_photos &
+M=(--model "$W/fp/model" --data "$PHOTOS" --budget-s 600)
+step tp_k16 on_gpu 1 $TP "${M[@]}" --setting "k=16 n=16 stop=$ES" --setting "k=16 n=16 stop=$ES376" --tag tp_k16 &
 p1=$!
-step tp_nophotos on_gpu 2 $TP "${M[@]}" --no-photos --tag tp_nophotos &
+step tp_k32 on_gpu 2 $TP "${M[@]}" --setting "k=32 n=32 stop=$ES376" --tag tp_k32 &
 p2=$!
-step profile on_gpu 0 $TP "${M[@]}" --profile 30 --tag pool_profile
+step profile on_gpu 0 $TP "${M[@]}" --setting "k=16 n=16 stop=$ES" --profile 30 --tag pool_profile
 wait $p1 $p2
 while kill -0 "$SUITE_PID" 2>/dev/null; do sleep 2; done
 log "suite finished"
-for g in 1 4 2; do
+SC=(python3 benchmarks/scan_throughput.py --images 10000 --model "$W/fp/model" --marks 64 --device cuda --readers 8
+    --modes ray --workdir "$W/scan10k")
+for g in 1 2 4; do
+  step "scan_$g" "${SC[@]}" --gpus "$g" --out "$W/scan_cuda_${g}gpu.json"
+done
+for g in 1 4; do
+  step "scan_${g}_t4" "${SC[@]}" --gpus "$g" --worker-threads 4 --out "$W/scan_cuda_${g}gpu_t4.json"
+done
+for g in 4 1; do
   step "fingerprint_$g" $FP run --gpus "$g" --workdir "$W/fp"
 done
-step compare $FP compare --runs 1 2 4 --workdir "$W/fp" --out "$W/fingerprint_multi_gpu.json"
-FINGERPRINT=0 GPUS="1 2 4" bash benchmarks/multi_gpu_run.sh "$W" "$LEGO"  # the scans
+step compare $FP compare --runs 1 4 --workdir "$W/fp" --out "$W/fingerprint_multi_gpu.json"
+log "all done"
