@@ -7,8 +7,8 @@
 #   GPU 0: fingerprint_multi_gpu.py prepare (lego trained 60 s), then the pool's profile (torch.profiler);
 #   GPUs 1-2, while the suite runs: `gsw.fingerprint` in one process on the saved lego model with the photos,
 #          held-out quality (#26): GPU 1 K = 16 with the PSNR control at 37.4 and 37.6 dB, GPU 2 K = 32 at 37.6 dB;
-#   then, the host otherwise idle: `gsw scan` over 10,000 files on 1, 2 and 4 GPUs (Ray Data; on 1 and 4 GPUs
-#          also with 4 torch threads per worker), then `gsw fingerprint` through Ray on 4 and 1 GPUs, compare.
+#   then, the host otherwise idle: `gsw scan` over 10,000 files on 1, 2 and 4 GPUs (Ray Data), then
+#          `gsw fingerprint` through Ray on 4 and 1 GPUs, compare.
 #
 # Progress in WORKDIR/progress.log, each step's output in WORKDIR/<step>.log, results WORKDIR/*.json / *.txt.
 #
@@ -19,7 +19,10 @@
 #   export PYTHONPATH=/tmp/site:/tmp/site2 PATH=/tmp/site2/bin:/tmp/site/bin:$PATH
 #   TORCH_CUDA_ARCH_LIST=9.0 GSW_WITH_CUDA=ON python3 -m pip install -q --no-build-isolation --no-deps -e .
 # then start this script with setsid nohup ... & and poll WORKDIR/progress.log without gaps (an idle machine is
-# taken back after 30 s).
+# taken back after 30 s). Every device call copies the working tree afresh and the editable install imports gsw
+# from it: a suite started in one call and still collecting when the next call starts fails with missing files
+# (2026-11-27: 37 collection errors). Start the suite in the last call that carries files, then poll with long
+# calls (few re-copies).
 set -uo pipefail
 W=${1:?WORKDIR}
 LEGO=${2:?LEGO_DIR}
@@ -49,9 +52,6 @@ SC=(python3 benchmarks/scan_throughput.py --images 10000 --model "$W/fp/model" -
     --modes ray --workdir "$W/scan10k")
 for g in 1 2 4; do
   step "scan_$g" "${SC[@]}" --gpus "$g" --out "$W/scan_cuda_${g}gpu.json"
-done
-for g in 1 4; do
-  step "scan_${g}_t4" "${SC[@]}" --gpus "$g" --worker-threads 4 --out "$W/scan_cuda_${g}gpu_t4.json"
 done
 for g in 4 1; do
   step "fingerprint_$g" $FP run --gpus "$g" --workdir "$W/fp"

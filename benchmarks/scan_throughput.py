@@ -80,8 +80,6 @@ def _parse_args() -> argparse.Namespace:
     ap.add_argument("--workers", type=int, default=None, help="Ray workers (default: --gpus, or the CPU count)")
     ap.add_argument("--batch-size", type=int, default=None, help="default: gsw's for the device (64 CUDA, 4 CPU)")
     ap.add_argument("--readers", type=int, default=4)
-    ap.add_argument("--worker-threads", type=int, default=None,
-                    help="torch threads per Ray worker (default: gsw's, the worker's CPU share)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of every mode, interleaved")
     ap.add_argument("--threads", type=int, default=0, help="torch threads of this process (0: torch's default)")
     ap.add_argument("--workdir", default=None, help="crawl folder (default: a new temporary one)")
@@ -223,7 +221,7 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
         rows = _per_source(paths, marks, device)
     else:
         rows = scan(paths, marks, device=device, use_ray=mode == "ray", workers=args.workers,
-                    batch_size=args.batch_size, readers=args.readers, worker_threads=args.worker_threads)
+                    batch_size=args.batch_size, readers=args.readers)
     if device is not None:
         torch.cuda.synchronize()
     seconds = time.perf_counter() - t0
@@ -236,7 +234,7 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
         res["workers"] = workers = args.workers or int(ray.cluster_resources().get("GPU" if device else "CPU", 1))
         t0 = time.perf_counter()  # the same scan over one file per worker: the workers' start, decoders' loading
         scan(paths[:workers], marks, device=device, use_ray=True, workers=workers, batch_size=args.batch_size,
-             readers=args.readers, worker_threads=args.worker_threads)
+             readers=args.readers)
         res["startup_s"] = time.perf_counter() - t0
         res["images_per_s_after_startup"] = len(paths) / max(seconds - res["startup_s"], 1e-9)
     return res, rows

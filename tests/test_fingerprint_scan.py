@@ -103,7 +103,7 @@ def test_progress_and_bad_arguments(crawl, monkeypatch) -> None:
     seen = []
     rows = scan(paths[:3], marks, use_ray=False, batch_size=2, readers=3, on_row=seen.append)
     assert seen == rows
-    for bad in (dict(batch_size=0), dict(readers=0), dict(batch_size=2.5), dict(worker_threads=0)):
+    for bad in (dict(batch_size=0), dict(readers=0), dict(batch_size=2.5)):
         with pytest.raises(ValueError, match="must be a positive int"):
             scan(paths[:1], marks, use_ray=False, **bad)
     with pytest.raises(ValueError, match="no marks"):

@@ -86,8 +86,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                                       DEFAULT_BATCH_SIZES.items()) + ")")
     sc.add_argument("--readers", type=positive_int, default=DEFAULT_READERS,
                     help="threads reading images and videos, per process (default %(default)s)")
-    sc.add_argument("--worker-threads", type=positive_int, default=None,
-                    help="torch threads per Ray Data worker (default: its share of the cluster's CPUs)")
     sc.set_defaults(func=cmd_scan)
 
 
@@ -180,7 +178,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     rows = scan(args.inputs, marks, fpr=args.fpr, device=None if device.type == "cpu" else device,
                 frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers,
-                batch_size=args.batch_size, readers=args.readers, worker_threads=args.worker_threads)
+                batch_size=args.batch_size, readers=args.readers)
     _write_report(rows, args.output)
     hits = [r for r in rows if r.identified]
     errors = [r for r in rows if r.error]

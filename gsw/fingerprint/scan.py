@@ -317,10 +317,10 @@ def _ray_data_available() -> bool:
 
 
 def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
-              workers: int | None, batch_size: int, readers: int, worker_threads: int | None) -> list[ScanRow]:
+              workers: int | None, batch_size: int, readers: int) -> list[ScanRow]:
     """Ray Data: one worker per GPU (or CPU), each scanning blocks of sources (:func:`ray_block_size`); rows put
-    back in input order. A GPU worker gets its share of the cluster's CPUs (reading, decoding files and the CPU
-    side of the tests) as ``num_cpus``, and as many torch threads unless ``worker_threads`` says otherwise."""
+    back in input order. A GPU worker gets its share of the cluster's CPUs
+    (reading, decoding files and the CPU side of the tests), as ``num_cpus`` and torch threads."""
     import ray
 
     from gsw.fingerprint.run import connect_ray
@@ -331,9 +331,7 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
         n = workers or max(1, int(resources.get("GPU" if gpu else "CPU", 1)))
         cpus = max(1, int((resources.get("CPU", 1) - 1) // n)) if gpu else 1  # one CPU left to Ray Data
         ds = ray.data.from_items([{"path": str(p)} for p in paths])
-        threads = worker_threads or cpus
-        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu,
-                                                              threads),
+        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu, cpus),
                             batch_size=ray_block_size(len(paths), n, batch_size), concurrency=n,
                             num_gpus=1 if gpu else 0, num_cpus=cpus)
         by_path = {r["source"]: ScanRow(**r) for r in ds.iter_rows()}
@@ -355,8 +353,7 @@ def ray_by_default(sources: int, device: torch.device | str | None) -> bool:
 def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = DETECTION_FPR,
          device: torch.device | None = None, frames: int = 16, use_ray: bool | None = None,
          address: str | None = None, workers: int | None = None, batch_size: int | None = None,
-         readers: int = DEFAULT_READERS, worker_threads: int | None = None,
-         on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+         readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
     """Tests every image and video found in ``inputs`` against the registered marks.
 
     Args:
@@ -372,23 +369,18 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
         batch_size: images per decoder call (in this process and in every Ray worker); None:
             :data:`DEFAULT_BATCH_SIZES` of ``device``.
         readers: threads reading sources (in this process and in every Ray worker).
-        worker_threads: torch threads of each Ray worker (None: its share of the cluster's CPUs; ignored in
-            this process).
         on_row: called after each source in this process (progress; not called with Ray).
 
     Returns:
         One :class:`ScanRow` per source, in input order.
 
     Raises:
-        ValueError: no marks; nothing to scan; ``batch_size``, ``readers`` or ``worker_threads`` < 1.
+        ValueError: no marks; nothing to scan; ``batch_size`` or ``readers`` < 1.
         ImportError: Ray asked for (``use_ray`` or ``address``) but not installed.
     """
     if not marks:
         raise ValueError("the registry holds no marks")
     batch_size = _batching(batch_size, readers, device)
-    if worker_threads is not None and (not isinstance(worker_threads, int) or isinstance(worker_threads, bool)
-                                       or worker_threads < 1):
-        raise ValueError(f"worker_threads must be a positive int or None, got {worker_threads!r}")
     paths = expand_inputs(inputs)
     want_ray = use_ray if use_ray is not None else bool(address) or ray_by_default(len(paths), device)
     if want_ray and not _ray_data_available():
@@ -399,6 +391,6 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
     if want_ray:
         gpu = device is not None and torch.device(device).type == "cuda"
         return _scan_ray(paths, marks, fpr=fpr, frames=frames, gpu=gpu, address=address, workers=workers,
-                         batch_size=batch_size, readers=readers, worker_threads=worker_threads)
+                         batch_size=batch_size, readers=readers)
     return scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, batch_size=batch_size,
                         readers=readers, on_row=on_row)
