@@ -156,6 +156,22 @@ def test_confirmation_on_the_embedding_views(monkeypatch) -> None:
     assert not EarlyStop(psnr_target=37.0).confirmed(1.0, 36.9)
 
 
+def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    progress = []
+    # min_steps above the cap: no early stop; "good" reads every bit (confirmed at the cap), "bad" none
+    rule = EarlyStop(min_steps=100, window=1, check_every=2, confirm=0.9, extend=0.5)
+    good, bad = finetune_batch(ws, ["good", "bad"], torch.stack([torch.ones(32), torch.zeros(32)]), progress.append,
+                               stop=rule)
+    assert (good.steps, good.bit_accuracy) == (12, 1.0)
+    assert (bad.steps, bad.stopped_early, bad.bit_accuracy) == (18, False, 0.0)  # 12 + 0.5 x 12, then as it is
+    assert sum(progress) == 2 * 12  # the extension's steps are not counted: the bar's total stays R x cap
+    assert rule.extension(12) == 6 and EarlyStop().extension(12) == 0
+
+
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
@@ -176,8 +192,9 @@ def test_early_stop_settings() -> None:
     assert (rule.min_steps, rule.window, rule.margin, rule.psnr_target, rule.adapt) == (50, 8, 1.5, 37.0, 1.2)
     assert EarlyStop.parse("psnr_target=none").psnr_target is None
     assert EarlyStop.parse("confirm=0.998").confirm == 0.998
+    assert EarlyStop.parse("extend=0.5").extend == 0.5
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
-                       ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm")]:
+                       ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
 

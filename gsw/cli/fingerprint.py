@@ -43,7 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
     fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
-                         "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X' "
+                         "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,"
+                         "extend=F' (extend: a copy below confirm / psnr_target at the cap goes on F x the cap) "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")

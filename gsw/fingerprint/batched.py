@@ -213,7 +213,8 @@ class CopyResult:
         psnr: mean PSNR (dB) of the final renders against the original renders.
         min_psnr: the worst view's.
         seconds: this recipient's share of the pool's wall time (its time in a slot / slots).
-        steps: optimisation steps it took.
+        steps: optimisation steps it took (more than the step cap when the rule extended it,
+            :attr:`~gsw.fingerprint.stopping.EarlyStop.extend`).
         stopped_early: whether the stopping rule finished it before the step cap.
         message_weight: its message weight at the end (differs from the configured one under control).
         refusals: early stops refused by the confirmation before it finished.
@@ -277,12 +278,14 @@ class _Pool:
         self.attacks = _attack_layers(cfg)
         self.slots: list[_Slot | None] = [None] * k
         self.cap = cfg.epochs * len(scene.shared.cameras)
+        self.caps = [self.cap] * k  # per slot: the cap, or the cap of an extension
         self.uniform = len({(c.width, c.height) for c in scene.shared.cameras}) == 1
         self._cache: dict = {}
 
     def fill(self, j: int, index: int) -> None:
         self.params.reset(j)
         self.monitor.reset(j)
+        self.caps[j] = self.cap
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
                               start=time.perf_counter())
@@ -348,7 +351,8 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         names: the recipients.
         messages: [R, k] their bits.
         on_step: progress: called with the number of recipient-steps done (after every step; a recipient
-            that stops early reports the steps it skipped when it leaves).
+            that stops early reports the steps it skipped when it leaves; steps of an extension beyond the cap
+            are not counted, so the total is recipients x cap).
         slots: recipients fine-tuned together (default: all of them).
         stop: the early-stopping rule (default: none; every recipient runs ``EmbedConfig.epochs`` passes).
         on_copy: called with each copy as soon as it is finished (in finishing order).
@@ -366,15 +370,15 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
     while pool.active():
         pool.step()
         tick += 1
-        if on_step is not None:
-            on_step(len(pool.active()))
         steps = pool.params.steps
-        if tick % every and not any(steps[j] >= pool.cap for j in pool.active()):
+        if on_step is not None:
+            on_step(sum(steps[j] <= pool.cap for j in pool.active()))
+        if tick % every and not any(steps[j] >= pool.caps[j] for j in pool.active()):
             continue
         occupied = [s is not None for s in pool.slots]
-        for j in pool.monitor.decide(list(steps), occupied, pool.cap):
+        for j in pool.monitor.decide(list(steps), occupied, pool.caps):
             result = _finish(pool, j, names, k)
-            if result is None:  # early, but its copy failed the confirmation on the embedding views: go on
+            if result is None:  # its copy failed the confirmation on the embedding views: go on
                 continue
             results[result[0]] = result[1]
             if on_step is not None and pool.cap > result[1].steps:
@@ -388,17 +392,22 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
 
 
 def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | None:
-    """Slot ``j``'s copy, scored on the embedding views; None when it stops early and the score fails the
-    rule's confirmation (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`)."""
+    """Slot ``j``'s copy, scored on the embedding views; None when the score fails the rule's confirmation and
+    the recipient goes on: before the step cap (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`), or at
+    the cap with :attr:`~gsw.fingerprint.stopping.EarlyStop.extend` not yet used (its cap moves up once)."""
     slot = pool.slots[j]
     steps = pool.params.steps[j]
     with torch.no_grad():
         copy = pool.params.gaussians(j).detach().clone()
     acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
     rule = pool.monitor.rule
-    if steps < pool.cap and rule is not None and not rule.confirmed(acc, ps):
-        pool.monitor.refuse(j)
-        return None
+    if rule is not None and not rule.confirmed(acc, ps):
+        if steps < pool.caps[j]:  # an early stop (before the cap or the extension's cap)
+            pool.monitor.refuse(j)
+            return None
+        if pool.caps[j] == pool.cap and rule.extension(pool.cap):
+            pool.caps[j] = pool.cap + rule.extension(pool.cap)
+            return None
     weight = float(pool.monitor.weights[j])
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
                                   (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,

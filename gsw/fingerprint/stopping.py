@@ -7,8 +7,11 @@ reads every bit of that step's render right with ``|logit| >= margin``; it finis
 and, with a ``psnr_target``, once the running PSNR of its renders against the original renders is at least
 that target; then its copy is scored on every embedding view (as every finished copy is) and, with
 ``confirm``, kept only when that score reaches ``confirm`` bit accuracy (and the PSNR target), else the
-recipient goes on and needs twice as many consecutive passing steps for its next attempt. A recipient that reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes
-there, as without early stopping.
+recipient goes on and needs twice as many consecutive passing steps for its next attempt. A recipient that
+reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes there, as without early stopping,
+unless ``extend`` is set: then a copy whose score at the cap fails the same confirmation (``confirm`` bit
+accuracy, the PSNR target) goes on for up to ``extend`` x the cap more steps, once, and finishes at that second
+cap or earlier by the rule.
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
@@ -45,6 +48,8 @@ class EarlyStop:
         confirm: before a recipient stops early, its copy is scored on every embedding view (as every finished
             copy is); it stops only when the mean bit accuracy there is >= ``confirm`` (and the mean PSNR >=
             ``psnr_target`` when given), else its streak starts over. 0: no condition on the bits.
+        extend: a recipient whose copy fails that confirmation at the step cap goes on for up to this fraction
+            of the cap more steps (once); 0: every recipient finishes at the cap.
     """
 
     min_steps: int = 100
@@ -55,6 +60,7 @@ class EarlyStop:
     adapt: float = 1.0
     max_factor: float = 4.0
     confirm: float = 0.0
+    extend: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):
@@ -62,6 +68,8 @@ class EarlyStop:
                 raise ValueError(f"EarlyStop.{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.confirm <= 1.0:
             raise ValueError(f"EarlyStop.confirm is a bit accuracy in [0, 1], got {self.confirm}")
+        if not 0.0 <= self.extend <= 10.0:
+            raise ValueError(f"EarlyStop.extend is a fraction of the step cap in [0, 10], got {self.extend}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
@@ -70,8 +78,13 @@ class EarlyStop:
             raise ValueError("EarlyStop.adapt > 1 steers the message weight towards psnr_target: give one")
 
     def confirmed(self, bit_accuracy: float, psnr: float) -> bool:
-        """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early."""
+        """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early (or, with
+        ``extend``, finish at the step cap)."""
         return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
+
+    def extension(self, cap: int) -> int:
+        """Extra steps a recipient that fails :meth:`confirmed` at the step ``cap`` gets (0: none)."""
+        return max(1, round(self.extend * cap)) if self.extend > 0 else 0
 
     @classmethod
     def parse(cls, text: str) -> "EarlyStop":
@@ -147,15 +160,15 @@ class SlotMonitor:
         self.psnr[slots] = torch.where(first, p, (1 - self.alpha) * self.psnr[slots] + self.alpha * p)
         self.count[slots] += 1
 
-    def decide(self, steps: list[int], active: list[bool], cap: int) -> list[int]:
+    def decide(self, steps: list[int], active: list[bool], caps: list[int]) -> list[int]:
         """The active slots that finish now (one host synchronisation); adjusts the message weights.
 
         Args:
             steps: per slot, the steps its recipient has taken.
             active: per slot, whether it holds a recipient.
-            cap: the step cap.
+            caps: per slot, its recipient's step cap.
         """
-        done = [j for j, (s, a) in enumerate(zip(steps, active)) if a and s >= cap]
+        done = [j for j, (s, a, c) in enumerate(zip(steps, active, caps)) if a and s >= c]
         rule = self.rule
         if rule is None:
             return done
