@@ -13,8 +13,8 @@
 # Progress in WORKDIR/progress.log, each step's output in WORKDIR/<step>.log, results WORKDIR/*.json / *.txt.
 #
 # Set-up on an offline GPU machine (torch preinstalled; .whl = kornia, kornia_rs, scikit_build_core, pybind11,
-# pathspec wheels, .whl-ray = benchmarks/ray_bundle.sh's bundle, both carried in; build/gpu/lego = the WebP photos
-# of power_lego.py --pack-webp, carried in a second call):
+# pathspec wheels, .whl-ray = benchmarks/ray_bundle.sh's bundle, build/gpu/lego = the WebP photos of power_lego.py
+# --pack-webp; the tracked tree is ~45 MiB of the 64-MiB transfer limit, so each is carried in its own call):
 #   sh .whl-ray/INSTALL.sh && python3 -m pip install -q --no-deps --target /tmp/site2 .whl/*.whl
 #   export PYTHONPATH=/tmp/site:/tmp/site2 PATH=/tmp/site2/bin:/tmp/site/bin:$PATH
 #   TORCH_CUDA_ARCH_LIST=9.0 GSW_WITH_CUDA=ON python3 -m pip install -q --no-build-isolation --no-deps -e .
