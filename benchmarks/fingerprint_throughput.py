@@ -148,18 +148,24 @@ def _summary(rows: list[dict]) -> dict:
                 refusals=sum(r.get("refusals") or 0 for r in rows))
 
 
+def setting_config(setting: dict, bg):
+    """The pool's EmbedConfig of a sweep setting (its epochs, LPIPS term and message weight)."""
+    from gsw.fingerprint.batched import pool_config
+    from gsw.mark.loss import LossWeights, lpips_weights
+
+    lp = None if setting["lpips"] == "none" else setting["lpips"]
+    weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
+    return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+
+
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
     """One fingerprinting job of the sweep and its held-out measurements."""
     import gsw
     from gsw.data import load_inria_model
     from gsw.decoder.zoo import load_decoder
-    from gsw.fingerprint.batched import pool_config
-    from gsw.mark.loss import LossWeights, lpips_weights
     from gsw.registry import open_registry
 
-    lp = None if setting["lpips"] == "none" else setting["lpips"]
-    weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
-    cfg = pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+    cfg = setting_config(setting, bg)
     tmp = Path(tempfile.mkdtemp(prefix="gsw-fp-"))
     names = [f"r{i:03d}" for i in range(setting["n"])]
     if dev.type == "cuda":
@@ -182,7 +188,7 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
                          seconds=r.seconds, train_bits=r.bit_accuracy,
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
     fine = report.timings["finetune"]
-    out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=weights.message,
+    out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,
                lpips=setting["lpips"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
                setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
                recipients_per_hour=3600 * len(rows) / fine,
@@ -200,14 +206,11 @@ def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
     from torch.profiler import ProfilerActivity, profile
 
     from gsw.device import deterministic
-    from gsw.fingerprint.batched import _Pool, pool_config
+    from gsw.fingerprint.batched import _Pool
     from gsw.fingerprint.shared import prepare_scene, worker_scene
-    from gsw.mark.loss import LossWeights, lpips_weights
     from gsw.mark.message import random_message
 
-    lp = None if setting["lpips"] == "none" else setting["lpips"]
-    weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
-    cfg = pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+    cfg = setting_config(setting, bg)
     k = setting["k"]
     with deterministic():
         scene = worker_scene(prepare_scene(g, cams, num_bits=args.bits, config=cfg, images=images, device=dev), dev)

@@ -23,7 +23,7 @@ if not os.environ.get("CI"):
 import ray  # noqa: E402
 
 from gsw.fingerprint.plan import Recipient  # noqa: E402
-from gsw.fingerprint.run import RayWorkers, map_ray  # noqa: E402
+from gsw.fingerprint.run import RayWorkers, ray_workers  # noqa: E402
 
 VIEWS = 6
 NAMES = ["r1", "r2", "r3", "r4"]
@@ -96,11 +96,18 @@ def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
             os._exit(1)  # the worker process dies: no exception, no cleanup
         return payload * 10
 
+    def run(marker: str, payloads: list[int], on_result, max_retries: int) -> list:
+        workers = RayWorkers(len(payloads), max_retries=max_retries)
+        try:
+            return workers.map(dies_once, marker, payloads, on_result)
+        finally:
+            workers.shutdown()
+
     got = {}
-    failed = map_ray(dies_once, str(tmp_path / "died"), [1, 2], lambda i, r: got.__setitem__(i, r), max_retries=2)
+    failed = run(str(tmp_path / "died"), [1, 2], lambda i, r: got.__setitem__(i, r), max_retries=2)
     assert failed == [] and got == {0: 10, 1: 20}
     assert (tmp_path / "died").exists()
-    failed = map_ray(dies_once, str(tmp_path / "again"), [3], lambda i, r: None, max_retries=0)
+    failed = run(str(tmp_path / "again"), [3], lambda i, r: None, max_retries=0)
     assert [i for i, _ in failed] == [0]
 
 
@@ -136,7 +143,8 @@ def test_no_room_for_a_worker(cluster) -> None:
     """A worker larger than the cluster (more GPUs than it has, here or on a GPU machine) is refused at once."""
     gpus = ray.cluster_resources().get("GPU", 0.0) + 1
     with pytest.raises(RuntimeError, match=f"no room for a worker of {gpus} GPU"):
-        map_ray(lambda shared, payload: payload, "unused", [0], lambda i, r: None, num_gpus=gpus)
+        with ray_workers(None, "cuda", 1, gpus_per_task=gpus):
+            pass
 
 
 def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path, monkeypatch) -> None:

@@ -198,7 +198,6 @@ def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
     return y.squeeze(0) if squeeze else y
 
 
-
 def dwt2(x: torch.Tensor, levels: int = LEVELS) -> tuple[torch.Tensor, list[Highs]]:
     """Multi-level 2-D DWT (bior4.4, periodization), differentiable.
 

@@ -20,8 +20,8 @@ import torch
 if TYPE_CHECKING:
     from gsw.fingerprint.stopping import EarlyStop
 
-__all__ = ["SCALE_OUT_HINT", "BatchFailure", "RayWorkers", "connect_ray", "ray_available", "map_ray", "ray_workers",
-           "run_batch", "run_local", "run_ray"]
+__all__ = ["SCALE_OUT_HINT", "BatchFailure", "RayWorkers", "connect_ray", "ray_available", "ray_workers", "run_batch",
+           "run_local", "run_ray"]
 
 #: What to tell a user who runs without Ray.
 SCALE_OUT_HINT = ("Ray is not installed: running in one process. To spread recipients over several GPUs or "
@@ -198,37 +198,6 @@ class RayWorkers:
         for a in self.actors:
             ray.kill(a)
         self.actors = []
-
-
-def map_ray(fn: Callable[..., Any], shared: Any, payloads: Sequence[Any], on_result: Callable[[int, Any], None], *,
-            num_gpus: float = 0.0, num_cpus: float = 1.0, max_retries: int = 3,
-            args: Sequence[Any] = ()) -> list[tuple[int, BaseException]]:
-    """Runs ``fn(shared, payload, *args)`` for every payload on a :class:`RayWorkers` pool of the connected Ray
-    cluster (as many workers as fit, at most one per payload). ``on_result(index, result)`` runs in this
-    process as results arrive (in completion order). A payload whose worker process dies is run again up to
-    ``max_retries`` times; a payload that raises is not.
-
-    Args:
-        fn: a picklable function.
-        shared: the common argument.
-        payloads: the work.
-        on_result: the single writer.
-        num_gpus, num_cpus: resources of each worker.
-        max_retries: retries after a worker failure.
-        args: further arguments of every call.
-
-    Returns:
-        (index, error) of the payloads that failed.
-
-    Raises:
-        RuntimeError: the cluster has no room for one worker of this size.
-    """
-    workers = RayWorkers(_pool_size(len(payloads), num_gpus, num_cpus), num_gpus=num_gpus, num_cpus=num_cpus,
-                         max_retries=max_retries)
-    try:
-        return workers.map(fn, shared, payloads, on_result, args)
-    finally:
-        workers.shutdown()
 
 
 def _pool_size(payloads: int, num_gpus: float, num_cpus: float) -> int:
