@@ -12,8 +12,9 @@ back from its folder and measured on the held-out views (never used by the job):
 its mean held-out bit accuracy is >= 99 % and its mean held-out PSNR >= 37 dB.
 
 A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (recipients), ``epochs`` (step
-cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none) and ``stop`` (an
-:meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``). The JSON (``--out``/``<tag>.json``)
+cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
+:meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``) and ``freeze`` (comma-separated parameter
+groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``). The JSON (``--out``/``<tag>.json``)
 is rewritten after every setting; ``--budget-s`` stops starting new settings. ``--scan-only MARKS`` only
 times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of the unmarked model.
 
@@ -95,14 +96,14 @@ def parse_setting(text: str) -> dict:
     """A sweep setting (see the module docstring) as a dict with every key."""
     from gsw.fingerprint.stopping import EarlyStop
 
-    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, text=text)
+    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", text=text)
     for token in text.split():
         key, sep, value = token.partition("=")
         if not sep or key not in out or key == "text":
-            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop)")
+            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop freeze)")
         if key == "stop":
             out[key] = None if value == "none" else EarlyStop.parse(value)
-        elif key == "lpips":
+        elif key in ("lpips", "freeze"):
             out[key] = value
         else:
             out[key] = float(value) if key == "mw" else int(value)
@@ -155,7 +156,9 @@ def setting_config(setting: dict, bg):
 
     lp = None if setting["lpips"] == "none" else setting["lpips"]
     weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
-    return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights)
+    frozen = tuple(name for name in setting.get("freeze", "").split(",") if name)
+    extra = {"freeze": frozen, "mask": "none"} if frozen else {}  # the grid's freeze-rest: no exponential mask
+    return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights, **extra)
 
 
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
@@ -189,7 +192,7 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,
-               lpips=setting["lpips"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
+               lpips=setting["lpips"], freeze=setting["freeze"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
                setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
                recipients_per_hour=3600 * len(rows) / fine,
                ms_per_recipient_step=1000 * fine / max(1, sum(r["steps"] or 0 for r in rows)),

@@ -110,6 +110,25 @@ def test_gradients_flow_to_input_not_weights(models):
     assert not m.training
 
 
+def test_references_given_by_their_features(models):
+    """``distance`` against ``features(y)`` (also of one reference broadcast over the batch) is ``forward``, and a
+    loss against fixed references (the split path) has the gradient of the batched path."""
+    for m in models.values():
+        x, y = _golden_inputs()
+        with torch.no_grad():
+            full = m(x, y)
+            torch.testing.assert_close(m.distance(x, m.references(y)), full, rtol=1e-5, atol=1e-7)
+            torch.testing.assert_close(m.distance(x, m.references(y[:1])), m(x, y[:1].expand_as(x)), rtol=1e-5,
+                                       atol=1e-7)
+        xs = x.clone().requires_grad_(True)
+        m(xs, y).sum().backward()  # y without gradient: the references' own pass
+        xb, yb = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+        m(xb, yb).sum().backward()  # both with gradient: one batched pass
+        torch.testing.assert_close(xs.grad, xb.grad, rtol=1e-4, atol=1e-7)
+        with pytest.raises(ValueError, match="do not fit"):
+            m.distance(x, m.references(torch.nn.functional.interpolate(y, size=(64, 64))))
+
+
 def test_functional_api_and_validation(models):
     x, y = _golden_inputs()
     with torch.no_grad():

@@ -168,7 +168,8 @@ class SlotParams:
 
 
 def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messages: Tensor,
-                 decoded: Tensor | None = None, message_weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                 decoded: Tensor | None = None, message_weights: Tensor | None = None,
+                 references: list[Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """The sum over recipients of :class:`gsw.mark.loss.WatermarkLoss`, computed in one batched pass.
 
     Args:
@@ -178,6 +179,8 @@ def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messa
         messages: [K, k] the recipients' bits.
         decoded: optional [K, 3, H', W'] images to decode instead of ``renders`` (attacked copies).
         message_weights: optional [K] per-recipient message weights (default: the loss's weight).
+        references: optional LPIPS features of ``original`` (:meth:`gsw.metrics.lpips.LPIPS.references`, batch K
+            or 1), when they are at hand (:meth:`gsw.fingerprint.shared.WorkerScene.lpips_references`).
 
     Returns:
         (the summed loss, [K, k] decoder logits).
@@ -197,7 +200,8 @@ def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messa
                                              reduction="none").mean(dim=1)
     per = per + (w.message * bce if message_weights is None else message_weights * bce)
     if loss.lpips is not None:
-        per = per + w.lpips * loss.lpips(renders, target)
+        per = per + w.lpips * (loss.lpips(renders, target) if references is None
+                               else loss.lpips.distance(renders, references))
     return per.sum(), logits
 
 
@@ -332,7 +336,8 @@ class _Pool:
                 t = torch.stack([targets[i] for i in g])
                 d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
                 idx, msgs = self._indices(tuple(slots[i] for i in g))
-                part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx])
+                refs = self.scene.lpips_references([views[i] for i in g])
+                part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx], refs)
                 self.monitor.observe(idx, logits, msgs, r, t)
                 total = total + part
         with record_function("gsw.pool.backward"):

@@ -142,7 +142,31 @@ class WorkerScene:
     originals: list[Tensor]
     loss: torch.nn.Module
     warm_s: float = 0.0
+    _references: dict[int, list[Tensor]] = field(default_factory=dict, repr=False)
 
+    def lpips_references(self, views: Sequence[int]) -> list[Tensor] | None:
+        """The LPIPS features (:meth:`gsw.metrics.lpips.LPIPS.references`) of ``views``' original renders, stacked in
+        the order given: one [len(views), C, h, w] tensor per tap; None without an LPIPS term.
+
+        Each view's features are computed once and kept while all views' features fit in
+        :data:`REFERENCE_BYTES` (AlexNet at 800x800: ~26 MB per view); beyond that they are recomputed per call.
+        """
+        lpips = self.loss.lpips
+        if lpips is None:
+            return None
+        per_view = []
+        for v in views:
+            feats = self._references.get(v)
+            if feats is None:
+                feats = lpips.references(self.originals[v][None])
+                if sum(f.numel() * f.element_size() for f in feats) * len(self.originals) <= REFERENCE_BYTES:
+                    self._references[v] = feats
+            per_view.append(feats)
+        return [torch.cat(taps) for taps in zip(*per_view)]
+
+
+#: Most bytes of LPIPS reference features a :class:`WorkerScene` keeps for all its views.
+REFERENCE_BYTES = 4 << 30
 
 _CACHE: dict[tuple[str, str], WorkerScene] = {}
 #: Warmed parts (original renders, loss, seconds taken) by (job token, device), made before the job's scene exists.
@@ -161,6 +185,8 @@ def _parts(original: Gaussians, cameras: Sequence[Camera], config: EmbedConfig, 
         originals = [rasterize(original, cam, background=config.background).image for cam in cameras]
     dec = load_decoder_for(num_bits, decoder, device)
     loss = WatermarkLoss(dec, config.weights, config.lpips_net, config.logit_scale).to(device)
+    if device.type == "cuda":  # cuDNN's native layout: no NCHW <-> NHWC transposes around each convolution
+        loss = loss.to(memory_format=torch.channels_last)
     return originals, loss
 
 

@@ -153,23 +153,52 @@ class LPIPS(nn.Module):
                 out.append(z)
         return out
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        if x.shape != y.shape:
-            raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and {tuple(y.shape)}")
+    def _check(self, x: torch.Tensor) -> None:
         if x.dim() != 4 or x.shape[1] != 3:
             raise ValueError(f"expected images [B,3,H,W], got {tuple(x.shape)}")
         m = _MIN_SIZE[self.net_name]
         if x.shape[2] < m or x.shape[3] < m:
             raise ValueError(f"LPIPS({self.net_name!r}) needs H, W >= {m}, got {tuple(x.shape[2:])}")
-        dtype = self.shift.dtype
+
+    def _unit_taps(self, z: torch.Tensor) -> list[torch.Tensor]:
+        """Channel-normalised taps of images ``z`` [B,3,H,W] in [0,1] (steps 1-3 above)."""
+        z = ((2.0 * z.to(self.shift.dtype) - 1.0) - self.shift) / self.scale  # [0,1] -> [-1,1] -> ScalingLayer
+        return [f / (torch.sqrt(torch.sum(f * f, dim=1, keepdim=True)) + 1e-10) for f in self._taps(z)]
+
+    def references(self, y: torch.Tensor) -> list[torch.Tensor]:
+        """The normalised taps of reference images ``y`` [B,3,H,W], without gradient, for :meth:`distance`.
+
+        A fine-tune that compares many renders with the same references (the original model's renders of its
+        views) computes them once per view instead of at every step.
+        """
+        self._check(y)
+        with torch.no_grad():
+            return self._unit_taps(y)
+
+    def distance(self, x: torch.Tensor, y_features: list[torch.Tensor]) -> torch.Tensor:
+        """LPIPS between images ``x`` [B,3,H,W] and references given by their :meth:`references` (batch B or 1).
+
+        Equals ``forward(x, y)`` up to float summation order; gradients flow to ``x`` only.
+        """
+        self._check(x)
+        total = x.new_zeros(x.shape[0], dtype=self.shift.dtype)
+        for fx, fy, lin in zip(self._unit_taps(x), y_features, self.lins):
+            if fx.shape[1:] != fy.shape[1:]:
+                raise ValueError(f"reference features {tuple(fy.shape)} do not fit images {tuple(x.shape)}")
+            total = total + lin((fx - fy) ** 2).mean(dim=(1, 2, 3))
+        return total
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        if x.shape != y.shape:
+            raise ValueError(f"x and y must have the same shape, got {tuple(x.shape)} and {tuple(y.shape)}")
+        self._check(x)
+        if torch.is_grad_enabled() and x.requires_grad and not y.requires_grad:
+            # a loss against fixed references: no backward pass through the references' half of the batch
+            return self.distance(x, self.references(y))
         b = x.shape[0]
-        z = torch.cat([x, y], 0).to(dtype)
-        z = ((2.0 * z - 1.0) - self.shift) / self.scale  # [0,1] -> [-1,1] -> ScalingLayer
-        total = x.new_zeros(b, dtype=dtype)
-        for feat, lin in zip(self._taps(z), self.lins):
-            feat = feat / (torch.sqrt(torch.sum(feat * feat, dim=1, keepdim=True)) + 1e-10)
-            d = (feat[:b] - feat[b:]) ** 2
-            total = total + lin(d).mean(dim=(1, 2, 3))
+        total = x.new_zeros(b, dtype=self.shift.dtype)
+        for feat, lin in zip(self._unit_taps(torch.cat([x, y], 0)), self.lins):
+            total = total + lin((feat[:b] - feat[b:]) ** 2).mean(dim=(1, 2, 3))
         return total
 
 

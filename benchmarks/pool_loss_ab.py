@@ -1,0 +1,149 @@
+"""The pool's loss pass (#26), A/B in one process: what the LPIPS references and the channels-last layout buy.
+
+Times forward + backward of :func:`gsw.fingerprint.batched.batched_loss` (wavelets, decoder, LPIPS, message BCE)
+for K renders of H x W that require grad, the rasteriser left out, under four rules:
+
+* ``joint``: LPIPS on one batch of renders and references with the backward through both halves (the pool up to
+  commit a0e4a46: ``torch.cat([x, y])`` put the references into the graph);
+* ``split``: the references' features without gradient, recomputed per call (``LPIPS.forward`` now);
+* ``cached``: the references' features made once (:meth:`gsw.fingerprint.shared.WorkerScene.lpips_references`);
+* ``cached+nhwc``: the same with the decoder and LPIPS in channels-last memory (the pool on CUDA now);
+* ``cached+nhwc+bf16`` (CUDA only, not used by gsw): the decoder and LPIPS under bfloat16 autocast, the wavelet
+  and pixel terms in float32: what mixed precision would buy, and how far its gradient moves.
+
+Each rule: ``--warmup`` passes, then the median of ``--repeats`` timed passes (CUDA events around each pass),
+and the largest difference of its loss / render gradient from ``joint``'s.
+
+    python benchmarks/pool_loss_ab.py --device cuda --k 16 --size 800 --out benchmarks/results/pool_loss_ab_h200.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import torch
+
+
+class _Fn(torch.nn.Module):
+    def __init__(self, fn):
+        super().__init__()
+        self.fn = fn
+
+    def forward(self, *a):
+        return self.fn(*a)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--k", type=int, default=16)
+    ap.add_argument("--size", type=int, default=800)
+    ap.add_argument("--bits", type=int, default=32)
+    ap.add_argument("--lpips", default="alex")
+    ap.add_argument("--warmup", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+
+    from gsw.decoder.zoo import load_decoder
+    from gsw.fingerprint.batched import batched_loss
+    from gsw.mark.loss import LossWeights, WatermarkLoss, lpips_weights
+
+    dev = torch.device(args.device)
+    gen = torch.Generator().manual_seed(0)
+    k, s = args.k, args.size
+    originals = torch.rand(k, 3, s, s, generator=gen).to(dev)
+    renders0 = (originals + 0.02 * torch.randn(k, 3, s, s, generator=gen).to(dev)).clamp(0, 1)
+    messages = torch.randint(0, 2, (k, args.bits), generator=gen).float().to(dev)
+    weights = torch.full((k,), 0.15, device=dev)
+
+    class Autocast(torch.nn.Module):
+        """``module`` under bfloat16 autocast, its output back in float32."""
+
+        def __init__(self, module):
+            super().__init__()
+            self.module = module
+
+        def forward(self, *a):
+            with torch.autocast(dev.type, dtype=torch.bfloat16):
+                return self.module(*a).float()
+
+        def __getattr__(self, name):
+            try:
+                return super().__getattr__(name)
+            except AttributeError:
+                return getattr(self.module, name)
+
+    def make_loss(layout, bf16=False):
+        loss = WatermarkLoss(load_decoder(args.bits), lpips_weights(args.lpips, LossWeights()), args.lpips).to(dev)
+        loss = loss.to(memory_format=layout)
+        if bf16:
+            loss.decoder = Autocast(loss.decoder)
+            lp = loss.lpips
+            lp.distance = lambda x, refs, f=lp.distance: Autocast(_Fn(f))(x, refs)
+        return loss
+
+    def sync():
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    rules = {}
+    variants = [("joint", torch.contiguous_format), ("split", torch.contiguous_format),
+                ("cached", torch.contiguous_format), ("cached+nhwc", torch.channels_last)]
+    if dev.type == "cuda":
+        variants.append(("cached+nhwc+bf16", torch.channels_last))
+    for name, layout in variants:
+        loss = make_loss(layout, bf16=name.endswith("bf16"))
+        refs = loss.lpips.references(originals) if name.startswith("cached") else None
+
+        def one_pass():
+            r = renders0.clone().requires_grad_(True)
+            t = originals.clone().requires_grad_(name == "joint")
+            total, _ = batched_loss(loss, r, t, messages, None, weights, refs)
+            total.backward()
+            return total.detach(), r.grad
+
+        times = []
+        for i in range(args.warmup + args.repeats):
+            if dev.type == "cuda":
+                a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+                a.record()
+                value, grad = one_pass()
+                b.record()
+                sync()
+                ms = a.elapsed_time(b)
+            else:
+                t0 = time.perf_counter()
+                value, grad = one_pass()
+                ms = 1e3 * (time.perf_counter() - t0)
+            if i >= args.warmup:
+                times.append(ms)
+        rules[name] = dict(ms=statistics.median(times), ms_min=min(times), value=float(value), grad=grad)
+        del loss, refs
+        if dev.type == "cuda":
+            torch.cuda.empty_cache()
+    base = rules["joint"]
+    rows = []
+    for name, r in rules.items():
+        rows.append(dict(rule=name, ms_median=r["ms"], ms_min=r["ms_min"], ms_per_render=r["ms"] / k,
+                         speedup_vs_joint=base["ms"] / r["ms"], loss=r["value"],
+                         loss_rel_diff=abs(r["value"] - base["value"]) / abs(base["value"]),
+                         grad_max_abs_diff=float((r["grad"] - base["grad"]).abs().max()),
+                         grad_max_abs=float(base["grad"].abs().max())))
+        print(json.dumps(rows[-1]), flush=True)
+    machine = dict(device=str(dev), gpu=torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
+                   cpu=platform.processor() or platform.machine(), torch=torch.__version__,
+                   python=platform.python_version(), date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()))
+    out = dict(k=k, size=s, bits=args.bits, lpips=args.lpips, warmup=args.warmup, repeats=args.repeats,
+               machine=machine, rows=rows)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
