@@ -62,3 +62,25 @@ def test_scale_to_psnr_sets_each_images_rms():
     assert torch.allclose(rms, torch.full((3,), 10 ** (-30 / 20)), rtol=1e-4)
     assert torch.allclose(out / out.flatten(1).norm(dim=1)[:, None, None, None],
                           r / r.flatten(1).norm(dim=1)[:, None, None, None], atol=1e-6)  # direction kept
+
+
+def test_fold_batchnorm_is_the_same_function_with_fewer_layers() -> None:
+    """The shipped decoder with its BatchNorms folded into the convolutions reads the same logits and passes the
+    same input gradient; the original stays untouched; a network in training mode is refused."""
+    from gsw.decoder.hidden import fold_batchnorm
+    from gsw.decoder.zoo import load_decoder
+
+    dec = load_decoder(32).eval().requires_grad_(False).double()  # float64: the fold is exact up to rounding
+    folded = fold_batchnorm(dec)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in dec.modules())
+    x = torch.rand(2, 3, 40, 40, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    xa, xb = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    ya, yb = dec(xa), folded(xb)
+    torch.testing.assert_close(yb, ya, rtol=1e-10, atol=1e-10)
+    ya.square().sum().backward()
+    yb.square().sum().backward()
+    torch.testing.assert_close(xb.grad, xa.grad, rtol=1e-10, atol=1e-9)
+    assert all(not p.requires_grad for p in folded.parameters())
+    with pytest.raises(ValueError, match="eval mode"):
+        fold_batchnorm(HiddenDecoder(8).train())

@@ -193,10 +193,40 @@ def test_early_stop_settings() -> None:
     assert EarlyStop.parse("psnr_target=none").psnr_target is None
     assert EarlyStop.parse("confirm=0.998").confirm == 0.998
     assert EarlyStop.parse("extend=0.5").extend == 0.5
+    assert EarlyStop.parse("confirm=0.99,accuracy_window=32").accuracy_window == 32
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
-                       ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend")]:
+                       ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
+                       ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
+
+
+def test_a_running_accuracy_finishes_a_recipient_without_a_perfect_streak() -> None:
+    """Slot 0 misses one bit of 32 on every 4th step (no streak of 8 perfect steps ever), slot 1 on every other
+    step: with ``accuracy_window`` slot 0's running accuracy (~0.992) reaches confirm 0.99 after the window and
+    it finishes; slot 1 (~0.984) does not; without the window neither does; a refusal doubles the steps needed."""
+    from gsw.fingerprint.stopping import SlotMonitor
+
+    msgs = torch.ones(2, 32)
+    img = torch.zeros(2, 3, 8, 8)
+
+    def run(rule, steps, monitor=None):
+        monitor = monitor or SlotMonitor(2, 0.15, rule, torch.device("cpu"))
+        for t in range(steps):
+            logits = torch.full((2, 32), 3.0)
+            logits[0, 5] = -3.0 if t % 4 == 0 else 3.0
+            logits[1, 7] = -3.0 if t % 2 == 0 else 3.0
+            monitor.observe(torch.tensor([0, 1]), logits, msgs, img, img)
+        return monitor, monitor.decide([steps, steps], [True, True], [10_000, 10_000])
+
+    with_window = EarlyStop(min_steps=8, window=8, confirm=0.99, accuracy_window=16)
+    monitor, done = run(with_window, 40)
+    assert done == [0]
+    assert run(EarlyStop(min_steps=8, window=8, confirm=0.99), 40)[1] == []
+    assert run(with_window, 10)[1] == []  # fewer steps than the window: no decision from the running accuracy
+    monitor.refuse(0)
+    assert run(with_window, 20, monitor)[1] == []  # 20 < 2 x 16 steps since the refusal
+    assert run(with_window, 12, monitor)[1] == [0]
 
 
 def test_train_time_image_attacks_per_slot() -> None:

@@ -44,7 +44,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
                          "optionally 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,"
-                         "extend=F' (extend: a copy below confirm / psnr_target at the cap goes on F x the cap) "
+                         "extend=F,accuracy_window=N' (extend: a copy below confirm / psnr_target at the cap goes on "
+                         "F x the cap; accuracy_window: a recipient whose running bit accuracy over ~N steps reaches "
+                         "confirm may also finish) "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")

@@ -176,6 +176,7 @@ _WARM: dict[tuple[str, str], tuple[list[Tensor], torch.nn.Module, float]] = {}
 def _parts(original: Gaussians, cameras: Sequence[Camera], config: EmbedConfig, num_bits: int,
            decoder: torch.nn.Module | None, device: torch.device) -> tuple[list[Tensor], torch.nn.Module]:
     """The device-side parts that need only the input model: its renders and the loss (decoder + LPIPS)."""
+    from gsw.decoder.hidden import fold_batchnorm
     from gsw.mark.detect import load_decoder_for
     from gsw.mark.loss import WatermarkLoss
     from gsw.render.rasterize import rasterize
@@ -183,10 +184,8 @@ def _parts(original: Gaussians, cameras: Sequence[Camera], config: EmbedConfig, 
     original = original.to(device)
     with torch.no_grad():
         originals = [rasterize(original, cam, background=config.background).image for cam in cameras]
-    dec = load_decoder_for(num_bits, decoder, device)
+    dec = fold_batchnorm(load_decoder_for(num_bits, decoder, device))  # one kernel fewer per block, per step
     loss = WatermarkLoss(dec, config.weights, config.lpips_net, config.logit_scale).to(device)
-    if device.type == "cuda":  # cuDNN's native layout: no NCHW <-> NHWC transposes around each convolution
-        loss = loss.to(memory_format=torch.channels_last)
     return originals, loss
 
 

@@ -7,7 +7,11 @@ reads every bit of that step's render right with ``|logit| >= margin``; it finis
 and, with a ``psnr_target``, once the running PSNR of its renders against the original renders is at least
 that target; then its copy is scored on every embedding view (as every finished copy is) and, with
 ``confirm``, kept only when that score reaches ``confirm`` bit accuracy (and the PSNR target), else the
-recipient goes on and needs twice as many consecutive passing steps for its next attempt. A recipient that
+recipient goes on and needs twice as many consecutive passing steps for its next attempt. With
+``accuracy_window`` a recipient may also finish (subject to the same confirmation) once the running mean bit
+accuracy of its training steps (an exponential average over about ``accuracy_window`` steps) reaches
+``confirm``: a copy that reads its bits right on almost every view but misses one bit on a few hard views never
+strings ``window`` perfect steps together, yet passes the confirmation. A recipient that
 reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes there, as without early stopping,
 unless ``extend`` is set: then a copy whose score at the cap fails the same confirmation (``confirm`` bit
 accuracy, the PSNR target) goes on for up to ``extend`` x the cap more steps, once, and finishes at that second
@@ -32,6 +36,8 @@ from gsw.mark.loss import steer_weight
 
 __all__ = ["EarlyStop", "SlotMonitor"]
 
+_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
+
 
 @dataclass(frozen=True)
 class EarlyStop:
@@ -50,6 +56,9 @@ class EarlyStop:
             ``psnr_target`` when given), else its streak starts over. 0: no condition on the bits.
         extend: a recipient whose copy fails that confirmation at the step cap goes on for up to this fraction
             of the cap more steps (once); 0: every recipient finishes at the cap.
+        accuracy_window: 0, or: a recipient also passes when the running mean bit accuracy of its training steps
+            (over about this many steps, counted since it started or its last refused stop, doubled per refusal)
+            is >= ``confirm`` (which must then be > 0).
     """
 
     min_steps: int = 100
@@ -61,15 +70,19 @@ class EarlyStop:
     max_factor: float = 4.0
     confirm: float = 0.0
     extend: float = 0.0
+    accuracy_window: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("min_steps", "window", "check_every"):
+        for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"EarlyStop.{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 <= self.confirm <= 1.0:
             raise ValueError(f"EarlyStop.confirm is a bit accuracy in [0, 1], got {self.confirm}")
         if not 0.0 <= self.extend <= 10.0:
             raise ValueError(f"EarlyStop.extend is a fraction of the step cap in [0, 10], got {self.extend}")
+        if self.accuracy_window < 0 or self.accuracy_window > 0 and self.confirm <= 0:
+            raise ValueError("EarlyStop.accuracy_window must be >= 0, and > 0 only with a confirmation (confirm > 0), "
+                             f"got accuracy_window={self.accuracy_window}, confirm={self.confirm}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
@@ -105,7 +118,7 @@ class EarlyStop:
                 if key == "psnr_target":
                     kwargs[key] = None if value.strip().lower() == "none" else float(value)
                 else:
-                    kwargs[key] = int(value) if key in ("min_steps", "window", "check_every") else float(value)
+                    kwargs[key] = int(value) if key in _INTEGER_FIELDS else float(value)
             except ValueError:
                 raise ValueError(f"early-stop setting {part!r}: {value!r} is not a number") from None
         return cls(**kwargs)
@@ -127,14 +140,19 @@ class SlotMonitor:
         self.psnr = torch.zeros(k, device=device)
         self.weights = torch.full((k,), self.weight, device=device)
         self.count = torch.zeros(k, device=device)  # steps observed per slot
+        self.accuracy = torch.zeros(k, device=device)  # running bit accuracy (rule.accuracy_window)
+        self.since = torch.zeros(k, device=device)  # steps since the recipient started or its last refused stop
         self.rejections = [0] * k  # early stops refused by the confirmation, per slot
         self.alpha = 2.0 / ((rule.window if rule else 16) + 1)
+        self.alpha_accuracy = 2.0 / ((rule.accuracy_window if rule else 0) + 1)
 
     def reset(self, j: int) -> None:
         """Slot ``j`` holds a new recipient."""
         self.streak[j] = 0.0
         self.psnr[j] = 0.0
         self.count[j] = 0.0
+        self.accuracy[j] = 0.0
+        self.since[j] = 0.0
         self.rejections[j] = 0
         self.weights[j] = self.weight
 
@@ -158,6 +176,11 @@ class SlotMonitor:
         p = -10 * torch.log10(mse.clamp_min(1e-12))
         first = self.count[slots] == 0
         self.psnr[slots] = torch.where(first, p, (1 - self.alpha) * self.psnr[slots] + self.alpha * p)
+        if self.rule.accuracy_window:
+            acc = (signed > 0).float().mean(dim=1)
+            a = self.alpha_accuracy
+            self.accuracy[slots] = torch.where(self.since[slots] == 0, acc, (1 - a) * self.accuracy[slots] + a * acc)
+        self.since[slots] += 1
         self.count[slots] += 1
 
     def decide(self, steps: list[int], active: list[bool], caps: list[int]) -> list[int]:
@@ -172,11 +195,15 @@ class SlotMonitor:
         rule = self.rule
         if rule is None:
             return done
-        streak, psnr = (t.tolist() for t in torch.stack([self.streak, self.psnr]).cpu())
+        streak, psnr, accuracy, since = (t.tolist() for t in torch.stack([self.streak, self.psnr, self.accuracy,
+                                                                          self.since]).cpu())
         for j, (s, a) in enumerate(zip(steps, active)):
             if not a or j in done:
                 continue
-            bits_ok = streak[j] >= rule.window * 2 ** self.rejections[j]  # each refusal doubles the window
+            doubling = 2 ** self.rejections[j]  # each refusal doubles the evidence needed
+            bits_ok = streak[j] >= rule.window * doubling or (
+                rule.accuracy_window > 0 and since[j] >= rule.accuracy_window * doubling
+                and accuracy[j] >= rule.confirm)
             psnr_ok = rule.psnr_target is None or psnr[j] >= rule.psnr_target
             if s >= rule.min_steps and bits_ok and psnr_ok:
                 done.append(j)
@@ -190,6 +217,7 @@ class SlotMonitor:
         """Slot ``j``'s early stop was refused (:meth:`EarlyStop.confirmed`): its streak starts over and the
         next attempt needs twice the window (the scores stay a bounded share of the steps)."""
         self.streak[j] = 0.0
+        self.since[j] = 0.0
         self.rejections[j] += 1
 
     def _scale(self, j: int, factor: float) -> None:
