@@ -11,7 +11,8 @@
 #   4. the built-in scene (256 px, 24 views, 8 held-out): 64-epoch step cap with the extension, the paper recipe
 #      and freeze=f_rest;
 #   window (second round, after the folded BatchNorms): lego with the extension, K = 16, without and with
-#      accuracy_window=32 (32 recipients), and K = 32 with it.
+#      accuracy_window=32 (32 recipients), and K = 32 with it;
+#   window998 (third round): K = 16, 32 recipients, confirm 0.998 with accuracy_window=32.
 # Set-up, progress and polling as in benchmarks/gpu_round.sh (its header).
 set -uo pipefail
 W=${1:?WORKDIR}
@@ -41,6 +42,8 @@ for s in "${STEPS[@]}"; do
     window) lego_model; step tp_window $TP "${M[@]}" --setting "k=16 n=16 stop=$EX" \
       --setting "k=16 n=32 stop=$EX,accuracy_window=32" --setting "k=32 n=32 stop=$EX,accuracy_window=32" \
       --tag lego_window ;;
+    window998) lego_model; step tp_window998 $TP "${M[@]}" \
+      --setting "k=16 n=32 stop=${EX/confirm=0.995/confirm=0.998},accuracy_window=32" --tag lego_window998 ;;
     *) log "unknown step $s" ;;
   esac
 done
