@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 import pytest
@@ -10,7 +11,7 @@ import torch
 from gsw.decoder.zoo import load_decoder
 from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch, pool_config
 from gsw.fingerprint.shared import prepare_scene, worker_scene
-from gsw.fingerprint.stopping import EarlyStop
+from gsw.fingerprint.stopping import PRESETS, EarlyStop
 from gsw.mark.embed import EmbedConfig, embed
 from gsw.mark.loss import LossWeights, WatermarkLoss
 from gsw.mark.message import as_message
@@ -194,9 +195,14 @@ def test_early_stop_settings() -> None:
     assert EarlyStop.parse("confirm=0.998").confirm == 0.998
     assert EarlyStop.parse("extend=0.5").extend == 0.5
     assert EarlyStop.parse("confirm=0.99,accuracy_window=32").accuracy_window == 32
+    quality = EarlyStop.parse("quality")
+    assert (quality.psnr_target, quality.confirm, quality.extend, quality.window) == (37.4, 0.995, 0.5, 16)
+    assert EarlyStop.parse("quality, extend=1") == dataclasses.replace(quality, extend=1.0)  # later keys override
+    assert EarlyStop.parse("throughput,extend=0.25") == EarlyStop.parse(PRESETS["throughput"] + ",extend=0.25")
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
-                       ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number")]:
+                       ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number"),
+                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
 

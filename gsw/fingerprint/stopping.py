@@ -34,9 +34,17 @@ from torch import Tensor
 
 from gsw.mark.loss import steer_weight
 
-__all__ = ["EarlyStop", "SlotMonitor"]
+__all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
 _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
+
+#: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round"):
+#: ``quality``: every recipient >= 99 % bits and >= 37 dB held-out in 3 of 3 jobs of 16, 954-1,014 per GPU-hour;
+#: ``throughput``: 1,268 per GPU-hour, 13 of 16 recipients meeting both.
+PRESETS = {
+    "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
+    "throughput": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99",
+}
 
 
 @dataclass(frozen=True)
@@ -101,14 +109,22 @@ class EarlyStop:
 
     @classmethod
     def parse(cls, text: str) -> "EarlyStop":
-        """From ``"key=value,..."`` with the attribute names (``psnr_target=none`` for no target).
+        """From ``"key=value,..."`` with the attribute names (``psnr_target=none`` for no target), optionally
+        starting with the name of a preset (:data:`PRESETS`) whose values the later keys override
+        (``"quality,extend=1"``).
 
         Raises:
-            ValueError: an unknown key or a malformed value.
+            ValueError: an unknown key or preset, or a malformed value.
         """
         fields = {f: t for f, t in cls.__annotations__.items()}
+        parts = [p.strip() for p in text.split(",") if p.strip()]
+        if parts and "=" not in parts[0]:
+            name = parts.pop(0)
+            if name not in PRESETS:
+                raise ValueError(f"early-stop setting {name!r}: not a preset ({', '.join(PRESETS)}) and not key=value")
+            parts = PRESETS[name].split(",") + parts
         kwargs: dict = {}
-        for part in filter(None, (p.strip() for p in text.split(","))):
+        for part in parts:
             key, sep, value = part.partition("=")
             key = key.strip().replace("-", "_")
             if not sep or key not in fields:
