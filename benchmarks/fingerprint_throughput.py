@@ -205,7 +205,9 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
 def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
     """torch.profiler over ``--profile`` steps of one pool of ``k`` slots (after 20 warm-up steps): the device
     time of each labelled phase of a step (``gsw.pool.*``, :meth:`gsw.fingerprint.batched._Pool.step`) and of
-    the top operators; the table goes to ``<tag>_profile.txt``."""
+    the top operators, the device's busy share of the profiled wall time (union of its kernels' intervals) and the
+    operator / kernel counts per step; the table goes to ``<tag>_profile.txt``, and with ``--trace`` a Chrome
+    trace of 3 more steps to ``<tag>_trace.json.gz`` (where the device waits for the host)."""
     from torch.profiler import ProfilerActivity, profile
 
     from gsw.device import deterministic
@@ -230,6 +232,21 @@ def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
                 pool.step()
             _sync(dev)
         wall = time.perf_counter() - t0
+        if args.trace:
+            import gzip
+            import shutil
+
+            with profile(activities=acts) as tprof:
+                for _ in range(3):
+                    pool.step()
+                _sync(dev)
+            folder = Path(args.out) if args.out else ROOT / "benchmarks" / "results"
+            raw = folder / f"{args.tag or 'pool'}_trace.json"
+            tprof.export_chrome_trace(str(raw))
+            with open(raw, "rb") as src, gzip.open(str(raw) + ".gz", "wb") as dst:
+                shutil.copyfileobj(src, dst)
+            raw.unlink()
+    busy = _device_busy(prof) if dev.type == "cuda" else None
     events = prof.key_averages()
     dev_us = (lambda e: getattr(e, "device_time_total", 0.0)) if dev.type == "cuda" else (lambda e: e.cpu_time_total)
     phases = {e.key: dev_us(e) / 1e3 / args.profile for e in events if e.key.startswith("gsw.pool.")}
@@ -240,9 +257,32 @@ def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
     (folder / f"{args.tag or f'fingerprint_{args.scene}_{dev.type}'}_profile.txt").write_text(table)
     out = dict(setting=setting["text"], k=k, steps=args.profile, ms_per_step_wall=1000 * wall / args.profile,
                ms_per_recipient_step_wall=1000 * wall / args.profile / k, phase_device_ms_per_step=phases,
-               top_ops_device_ms_per_step={e.key: dev_us(e) / 1e3 / args.profile for e in top})
+               top_ops_device_ms_per_step={e.key: dev_us(e) / 1e3 / args.profile for e in top},
+               aten_ops_per_step=sum(e.count for e in events if e.key.startswith("aten::")) / args.profile)
+    if busy is not None:
+        out.update(device_busy_share=busy[0], device_kernel_ms_per_step=busy[1] / args.profile,
+                   kernels_per_step=busy[2] / args.profile)
     print(json.dumps(out), flush=True)
     return out
+
+
+def _device_busy(prof) -> tuple[float, float, int]:
+    """(share of the profiled window with a kernel running, ms of kernel time as a union, kernels) from the
+    device events of a torch.profiler run."""
+    spans = sorted((e.time_range.start, e.time_range.end) for e in prof.events()
+                   if getattr(e, "device_type", None) is not None and e.device_type.name == "CUDA")
+    if not spans:
+        return 0.0, 0.0, 0
+    union, (a, b) = 0.0, spans[0]
+    for s, e in spans[1:]:
+        if s > b:
+            union += b - a
+            a, b = s, e
+        else:
+            b = max(b, e)
+    union += b - a
+    window = max(e for _, e in spans) - spans[0][0]
+    return union / window, union / 1e3, len(spans)
 
 
 def bench_baseline(args, dev, g, cams, held, held_orig, bg, images) -> dict:
@@ -328,6 +368,7 @@ def main() -> int:
     ap.add_argument("--scan-cpu-images", type=int, default=32)
     ap.add_argument("--profile", type=int, default=0, metavar="STEPS",
                     help="only profile STEPS pool steps of the first setting (torch.profiler; no job is run)")
+    ap.add_argument("--trace", action="store_true", help="with --profile: a Chrome trace of 3 more steps")
     ap.add_argument("--no-photos", action="store_true",
                     help="lego: FGD without the photos (as `gsw fingerprint` on a model folder without --images)")
     ap.add_argument("--budget-s", type=float, default=100.0, help="no new setting after this many seconds of sweep")
