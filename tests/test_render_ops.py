@@ -115,3 +115,42 @@ def test_nonfinite_inputs_are_reported_through_the_op() -> None:
     with pytest.raises(_ops.NonFiniteInputError, match="means") as info:
         _ops.rasterize(m2d, conics, colors, opac, depths, torch.ones(3), radii, cam.width, cam.height, flags)
     assert info.value.flags == 1
+
+
+def test_eager_calls_skip_the_dispatch_with_the_same_results(monkeypatch) -> None:
+    """A render on plain tensors runs the ops' implementations in a plain autograd function (no custom-op dispatch):
+    image, depth and every gradient equal the dispatched op's bit for bit; traced calls keep the op."""
+    g, cam = _scene(n=80, degree=2)
+
+    def render_and_grads():
+        leaves = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits,
+                                                                g.sh)]
+        out = rasterize(Gaussians(*leaves), cam, background=torch.tensor([0.2, 0.3, 0.4]))
+        (out.image.square().sum() + out.depth.mean() + out.alpha.sum()).backward()
+        return [out.image, out.depth, *[t.grad for t in leaves]]
+
+    ops_called = []
+    for name in ("project", "rasterize"):
+        op = getattr(_ops, name)
+        monkeypatch.setitem(_ops._EAGER, op, (lambda f, n: lambda *a: ops_called.append(n) or f(*a))(
+            _ops._EAGER[op], name))
+    eager = render_and_grads()
+    assert ops_called == ["project", "rasterize"]
+    monkeypatch.setattr(_ops, "_traced", lambda args: True)  # every call through the custom ops
+    dispatched = render_and_grads()
+    assert ops_called == ["project", "rasterize"]  # the eager table was not used again
+    for a, b in zip(eager, dispatched):
+        assert torch.equal(a, b)
+
+
+def test_traced_calls_go_through_the_op() -> None:
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    g, cam = _scene(n=7)
+    real = [_detach(t) for t in _project_args(g, cam)]
+    assert not _ops._traced(tuple(real))
+    with FakeTensorMode() as mode:
+        fake = [mode.from_tensor(t) if isinstance(t, torch.Tensor) else t for t in real]
+        assert _ops._traced(tuple(fake))
+        radii = _ops.call(_ops.project, *fake)[0]
+    assert radii.shape == (7,) and type(radii) is not torch.Tensor  # a fake tensor from the op's fake kernel

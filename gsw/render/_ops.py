@@ -1,8 +1,9 @@
 """The rasterizer kernels as ``torch.library`` custom ops (``gsw::...``), with fake-tensor shapes and autograd.
 
-The autograd wrappers of :mod:`gsw.render.rasterize` call these ops and nothing else, so ``torch.compile`` traces a
-render (and its backward) without graph breaks, eager and compiled runs use the same kernels, and the ops work on
-any device the extension was built for.
+The autograd wrappers of :mod:`gsw.render.rasterize` call these ops through :func:`call` and nothing else, so
+``torch.compile`` traces a render (and its backward) without graph breaks, eager and compiled runs use the same
+kernels, and the ops work on any device the extension was built for. Eager calls on plain tensors skip the
+custom-op dispatch (:func:`call`: the op's own implementation, setup and backward in a plain autograd function).
 
 Ops:
 
@@ -26,7 +27,7 @@ from torch import Tensor
 
 from gsw._ext import _C
 
-__all__ = ["NonFiniteInputError", "bins", "contribution", "project", "rasterize", "restore_bins"]
+__all__ = ["NonFiniteInputError", "bins", "call", "contribution", "project", "rasterize", "restore_bins"]
 
 
 class NonFiniteInputError(ValueError):
@@ -52,10 +53,9 @@ def _c(t: Tensor) -> Tensor:
 
 # ----------------------------------------------------------------------------------------------- projection
 
-@torch.library.custom_op("gsw::project", mutates_args=())
-def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor, sh_degree: int,
-            viewmat: Tensor, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-            check_finite: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _project_impl(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
+                  sh_degree: int, viewmat: Tensor, fx: float, fy: float, cx: float, cy: float, width: int,
+                  height: int, check_finite: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """EWA projection + SH colour: (radii [N] int32, means2d [N,2], conics [N,3], depths [N], colors [N,3],
     opacities [N], nonfinite [1] int32 flags (zero unless ``check_finite``))."""
     flags = torch.zeros(1, dtype=torch.int32, device=means.device)
@@ -63,6 +63,9 @@ def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Te
                              viewmat=viewmat.detach(), fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height,
                              nonfinite=flags if check_finite else None)
     return (*out, flags)
+
+
+project = torch.library.custom_op("gsw::project", mutates_args=())(_project_impl)
 
 
 @project.register_fake
@@ -74,18 +77,20 @@ def _(means, quats, log_scales, opacity_logits, sh, sh_degree, viewmat, fx, fy, 
             new((1,), dtype=torch.int32))
 
 
-@torch.library.custom_op("gsw::project_backward", mutates_args=())
-def project_backward(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
-                     sh_degree: int, viewmat: Tensor, fx: float, fy: float, cx: float, cy: float, width: int,
-                     height: int, radii: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, v_means2d: Tensor,
-                     v_conics: Tensor, v_depths: Tensor, v_colors: Tensor, v_opacities: Tensor
-                     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _project_backward_impl(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
+                           sh_degree: int, viewmat: Tensor, fx: float, fy: float, cx: float, cy: float, width: int,
+                           height: int, radii: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor,
+                           v_means2d: Tensor, v_conics: Tensor, v_depths: Tensor, v_colors: Tensor,
+                           v_opacities: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """VJP of ``gsw::project``: (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh)."""
     return tuple(_C.project_backward(
         _c(means), _c(quats), _c(log_scales), _c(opacity_logits), _c(sh), sh_degree=sh_degree,
         viewmat=viewmat.detach(), fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, radii=_c(radii),
         conics=_c(conics), colors=_c(colors), opacities=_c(opacities), v_means2d=_c(v_means2d),
         v_conics=_c(v_conics), v_depths=_c(v_depths), v_colors=_c(v_colors), v_opacities=_c(v_opacities)))
+
+
+project_backward = torch.library.custom_op("gsw::project_backward", mutates_args=())(_project_backward_impl)
 
 
 @project_backward.register_fake
@@ -106,8 +111,8 @@ def _project_backward(ctx, _v_radii, v_means2d, v_conics, v_depths, v_colors, v_
     means, quats, log_scales, opacity_logits, sh, viewmat, radii, conics, colors, opacities = ctx.saved_tensors
     z = torch.zeros_like
     a = ctx.args
-    grads = project_backward(
-        means, quats, log_scales, opacity_logits, sh, a["sh_degree"], viewmat, a["fx"], a["fy"], a["cx"], a["cy"],
+    grads = call(
+        project_backward, means, quats, log_scales, opacity_logits, sh, a["sh_degree"], viewmat, a["fx"], a["fy"], a["cx"], a["cy"],
         a["width"], a["height"], radii, conics, colors, opacities,
         *(g if g is not None else z(like) for g, like in ((v_means2d, means[:, :2]), (v_conics, conics),
                                                          (v_depths, opacities), (v_colors, colors),
@@ -144,10 +149,9 @@ def restore_bins(means2d: Tensor, width: int, height: int, tile_offsets: Tensor,
     return b
 
 
-@torch.library.custom_op("gsw::rasterize", mutates_args=())
-def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor, background: Tensor,
-              radii: Tensor, width: int, height: int, nonfinite: Tensor | None
-              ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _rasterize_impl(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
+                    background: Tensor, radii: Tensor, width: int, height: int, nonfinite: Tensor | None
+                    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Binning + front-to-back blending: (image [3,H,W], alpha [1,H,W], depth [1,H,W], final_T [H,W],
     n_contrib [H,W] int32, then the bins: tile_offsets [tiles+1], gauss_ids [M], entry_offsets [N+1],
     entry_slots [M], all int32, M the data-dependent number of tile intersections). Raises
@@ -157,6 +161,9 @@ def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor
     out = _C.rasterize_forward(_c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths), _c(background),
                                bins=b, width=width, height=height)
     return (*out, *(getattr(b, name) for name in BIN_FIELDS))
+
+
+rasterize = torch.library.custom_op("gsw::rasterize", mutates_args=())(_rasterize_impl)
 
 
 @rasterize.register_fake
@@ -170,18 +177,20 @@ def _(means2d, conics, colors, opacities, depths, background, radii, width, heig
             new((means2d.shape[0] + 1,), **i32), new((m,), **i32))
 
 
-@torch.library.custom_op("gsw::rasterize_backward", mutates_args=())
-def rasterize_backward(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
-                       background: Tensor, width: int, height: int, final_T: Tensor, n_contrib: Tensor,
-                       tile_offsets: Tensor, gauss_ids: Tensor, entry_offsets: Tensor, entry_slots: Tensor,
-                       v_image: Tensor, v_alpha: Tensor | None, v_depth: Tensor | None
-                       ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _rasterize_backward_impl(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
+                             background: Tensor, width: int, height: int, final_T: Tensor, n_contrib: Tensor,
+                             tile_offsets: Tensor, gauss_ids: Tensor, entry_offsets: Tensor, entry_slots: Tensor,
+                             v_image: Tensor, v_alpha: Tensor | None, v_depth: Tensor | None
+                             ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """VJP of ``gsw::rasterize`` on its bins: (v_means2d, v_conics, v_colors, v_opacities, v_depths)."""
     b = restore_bins(means2d, width, height, tile_offsets, gauss_ids, entry_offsets, entry_slots)
     return tuple(_C.rasterize_backward(
         _c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths), _c(background), bins=b, width=width,
         height=height, final_T=_c(final_T), n_contrib=_c(n_contrib), v_image=_c(v_image),
         v_alpha=None if v_alpha is None else _c(v_alpha), v_depth=None if v_depth is None else _c(v_depth)))
+
+
+rasterize_backward = torch.library.custom_op("gsw::rasterize_backward", mutates_args=())(_rasterize_backward_impl)
 
 
 @rasterize_backward.register_fake
@@ -205,8 +214,8 @@ def _rasterize_backward(ctx, v_image, v_alpha, v_depth, *_v_rest):
     width, height = ctx.size
     if v_image is None:
         v_image = means2d.new_zeros((3, height, width))
-    grads = rasterize_backward(means2d, conics, colors, opacities, depths, background, width, height, final_T,
-                               *saved, v_image, v_alpha, v_depth)
+    grads = call(rasterize_backward, means2d, conics, colors, opacities, depths, background, width, height,
+                 final_T, *saved, v_image, v_alpha, v_depth)
     v_background = None
     if ctx.needs_input_grad[5]:
         v_background = (v_image * final_T.unsqueeze(0)).sum(dim=(1, 2))
@@ -218,16 +227,68 @@ rasterize.register_autograd(_rasterize_backward, setup_context=_rasterize_setup)
 
 # ----------------------------------------------------------------------------------------------- contribution
 
-@torch.library.custom_op("gsw::contribution", mutates_args=())
-def contribution(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor, weights: Tensor,
-                 width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+def _contribution_impl(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
+                       weights: Tensor, width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
     """Binning + per-Gaussian weighted blending weights: (values [N, C], hits [N] int32, max_weight [N])."""
     b = bins(means2d, conics, opacities, radii, depths, width, height)
     return tuple(_C.contribution(_c(means2d), _c(conics), _c(opacities), bins=b, width=width, height=height,
                                  weights=_c(weights)))
 
 
+contribution = torch.library.custom_op("gsw::contribution", mutates_args=())(_contribution_impl)
+
+
 @contribution.register_fake
 def _(means2d, conics, opacities, depths, radii, weights, width, height):
     n, c = means2d.shape[0], weights.shape[0]
     return (means2d.new_empty((n, c)), means2d.new_empty((n,), dtype=torch.int32), means2d.new_empty((n,)))
+
+
+# ----------------------------------------------------------------------------------------------- eager calls
+
+def _autograd_function(impl, setup, backward):
+    """A plain ``torch.autograd.Function`` around an op's implementation, ``setup_context`` and backward: the very
+    functions the custom op registers, without its dispatch."""
+
+    class EagerOp(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, *args):
+            out = impl(*args)
+            setup(ctx, args, out)
+            return out
+
+        @staticmethod
+        def backward(ctx, *grads):
+            return backward(ctx, *grads)
+
+    return EagerOp.apply
+
+
+_EAGER = {
+    project: _autograd_function(_project_impl, _project_setup, _project_backward),
+    rasterize: _autograd_function(_rasterize_impl, _rasterize_setup, _rasterize_backward),
+    project_backward: _project_backward_impl,  # called inside backward passes: no gradient of their own
+    rasterize_backward: _rasterize_backward_impl,
+    contribution: _contribution_impl,  # inputs detached: no gradient
+}
+
+
+def _traced(args: tuple) -> bool:
+    """Whether a call must go through the custom op: under ``torch.compile``, a dispatch mode (fake tensors, AOT
+    autograd's tracing) or a functorch transform, or with tensor subclasses."""
+    if torch.compiler.is_compiling() or torch._C._len_torch_dispatch_stack() > 0:
+        return True
+    return any(isinstance(a, Tensor) and (type(a) is not Tensor and not isinstance(a, torch.nn.Parameter)
+                                          or torch._C._functorch.is_functorch_wrapped_tensor(a)) for a in args)
+
+
+def call(op, *args):
+    """Runs one of this module's ops on ``args`` (positional, as its schema).
+
+    Eager calls on plain tensors go through :data:`_EAGER`: the op's own implementation, ``setup_context`` and
+    backward in a plain ``torch.autograd.Function`` (the same kernels and the same gradients, bit for bit), which
+    saves the custom-op dispatch: ~0.85 ms of host time per render and its backward on a 2-core CPU
+    (BENCHMARKS.md, "Fifth GPU round"). Traced calls (:func:`_traced`) go through the op itself, so that
+    ``torch.compile`` captures it whole.
+    """
+    return op(*args) if _traced(args) else _EAGER[op](*args)

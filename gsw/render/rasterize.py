@@ -94,9 +94,9 @@ def project(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Te
         The :class:`Projection`.
     """
     cam = _camera_args(camera)
-    radii, means2d, conics, depths, colors, opacities, flags = _ops.project(
-        means, quats, log_scales, opacity_logits, sh, int(sh_degree), cam["viewmat"], cam["fx"], cam["fy"],
-        cam["cx"], cam["cy"], cam["width"], cam["height"], bool(check_finite))
+    radii, means2d, conics, depths, colors, opacities, flags = _ops.call(
+        _ops.project, means, quats, log_scales, opacity_logits, sh, int(sh_degree), cam["viewmat"], cam["fx"],
+        cam["fy"], cam["cx"], cam["cy"], cam["width"], cam["height"], bool(check_finite))
     return Projection(means2d, conics, depths, colors, opacities, radii, nonfinite=flags if check_finite else None)
 
 
@@ -146,8 +146,8 @@ def blend(proj: Projection, width: int, height: int,
 
 def _blend(proj: Projection, width: int, height: int, background: Tensor) -> tuple[Tensor, ...]:
     """:func:`blend`'s outputs followed by the bin tensors (see :func:`gsw.render._ops.rasterize`)."""
-    return _ops.rasterize(proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths, background,
-                          proj.radii, int(width), int(height), proj.nonfinite)
+    return _ops.call(_ops.rasterize, proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths,
+                     background, proj.radii, int(width), int(height), proj.nonfinite)
 
 
 @dataclass
@@ -290,9 +290,9 @@ class ContributionOutput:
 def contribution_from_projection(proj: Projection, weights: Tensor, width: int, height: int) -> ContributionOutput:
     """Per-Gaussian contribution (see :func:`contribution`) for an already projected view (no gradient)."""
     w = weights.detach().to(proj.means2d.dtype)
-    values, hits, max_weight = _ops.contribution(proj.means2d.detach(), proj.conics.detach(),
-                                                 proj.opacities.detach(), proj.depths.detach(), proj.radii, w,
-                                                 int(width), int(height))
+    values, hits, max_weight = _ops.call(_ops.contribution, proj.means2d.detach(), proj.conics.detach(),
+                                         proj.opacities.detach(), proj.depths.detach(), proj.radii, w, int(width),
+                                         int(height))
     return ContributionOutput(values, hits, max_weight, proj.radii)
 
 
