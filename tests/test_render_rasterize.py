@@ -600,3 +600,24 @@ def test_ellipse_binning_changes_no_pixel_and_no_gradient(family: str, dtype: to
     assert float(outs_e[1].max()) > 0.5
     for a, b in zip(outs_e + grads_e, outs_r + grads_r):
         assert torch.equal(a, b)
+
+
+def test_a_background_given_as_numbers_is_made_once_per_device_and_dtype() -> None:
+    """Numbers (or None) become one cached tensor per value, dtype and device (no host-to-device copy per render on
+    CUDA); a cached background made under inference mode still serves a render with gradients."""
+    from gsw.render.rasterize import _background
+
+    like = torch.zeros(2)
+    a, b = _background((1, 0.5, 0), like), _background([1.0, 0.5, 0.0], like)
+    assert a is b and torch.equal(a, torch.tensor([1.0, 0.5, 0.0]))
+    assert _background(None, like) is _background((0, 0, 0), like)
+    assert _background((1, 0.5, 0), like.double()).dtype == torch.float64
+    with torch.inference_mode():
+        _background((0.25, 0.25, 0.25), like)
+    g = random_gaussians(20, seed=3)
+    g.sh.requires_grad_()
+    cam = Camera.look_at((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 0.9, 12, 10)
+    rasterize(g, cam, background=(0.25, 0.25, 0.25)).image.sum().backward()
+    assert g.sh.grad is not None
+    with pytest.raises(ValueError, match="3 numbers"):
+        _background("white", like)

@@ -20,7 +20,7 @@ y down, z forward); 2-D means are pixels in the `K p` frame, pixel (i, j) has it
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -206,12 +206,29 @@ class RenderOutput:
 
 
 def _background(background: Tensor | tuple[float, float, float] | None, like: Tensor) -> Tensor:
-    if background is None:
-        return torch.zeros(3, dtype=like.dtype, device=like.device)
-    bg = torch.as_tensor(background, dtype=like.dtype, device=like.device)
+    if isinstance(background, Tensor):
+        bg = background.to(dtype=like.dtype, device=like.device)
+    else:
+        try:
+            values = (0.0, 0.0, 0.0) if background is None else tuple(float(v) for v in background)
+        except (TypeError, ValueError):
+            raise ValueError(f"background must be 3 numbers or a [3] tensor, got {background!r}") from None
+        if torch.compiler.is_compiling():  # traced: a constant of the graph
+            bg = torch.tensor(values, dtype=like.dtype, device=like.device)
+        else:
+            bg = _constant_background(values, like.dtype, like.device)
     if bg.shape != (3,):
         raise ValueError(f"background must have shape [3], got {list(bg.shape)}")
     return bg
+
+
+@lru_cache(maxsize=64)
+def _constant_background(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """A background given as numbers, made on the device once: a host-to-device copy of a new tensor waits for the
+    device (a synchronisation per render; the pool renders 16 views per step). Read-only by convention; made outside
+    any inference mode, so that later renders with gradients may save it."""
+    with torch.inference_mode(False):
+        return torch.tensor(values, dtype=dtype, device=device)
 
 
 def _resolve_sh_degree(gaussians: Gaussians, sh_degree: int | None) -> int:
