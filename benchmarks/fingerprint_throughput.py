@@ -14,9 +14,10 @@ its mean held-out bit accuracy is >= 99 % and its mean held-out PSNR >= 37 dB.
 A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (recipients), ``epochs`` (step
 cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
 :meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``) and ``freeze`` (comma-separated parameter
-groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``). The JSON (``--out``/``<tag>.json``)
-is rewritten after every setting; ``--budget-s`` stops starting new settings. ``--scan-only MARKS`` only
-times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of the unmarked model.
+groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``). The JSON
+(``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
+``--scan-only MARKS`` only times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of
+the unmarked model.
 
 Usage (lego on one GPU, ~4.5 min with the training; the lego photos in ``--data``):
     python benchmarks/fingerprint_throughput.py --scene lego --data DIR --train-seconds 60 --device cuda --out OUT
@@ -192,7 +193,8 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,
-               lpips=setting["lpips"], freeze=setting["freeze"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
+               lpips=setting["lpips"], freeze=setting["freeze"],
+               early_stop=None if setting["stop"] is None else vars(setting["stop"]),
                setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
                recipients_per_hour=3600 * len(rows) / fine,
                ms_per_recipient_step=1000 * fine / max(1, sum(r["steps"] or 0 for r in rows)),

@@ -22,7 +22,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["ConvBNAct", "HiddenEncoder", "HiddenDecoder", "bits_from_logits", "fold_batchnorm", "bit_accuracy", "scale_to_psnr"]
+__all__ = ["ConvBNAct", "HiddenEncoder", "HiddenDecoder", "bits_from_logits", "fold_batchnorm", "bit_accuracy",
+           "scale_to_psnr"]
 
 
 class ConvBNAct(nn.Sequential):

@@ -112,8 +112,8 @@ def _project_backward(ctx, _v_radii, v_means2d, v_conics, v_depths, v_colors, v_
     z = torch.zeros_like
     a = ctx.args
     grads = call(
-        project_backward, means, quats, log_scales, opacity_logits, sh, a["sh_degree"], viewmat, a["fx"], a["fy"], a["cx"], a["cy"],
-        a["width"], a["height"], radii, conics, colors, opacities,
+        project_backward, means, quats, log_scales, opacity_logits, sh, a["sh_degree"], viewmat, a["fx"], a["fy"],
+        a["cx"], a["cy"], a["width"], a["height"], radii, conics, colors, opacities,
         *(g if g is not None else z(like) for g, like in ((v_means2d, means[:, :2]), (v_conics, conics),
                                                          (v_depths, opacities), (v_colors, colors),
                                                          (v_opacities, opacities))))
