@@ -1,18 +1,20 @@
-"""The pool's loss pass (#26), A/B in one process: what the LPIPS references and the channels-last layout buy.
+"""The pool's loss pass (#26), A/B in one process: what the references made once per view buy.
 
 Times forward + backward of :func:`gsw.fingerprint.batched.batched_loss` (wavelets, decoder, LPIPS, message BCE)
-for K renders of H x W that require grad, the rasteriser left out, under four rules:
+for K renders of H x W that require grad, the rasteriser left out, under these rules:
 
 * ``joint``: LPIPS on one batch of renders and references with the backward through both halves (the pool up to
   commit a0e4a46: ``torch.cat([x, y])`` put the references into the graph);
-* ``split``: the references' features without gradient, recomputed per call (``LPIPS.forward`` now);
-* ``cached``: the references' features made once (:meth:`gsw.fingerprint.shared.WorkerScene.lpips_references`);
-* ``cached+nhwc``: the same with the decoder and LPIPS in channels-last memory (the pool on CUDA now);
-* ``cached+nhwc+bf16`` (CUDA only, not used by gsw): the decoder and LPIPS under bfloat16 autocast, the wavelet
-  and pixel terms in float32: what mixed precision would buy, and how far its gradient moves.
+* ``split``: the references' LPIPS features without gradient, recomputed per call (``LPIPS.forward`` now);
+* ``cached``: :class:`gsw.fingerprint.batched.References` made once: the references' LPIPS features and wavelet
+  details, so one transform of the renders serves the decoder and the subband term;
+* ``cached+fold``: the same with the decoder's BatchNorms folded into its convolutions (the pool now);
+* ``cached+fold+bf16`` (CUDA only, not used by gsw): the decoder and LPIPS under bfloat16 autocast, the wavelet and
+  pixel terms in float32: what mixed precision would buy, and how far its gradient moves.
 
-Each rule: ``--warmup`` passes, then the median of ``--repeats`` timed passes (CUDA events around each pass),
-and the largest difference of its loss / render gradient from ``joint``'s.
+(The first GPU run, ``pool_loss_ab_h200.json``, had ``cached`` with the LPIPS features only and a channels-last
+rule, since dropped.) Each rule: ``--warmup`` passes, then the median of ``--repeats`` timed passes (CUDA events
+around each pass), and the largest difference of its loss / render gradient from ``joint``'s.
 
     python benchmarks/pool_loss_ab.py --device cuda --k 16 --size 800 --out benchmarks/results/pool_loss_ab_h200.json
 """
@@ -50,7 +52,9 @@ def main() -> None:
     args = ap.parse_args()
 
     from gsw.decoder.zoo import load_decoder
-    from gsw.fingerprint.batched import batched_loss
+    from gsw.decoder.dwt import dwt2
+    from gsw.decoder.hidden import fold_batchnorm
+    from gsw.fingerprint.batched import References, batched_loss
     from gsw.mark.loss import LossWeights, WatermarkLoss, lpips_weights
 
     dev = torch.device(args.device)
@@ -78,9 +82,10 @@ def main() -> None:
             except AttributeError:
                 return getattr(self.module, name)
 
-    def make_loss(layout, bf16=False):
-        loss = WatermarkLoss(load_decoder(args.bits), lpips_weights(args.lpips, LossWeights()), args.lpips).to(dev)
-        loss = loss.to(memory_format=layout)
+    def make_loss(fold=False, bf16=False):
+        decoder = load_decoder(args.bits).eval()
+        decoder = fold_batchnorm(decoder) if fold else decoder
+        loss = WatermarkLoss(decoder, lpips_weights(args.lpips, LossWeights()), args.lpips).to(dev)
         if bf16:
             loss.decoder = Autocast(loss.decoder)
             lp = loss.lpips
@@ -92,13 +97,13 @@ def main() -> None:
             torch.cuda.synchronize(dev)
 
     rules = {}
-    variants = [("joint", torch.contiguous_format), ("split", torch.contiguous_format),
-                ("cached", torch.contiguous_format), ("cached+nhwc", torch.channels_last)]
-    if dev.type == "cuda":
-        variants.append(("cached+nhwc+bf16", torch.channels_last))
-    for name, layout in variants:
-        loss = make_loss(layout, bf16=name.endswith("bf16"))
-        refs = loss.lpips.references(originals) if name.startswith("cached") else None
+    variants = ["joint", "split", "cached", "cached+fold"] + (["cached+fold+bf16"] if dev.type == "cuda" else [])
+    for name in variants:
+        loss = make_loss(fold="fold" in name, bf16=name.endswith("bf16"))
+        refs = None
+        if name.startswith("cached"):
+            with torch.no_grad():
+                refs = References(dwt2(originals)[1], loss.lpips.references(originals))
 
         def one_pass():
             r = renders0.clone().requires_grad_(True)

@@ -34,6 +34,18 @@ def test_batched_loss_is_the_sum_of_the_single_losses(lpips_net) -> None:
     assert torch.allclose(total, sum(p[0] for p in parts).detach(), rtol=1e-5)
     assert torch.allclose(logits, torch.stack([p[2] for p in parts]), rtol=1e-4, atol=1e-3)  # batched convs
     assert torch.allclose(renders.grad, single.grad, rtol=1e-3, atol=1e-6)
+    # with the references made once (one wavelet transform of the renders, the references' LPIPS features)
+    from gsw.decoder.dwt import dwt2
+    from gsw.fingerprint.batched import References
+
+    originals = original[None].expand(3, -1, -1, -1)
+    refs = References(dwt2(originals)[1], None if loss.lpips is None else loss.lpips.references(originals))
+    again = renders.detach().clone().requires_grad_()
+    total_refs, logits_refs = batched_loss(loss, again, original, messages, references=refs)
+    total_refs.backward()
+    torch.testing.assert_close(total_refs, total.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(logits_refs, logits, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(again.grad, renders.grad, rtol=1e-3, atol=1e-6)  # L1 signs at ~0 may differ
 
 
 def test_stacked_parameters_start_from_the_model() -> None:

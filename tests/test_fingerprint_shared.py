@@ -62,23 +62,29 @@ def test_a_warmed_worker_uses_its_parts_for_that_job_only() -> None:
     assert all(torch.equal(a, b) for a, b in zip(wc.originals, originals))
 
 
-def test_lpips_references_are_made_once_per_view(monkeypatch) -> None:
-    """The pool's LPIPS references are the features of each view's original render, made once per view while
-    they fit the budget, and recomputed per call beyond it."""
+def test_references_are_made_once_per_view(monkeypatch) -> None:
+    """The pool's references are the wavelet details and LPIPS features of each view's original render, made once
+    per view while they fit the budget, and made again per call beyond it."""
+    from gsw.decoder.dwt import dwt2
+
     sc = default_scene(width=32, height=32, n_cameras=3, detail=0.2, seed=0)
     cfg = pool_config(epochs=1, background=tuple(float(v) for v in sc.background))
     ws = worker_scene(prepare_scene(sc.gaussians, sc.cameras, config=cfg), "cpu")
     lp = ws.loss.lpips
     calls = []
     monkeypatch.setattr(lp, "references", lambda y: calls.append(1) or type(lp).references(lp, y))
-    refs = ws.lpips_references([2, 0, 2])
-    for got, want in zip(refs, lp.references(torch.stack([ws.originals[v] for v in (2, 0, 2)]))):
+    refs = ws.references([2, 0, 2])
+    stacked = torch.stack([ws.originals[v] for v in (2, 0, 2)])
+    for got, want in zip(refs.lpips, lp.references(stacked)):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-7)
-    ws.lpips_references([0, 1])
+    for got, want in zip(refs.highs, dwt2(stacked)[1]):
+        for a, b in zip(got, want):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+    ws.references([0, 1])
     assert len(calls) == 1 + 2 + 1  # the check above, views 2 and 0, then view 1 only
     monkeypatch.setattr(shared_module, "REFERENCE_BYTES", 0)
     ws._references.clear()
     calls.clear()
-    ws.lpips_references([1])
-    ws.lpips_references([1])
+    ws.references([1])
+    ws.references([1])
     assert len(calls) == 2 and not ws._references

@@ -29,7 +29,8 @@ from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, final_scores, paper_config
 
-__all__ = ["POOL_LPIPS", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch", "pool_config"]
+__all__ = ["POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch",
+           "pool_config"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
 
@@ -167,9 +168,24 @@ class SlotParams:
             p.grad = None
 
 
+@dataclass
+class References:
+    """What the loss compares the renders of some views with, made once from those views' original renders.
+
+    Attributes:
+        highs: the wavelet detail subbands of the original renders (``gsw.decoder.dwt.dwt2(originals)[1]``: per
+            level ``(LH, HL, HH)``, each [B, 3, h, w]).
+        lpips: their LPIPS features (:meth:`gsw.metrics.lpips.LPIPS.references`, one [B, C, h, w] per tap), or
+            None without an LPIPS term.
+    """
+
+    highs: list[tuple[Tensor, Tensor, Tensor]]
+    lpips: list[Tensor] | None = None
+
+
 def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messages: Tensor,
                  decoded: Tensor | None = None, message_weights: Tensor | None = None,
-                 references: list[Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                 references: References | None = None) -> tuple[Tensor, Tensor]:
     """The sum over recipients of :class:`gsw.mark.loss.WatermarkLoss`, computed in one batched pass.
 
     Args:
@@ -179,8 +195,10 @@ def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messa
         messages: [K, k] the recipients' bits.
         decoded: optional [K, 3, H', W'] images to decode instead of ``renders`` (attacked copies).
         message_weights: optional [K] per-recipient message weights (default: the loss's weight).
-        references: optional LPIPS features of ``original`` (:meth:`gsw.metrics.lpips.LPIPS.references`, batch K
-            or 1), when they are at hand (:meth:`gsw.fingerprint.shared.WorkerScene.lpips_references`).
+        references: optional :class:`References` of ``original`` (batch K), when they are at hand
+            (:meth:`gsw.fingerprint.shared.WorkerScene.references`): then one wavelet transform of the renders
+            gives the decoder input and the subbands (compared with the references'), and LPIPS uses the
+            references' features.
 
     Returns:
         (the summed loss, [K, k] decoder logits).
@@ -191,17 +209,23 @@ def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messa
 
     w = loss.weights
     target = original.expand_as(renders)
-    logits = loss.decoder(ll_subband(renders if decoded is None else decoded))
     diff = renders - target
-    # per recipient: the terms of WatermarkLoss (the DWT is linear: the subbands of the difference)
+    if references is None:
+        logits = loss.decoder(ll_subband(renders if decoded is None else decoded))
+        details = [band for level in dwt2(diff)[1] for band in level]  # the DWT is linear: the difference's
+    else:  # one transform of the renders: their LL is the decoder input, their details minus the references'
+        ll, highs = dwt2(renders)
+        logits = loss.decoder(ll if decoded is None else ll_subband(decoded))
+        details = [band - ref for level, refs in zip(highs, references.highs) for band, ref in zip(level, refs)]
+    # per recipient: the terms of WatermarkLoss
     per = w.l1 * diff.abs().mean(dim=(1, 2, 3))
-    per = per + w.subband * sum(band.abs().mean(dim=(1, 2, 3)) for level in dwt2(diff)[1] for band in level)
+    per = per + w.subband * sum(d.abs().mean(dim=(1, 2, 3)) for d in details)
     bce = F.binary_cross_entropy_with_logits(logits * loss.logit_scale, messages.to(logits),
                                              reduction="none").mean(dim=1)
     per = per + (w.message * bce if message_weights is None else message_weights * bce)
     if loss.lpips is not None:
-        per = per + w.lpips * (loss.lpips(renders, target) if references is None
-                               else loss.lpips.distance(renders, references))
+        per = per + w.lpips * (loss.lpips(renders, target) if references is None or references.lpips is None
+                               else loss.lpips.distance(renders, references.lpips))
     return per.sum(), logits
 
 
@@ -336,7 +360,7 @@ class _Pool:
                 t = torch.stack([targets[i] for i in g])
                 d = None if self.attacks is None else torch.stack([decoded[i] for i in g])
                 idx, msgs = self._indices(tuple(slots[i] for i in g))
-                refs = self.scene.lpips_references([views[i] for i in g])
+                refs = self.scene.references([views[i] for i in g])
                 part, logits = batched_loss(self.scene.loss, r, t, msgs, d, self.monitor.weights[idx], refs)
                 self.monitor.observe(idx, logits, msgs, r, t)
                 total = total + part

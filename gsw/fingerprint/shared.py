@@ -20,7 +20,7 @@ from torch import Tensor
 
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
-from gsw.fingerprint.batched import check_pool_config, pool_config
+from gsw.fingerprint.batched import References, check_pool_config, pool_config
 from gsw.mark.embed import EmbedConfig, prepare_embedding
 
 __all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "warm_worker", "worker_scene"]
@@ -142,30 +142,39 @@ class WorkerScene:
     originals: list[Tensor]
     loss: torch.nn.Module
     warm_s: float = 0.0
-    _references: dict[int, list[Tensor]] = field(default_factory=dict, repr=False)
+    _references: dict[int, References] = field(default_factory=dict, repr=False)
 
-    def lpips_references(self, views: Sequence[int]) -> list[Tensor] | None:
-        """The LPIPS features (:meth:`gsw.metrics.lpips.LPIPS.references`) of ``views``' original renders, stacked in
-        the order given: one [len(views), C, h, w] tensor per tap; None without an LPIPS term.
+    def references(self, views: Sequence[int]) -> References:
+        """The loss's :class:`~gsw.fingerprint.batched.References` of ``views``' original renders, stacked in the
+        order given: their wavelet detail subbands and LPIPS features (:meth:`gsw.metrics.lpips.LPIPS.references`;
+        None without an LPIPS term).
 
-        Each view's features are computed once and kept while all views' features fit in
-        :data:`REFERENCE_BYTES` (AlexNet at 800x800: ~26 MB per view); beyond that they are recomputed per call.
+        Each view's are made once and kept while all views' fit in :data:`REFERENCE_BYTES` (800x800 with
+        AlexNet: ~33 MB per view); beyond that they are made again per call.
         """
-        lpips = self.loss.lpips
-        if lpips is None:
-            return None
         per_view = []
         for v in views:
-            feats = self._references.get(v)
-            if feats is None:
-                feats = lpips.references(self.originals[v][None])
-                if sum(f.numel() * f.element_size() for f in feats) * len(self.originals) <= REFERENCE_BYTES:
-                    self._references[v] = feats
-            per_view.append(feats)
-        return [torch.cat(taps) for taps in zip(*per_view)]
+            refs = self._references.get(v)
+            if refs is None:
+                refs = self._view_references(v)
+                held = [t for level in refs.highs for t in level] + (refs.lpips or [])
+                if sum(t.numel() * t.element_size() for t in held) * len(self.originals) <= REFERENCE_BYTES:
+                    self._references[v] = refs
+            per_view.append(refs)
+        highs = [tuple(torch.cat(bands) for bands in zip(*levels)) for levels in zip(*(r.highs for r in per_view))]
+        lpips = None if per_view[0].lpips is None else [torch.cat(taps) for taps in zip(*(r.lpips for r in per_view))]
+        return References(highs, lpips)
+
+    @torch.no_grad()
+    def _view_references(self, v: int) -> References:
+        from gsw.decoder.dwt import dwt2
+
+        image = self.originals[v][None]
+        lpips = self.loss.lpips
+        return References(dwt2(image)[1], None if lpips is None else lpips.references(image))
 
 
-#: Most bytes of LPIPS reference features a :class:`WorkerScene` keeps for all its views.
+#: Most bytes of :class:`~gsw.fingerprint.batched.References` a :class:`WorkerScene` keeps for all its views.
 REFERENCE_BYTES = 4 << 30
 
 _CACHE: dict[tuple[str, str], WorkerScene] = {}
