@@ -205,6 +205,7 @@ def _optimise(run: _Run, active_sh: int, progress: bool) -> tuple[int, list[dict
     ema_loss: Tensor | None = None
     ema_psnr: Tensor | None = None
     bar = Progress(cfg.iterations, "train", enabled=progress)
+    background = run.bg.to(device)  # once: a host-to-device copy per render would synchronise every iteration
     t_loop = time.perf_counter()
     for it in range(1, cfg.iterations + 1):
         state.opt.set_lr("means", _position_lr(it, cfg, run.extent))
@@ -214,7 +215,7 @@ def _optimise(run: _Run, active_sh: int, progress: bool) -> tuple[int, list[dict
             order = torch.randperm(len(run.cams), generator=gen).tolist()
         vi = order.pop()
         cam, gt = run.cams[vi], run.images[vi]
-        out = rasterize(state.gaussians(), cam, sh_degree=active_sh, background=run.bg,
+        out = rasterize(state.gaussians(), cam, sh_degree=active_sh, background=background,
                         validate=device.type == "cpu" or it % cfg.log_interval == 0)
         out.means2d.retain_grad()
         img = out.image
