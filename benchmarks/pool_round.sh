@@ -12,7 +12,10 @@
 #      and freeze=f_rest;
 #   window (second round, after the folded BatchNorms): lego with the extension, K = 16, without and with
 #      accuracy_window=32 (32 recipients), and K = 32 with it;
-#   window998 (third round): K = 16, 32 recipients, confirm 0.998 with accuracy_window=32.
+#   window998 (third round): K = 16, 32 recipients, confirm 0.998 with accuracy_window=32;
+#   host (next round, after the eager render dispatch, the cached background and one wavelet transform per step):
+#      the loss A/B, a 30-step profile with the device's busy share and a Chrome trace, then the quality preset on
+#      32 recipients (K = 16) and the throughput preset on 16.
 # Set-up, progress and polling as in benchmarks/gpu_round.sh (its header).
 set -uo pipefail
 W=${1:?WORKDIR}
@@ -44,6 +47,11 @@ for s in "${STEPS[@]}"; do
       --tag lego_window ;;
     window998) lego_model; step tp_window998 $TP "${M[@]}" \
       --setting "k=16 n=32 stop=${EX/confirm=0.995/confirm=0.998},accuracy_window=32" --tag lego_window998 ;;
+    host) lego_model
+      step loss_ab python3 benchmarks/pool_loss_ab.py --device cuda --k 16 --size 800 --out "$W/pool_loss_ab.json"
+      step profile $TP "${M[@]}" --setting "k=16 n=16 stop=quality" --profile 30 --trace --tag lego_profile
+      step tp_host $TP "${M[@]}" --setting "k=16 n=32 stop=quality" --setting "k=16 n=16 stop=throughput" \
+        --tag lego_host ;;
     *) log "unknown step $s" ;;
   esac
 done
