@@ -228,6 +228,9 @@ def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
             pool.step()
         _sync(dev)
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+        folder = Path(args.out) if args.out else ROOT / "benchmarks" / "results"
+        folder.mkdir(parents=True, exist_ok=True)
+        stem = args.tag or f"fingerprint_{args.scene}_{dev.type}"
         t0 = time.perf_counter()
         with profile(activities=acts) as prof:
             for _ in range(args.profile):
@@ -235,28 +238,18 @@ def profile_pool(args, dev, g, cams, bg, images, setting: dict) -> dict:
             _sync(dev)
         wall = time.perf_counter() - t0
         if args.trace:
-            import gzip
-            import shutil
-
             with profile(activities=acts) as tprof:
                 for _ in range(3):
                     pool.step()
                 _sync(dev)
-            folder = Path(args.out) if args.out else ROOT / "benchmarks" / "results"
-            raw = folder / f"{args.tag or 'pool'}_trace.json"
-            tprof.export_chrome_trace(str(raw))
-            with open(raw, "rb") as src, gzip.open(str(raw) + ".gz", "wb") as dst:
-                shutil.copyfileobj(src, dst)
-            raw.unlink()
+            tprof.export_chrome_trace(str(folder / f"{stem}_trace.json.gz"))  # gzipped by the suffix
     busy = _device_busy(prof) if dev.type == "cuda" else None
     events = prof.key_averages()
     dev_us = (lambda e: getattr(e, "device_time_total", 0.0)) if dev.type == "cuda" else (lambda e: e.cpu_time_total)
     phases = {e.key: dev_us(e) / 1e3 / args.profile for e in events if e.key.startswith("gsw.pool.")}
     top = sorted((e for e in events if not e.key.startswith("gsw.pool.")), key=dev_us, reverse=True)[:25]
     table = events.table(sort_by="device_time_total" if dev.type == "cuda" else "cpu_time_total", row_limit=40)
-    folder = Path(args.out) if args.out else ROOT / "benchmarks" / "results"
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / f"{args.tag or f'fingerprint_{args.scene}_{dev.type}'}_profile.txt").write_text(table)
+    (folder / f"{stem}_profile.txt").write_text(table)
     out = dict(setting=setting["text"], k=k, steps=args.profile, ms_per_step_wall=1000 * wall / args.profile,
                ms_per_recipient_step_wall=1000 * wall / args.profile / k, phase_device_ms_per_step=phases,
                top_ops_device_ms_per_step={e.key: dev_us(e) / 1e3 / args.profile for e in top},

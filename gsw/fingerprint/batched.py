@@ -224,7 +224,7 @@ def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messa
                                              reduction="none").mean(dim=1)
     per = per + (w.message * bce if message_weights is None else message_weights * bce)
     if loss.lpips is not None:
-        per = per + w.lpips * (loss.lpips(renders, target) if references is None or references.lpips is None
+        per = per + w.lpips * (loss.lpips(renders, target) if references is None
                                else loss.lpips.distance(renders, references.lpips))
     return per.sum(), logits
 
