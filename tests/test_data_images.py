@@ -187,3 +187,40 @@ def test_16_bit_rgb_colour_key_is_rejected_by_name(tmp_path):
     with pytest.raises(ImageError, match="16-bit RGB PNG with a tRNS colour key is not supported"):
         _read(tmp_path, png_bytes(a, 16, 2, trns=struct.pack(">HHH", 256, 256, 256)))
     assert _read(tmp_path, png_bytes(a, 16, 2)).shape == (3, 1, 2)  # without the key: fine
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_to_unit_is_the_float_reader_bitwise(device):
+    from gsw.data.images import to_unit
+
+    every = torch.arange(256, dtype=torch.uint8, device=device)
+    expected = np.arange(256, dtype=np.uint8).astype(np.float32) / np.float32(255.0)  # read_image's division
+    out = to_unit(every)
+    assert out.dtype == torch.float32 and out.device.type == device
+    assert torch.equal(out.cpu(), torch.from_numpy(expected))
+    floats = torch.tensor([-0.5, 0.25, 1.5], device=device, dtype=torch.float64)
+    assert torch.equal(to_unit(floats).cpu(), torch.tensor([0.0, 0.25, 1.0]))
+
+
+def test_keep_uint8_keeps_8_bit_colour_only(tmp_path):
+    from PIL import Image
+
+    from gsw.data.images import to_unit
+
+    rgba = RNG.integers(0, 256, (6, 5, 4)).astype(np.uint8)
+    for mode, arr, kept in (("RGB", rgba[..., :3], True), ("L", rgba[..., 0], True), ("RGBA", rgba, False),
+                            ("LA", rgba[..., :2], False)):
+        path = tmp_path / f"{mode}.png"
+        Image.fromarray(arr, mode).save(path)
+        as_float, raw = read_image(path), read_image(path, keep_uint8=True)
+        assert raw.dtype == (torch.uint8 if kept else torch.float32), mode
+        assert torch.equal(to_unit(raw) if kept else raw, as_float), mode
+    path = tmp_path / "photo.jpg"
+    Image.fromarray(rgba[..., :3], "RGB").save(path, quality=90)
+    assert torch.equal(to_unit(read_image(path, keep_uint8=True)), read_image(path))
+    sixteen = tmp_path / "16.png"
+    Image.fromarray((RNG.integers(0, 65536, (6, 5))).astype(np.uint16)).save(sixteen)
+    assert read_image(sixteen, keep_uint8=True).dtype == torch.float32  # 16-bit: never cut to 8 bits

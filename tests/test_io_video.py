@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from gsw.data.images import write_image
+from gsw.data.images import to_unit, write_image
 from gsw.io.video import VideoError, is_video, load_images_or_video, load_named_images_or_video, read_video
 
 av = pytest.importorskip("av")
@@ -73,6 +73,10 @@ def test_lossless_video_round_trips_exactly(tmp_path) -> None:
     clip = read_video(path, frames=None)
     for arr, img in zip(frames, clip.images):
         assert torch.equal((img * 255).round().to(torch.uint8).permute(1, 2, 0), torch.from_numpy(arr))
+    raw = read_video(path, frames=None, keep_uint8=True)
+    for arr, img, u8 in zip(frames, clip.images, raw.images):
+        assert u8.dtype == torch.uint8 and u8.is_contiguous()
+        assert torch.equal(u8.permute(1, 2, 0), torch.from_numpy(arr)) and torch.equal(to_unit(u8), img)
 
 
 def test_zero_byte_file(tmp_path) -> None:

@@ -64,6 +64,22 @@ def test_read_images_batches_same_sizes():
         read_images([torch.rand(3, 8, 8), torch.rand(8, 8)], dec)
 
 
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_uint8_images_read_as_their_float_images_bitwise(device):
+    """The scan's readers keep 8-bit images as uint8; mixed with float images of the same shape, the shipped
+    decoder's logits equal those of the float32 images (divided by 255 on the decoder's device)."""
+    from gsw.data.images import to_unit
+    from gsw.decoder.zoo import load_decoder
+
+    raw = [torch.randint(0, 256, (3, 96, 128), dtype=torch.uint8, generator=torch.Generator().manual_seed(i))
+           for i in range(3)]
+    dec = load_decoder(32).to(device).eval()
+    mixed = read_images([raw[0], to_unit(raw[1]), raw[2]], dec)
+    floats = read_images([to_unit(r) for r in raw], dec)
+    for a, b in zip(mixed, floats):
+        assert a.sizes == b.sizes and torch.equal(a.logits, b.logits)
+
+
 def test_scale_search_picks_the_embedding_scale_and_pays_for_the_search():
     img = torch.rand(3, 256, 256)  # a render at 2x the embedding resolution
     s = len(SEARCH_FACTORS)

@@ -13,6 +13,7 @@ import csv
 import io
 import json
 import sys
+import time
 from pathlib import Path
 
 from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, add_resize_images_option,
@@ -118,7 +119,9 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
     early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
     device = resolve_device(args.device)
+    t0 = time.perf_counter()
     g, cams, images = _load_model(args)
+    load_s = time.perf_counter() - t0
     if cams is None:
         raise ValueError(f"{args.input} is a bare model: gsw fingerprint needs its cameras (--cameras cameras.json, "
                          "or an INRIA model folder)")
@@ -128,6 +131,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
                          use_ray=_use_ray(args), address=args.address, gpus_per_task=args.gpus_per_task,
                          max_retries=args.max_retries,
                          progress=not args.no_progress)
+    report.timings["load"] = load_s  # the model folder and its images, before the job
     if args.json:
         print_json(report.to_dict())
         return 0

@@ -22,7 +22,7 @@ from torch import Tensor
 from gsw._atomic import atomic_write
 from gsw.camera import MAX_IMAGE_SIZE
 
-__all__ = ["ImageError", "read_image", "write_image", "resize_image", "composite", "IMAGE_SUFFIXES"]
+__all__ = ["ImageError", "read_image", "write_image", "resize_image", "composite", "to_unit", "IMAGE_SUFFIXES"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
@@ -56,15 +56,19 @@ def _png_colour_key(im, path: Path) -> None:
                          "the top 8 bits of each sample, so the key cannot be matched)")
 
 
-def read_image(path: str | os.PathLike) -> Tensor:
+def read_image(path: str | os.PathLike, *, keep_uint8: bool = False) -> Tensor:
     """Reads an image file (Pillow) at its full range (see the module docstring for the pixel formats).
 
     Args:
         path: a PNG, JPEG or other Pillow-readable file.
+        keep_uint8: return an 8-bit image without alpha as its ``[3, H, W]`` uint8 samples (0..255, a quarter
+            of the memory; ``x.float() / 255`` is bitwise the float32 result) -- for readers that hand
+            images to a GPU. Images with alpha and 16-bit images still come back as float32.
 
     Returns:
-        ``[C, H, W]`` float32 in ``[0, 1]``; ``C = 4`` (RGBA, straight alpha) when the file has an alpha
-        channel or ``tRNS`` transparency, else ``C = 3`` (grayscale is repeated over RGB).
+        ``[C, H, W]`` float32 in ``[0, 1]`` (or uint8, see ``keep_uint8``); ``C = 4`` (RGBA, straight alpha)
+        when the file has an alpha channel or ``tRNS`` transparency, else ``C = 3`` (grayscale is repeated
+        over RGB).
 
     Raises:
         FileNotFoundError: the file does not exist.
@@ -88,7 +92,11 @@ def read_image(path: str | os.PathLike) -> Tensor:
                 arr = _sixteen_bit(im)
             elif im.mode in _EIGHT_BIT:
                 has_alpha = im.mode in _ALPHA_MODES or "transparency" in im.info
-                arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+                arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
+                if has_alpha or not keep_uint8:
+                    arr = arr.astype(np.float32) / np.float32(255.0)
+                elif not arr.flags.writeable:  # torch wants writable memory
+                    arr = arr.copy()
             else:
                 raise ImageError(
                     f"{path}: unsupported pixel format (Pillow mode {im.mode!r}); supported: 8-bit modes "
@@ -146,6 +154,22 @@ def resize_image(image: Tensor, height: int, width: int) -> Tensor:
     else:
         out = F.interpolate(x, size=(height, width), mode="bilinear", align_corners=False, antialias=True)
     return out[0] if squeeze else out
+
+
+def to_unit(image: Tensor) -> Tensor:
+    """A float32 image in ``[0, 1]``: uint8 samples divided by 255 (bitwise :func:`read_image`'s float result, on
+    any device: a tensor divisor, not the reciprocal CUDA multiplies by for a scalar one); float images
+    converted to float32 and clamped to ``[0, 1]``.
+
+    Args:
+        image: ``[..., H, W]`` uint8 or floating-point.
+
+    Returns:
+        ``[..., H, W]`` float32 on the image's device.
+    """
+    if image.dtype == torch.uint8:
+        return image.float() / torch.tensor(255.0, device=image.device)
+    return image.float().clamp(0, 1)
 
 
 def composite(rgba: Tensor, background: Tensor) -> tuple[Tensor, Tensor]:

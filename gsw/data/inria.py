@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple, Sequence
 
@@ -21,7 +22,10 @@ from gsw.data.dataset import Background, DatasetError, _background, _check_downs
 from gsw.data.images import composite, resize_image
 from gsw.gaussians import Gaussians
 
-__all__ = ["InriaModel", "load_inria_model", "save_inria_model"]
+__all__ = ["InriaModel", "READ_THREADS", "load_inria_model", "save_inria_model"]
+
+#: Threads decoding a model folder's source images.
+READ_THREADS = 8
 
 
 class InriaModel(NamedTuple):
@@ -130,21 +134,29 @@ def _load_named_images(images_dir: Path, cameras: Sequence[Camera], downscale: f
         raise DatasetError(f"cameras {unnamed[:10]} have no img_name; cannot match them to image files")
     paths = _find_images(images_dir, [cam.name for cam in cameras], f"images for cameras.json in {images_dir}")
     out, resized = [], []
-    for k, (cam, path) in enumerate(zip(cameras, paths)):
-        ctx = f"camera {k} ({cam.name!r})"
-        img = _read_view(path, ctx)
-        rgb = composite(img, bg)[0] if img.shape[0] == 4 else img
-        h, w = rgb.shape[-2:]
-        if (h, w) != (cam.height, cam.width):
-            fx, fy = w / cam.width, h / cam.height
-            if not resize_images or abs(fx - fy) > 0.02 * max(fx, fy):
-                raise DatasetError(
-                    f"{path}: image is {w}x{h} but {ctx} in cameras.json is {cam.width}x{cam.height}"
-                    + ("" if resize_images else "; pass resize_images=True (gsw commands: --resize-images) to "
-                       "resample images whose size is a uniform multiple of their camera's (INRIA stores its "
-                       "training resolution)"))
-            resized.append(path.name)
-        target = cam.scaled(1.0 / downscale) if downscale != 1.0 else cam
-        _check_usable(target.width, target.height, f"{path}")
-        out.append(resize_image(rgb, target.height, target.width))
+    contexts = [f"camera {k} ({cam.name!r})" for k, cam in enumerate(cameras)]
+    with ThreadPoolExecutor(max_workers=min(READ_THREADS, max(1, len(paths)))) as pool:
+        # files decoded on threads (Pillow releases the GIL), checked in order: the first bad view is named
+        for cam, path, ctx, img in zip(cameras, paths, contexts, pool.map(_read_view, paths, contexts)):
+            out.append(_checked_view(img, cam, path, ctx, bg, downscale, resize_images, resized))
     return torch.stack(out).contiguous(), tuple(resized)
+
+
+def _checked_view(img: Tensor, cam: Camera, path: Path, ctx: str, bg: Tensor, downscale: float,
+                  resize_images: bool, resized: list[str]) -> Tensor:
+    """One source image composited on ``bg``, checked against its camera and resized to it (its name appended
+    to ``resized`` when resampled from another size)."""
+    rgb = composite(img, bg)[0] if img.shape[0] == 4 else img
+    h, w = rgb.shape[-2:]
+    if (h, w) != (cam.height, cam.width):
+        fx, fy = w / cam.width, h / cam.height
+        if not resize_images or abs(fx - fy) > 0.02 * max(fx, fy):
+            raise DatasetError(
+                f"{path}: image is {w}x{h} but {ctx} in cameras.json is {cam.width}x{cam.height}"
+                + ("" if resize_images else "; pass resize_images=True (gsw commands: --resize-images) to "
+                   "resample images whose size is a uniform multiple of their camera's (INRIA stores its "
+                   "training resolution)"))
+        resized.append(path.name)
+    target = cam.scaled(1.0 / downscale) if downscale != 1.0 else cam
+    _check_usable(target.width, target.height, f"{path}")
+    return resize_image(rgb, target.height, target.width)

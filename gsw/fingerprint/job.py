@@ -15,6 +15,7 @@ import os
 import sys
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -80,8 +81,9 @@ class FingerprintReport:
         recipients: one report per recipient, in input order.
         runner: "ray", "local" or "none" (nothing to do).
         scene_hash: the job's scene hash.
-        timings: seconds of "ray_start" (Ray and its workers started; on Ray only), "setup" (FGD), "finetune" (all
-            batches, from the end of the set-up) and "total".
+        timings: seconds of "ray_start" (Ray and its workers started; on Ray only) and "setup" (FGD and the
+            original renders, on a thread at the same time), "before_finetune" (from the call to the end of both),
+            "finetune" (all batches, from there) and "total".
     """
 
     recipients: list[RecipientReport]
@@ -299,17 +301,26 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
         with contextlib.ExitStack() as stack:
             token = uuid.uuid4().hex
             workers = None
-            if runner == "ray":  # the workers start (and warm up) while the set-up runs here
+
+            def setup() -> Any:
                 t0 = time.perf_counter()
-                workers = stack.enter_context(ray_workers(
-                    address, dev.type, len(batches), gpus_per_task=gpus_per_task, max_retries=max_retries,
-                    warm_args=(token, model.detach().to("cpu"), list(cameras), cfg, num_bits,
-                               None if decoder is None else decoder.to("cpu"))))
-                timings["ray_start"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            shared = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
-                                   device=dev, token=token)
-            timings["setup"] = time.perf_counter() - t0
+                out = prepare_scene(model, cameras, num_bits=num_bits, config=cfg, images=images, decoder=decoder,
+                                    device=dev, token=token)
+                timings["setup"] = time.perf_counter() - t0
+                return out
+
+            # the set-up runs on a thread while Ray starts here and its workers warm up
+            with ThreadPoolExecutor(max_workers=1) as background:
+                preparing = background.submit(setup)
+                if runner == "ray":
+                    t0 = time.perf_counter()
+                    workers = stack.enter_context(ray_workers(
+                        address, dev.type, len(batches), gpus_per_task=gpus_per_task, max_retries=max_retries,
+                        warm_args=(token, model.detach().to("cpu"), list(cameras), cfg, num_bits,
+                                   None if decoder is None else decoder.to("cpu"))))
+                    timings["ray_start"] = time.perf_counter() - t0
+                shared = preparing.result()
+            timings["before_finetune"] = time.perf_counter() - start
             steps = cfg.epochs * len(cameras)
             with Progress(len(todo) * steps, "fingerprint", enabled=progress) as bar:
                 writer = _Writer(folder, reg, shared, {"decoder": _decoder_fingerprint(num_bits, decoder)}, reports,

@@ -28,6 +28,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from gsw.data.images import to_unit
+
 __all__ = ["DEFAULT_FRAMES", "VIDEO_SUFFIXES", "VideoError", "VideoFrames", "is_video", "read_video",
            "load_images_or_video", "load_named_images_or_video"]
 
@@ -125,8 +127,9 @@ def _check_args(path: Path, frames: int | None, every: int | None) -> None:
         raise VideoError(f"{path} is empty (0 bytes)")
 
 
-def _decode(av: ModuleType, path: Path, wanted: list[int]) -> tuple[list[Tensor], int]:
-    """The frames at the sorted ``wanted`` indices, and how many frames were decoded to reach them."""
+def _decode(av: ModuleType, path: Path, wanted: list[int], keep_uint8: bool) -> tuple[list[Tensor], int]:
+    """The frames at the sorted ``wanted`` indices (float32 in [0, 1], or uint8 0..255 with ``keep_uint8``),
+    and how many frames were decoded to reach them."""
     keep, images, seen = set(wanted), [], 0
     with _open(av, path) as container:
         stream = _video_stream(container, path)
@@ -134,8 +137,8 @@ def _decode(av: ModuleType, path: Path, wanted: list[int]) -> tuple[list[Tensor]
         try:
             for frame in container.decode(stream):
                 if seen in keep:
-                    rgb = frame.to_ndarray(format="rgb24")  # [H, W, 3] uint8
-                    images.append(torch.from_numpy(rgb).permute(2, 0, 1).float().div_(255.0))
+                    rgb = torch.from_numpy(frame.to_ndarray(format="rgb24")).permute(2, 0, 1)  # [3, H, W] uint8
+                    images.append(rgb.contiguous() if keep_uint8 else to_unit(rgb))
                 seen += 1
                 if seen > wanted[-1]:
                     break
@@ -146,7 +149,7 @@ def _decode(av: ModuleType, path: Path, wanted: list[int]) -> tuple[list[Tensor]
 
 
 def read_video(path: str | os.PathLike, frames: int | None = DEFAULT_FRAMES, *,
-               every: int | None = None) -> VideoFrames:
+               every: int | None = None, keep_uint8: bool = False) -> VideoFrames:
     """Decodes frames of a video file.
 
     Args:
@@ -154,9 +157,12 @@ def read_video(path: str | os.PathLike, frames: int | None = DEFAULT_FRAMES, *,
         frames: keep this many frames spread evenly (all of them when the video is shorter; None: every
             frame). Ignored when ``every`` is given.
         every: keep every ``every``-th frame (0, k, 2k, ...) instead.
+        keep_uint8: keep the frames as their [3, H, W] uint8 samples (:func:`gsw.data.images.to_unit` makes
+            them the float32 frames bitwise).
 
     Returns:
-        A :class:`VideoFrames` with the kept frames as [3, H, W] float32 RGB in [0, 1].
+        A :class:`VideoFrames` with the kept frames as [3, H, W] float32 RGB in [0, 1] (uint8 with
+        ``keep_uint8``).
 
     Raises:
         ImportError: PyAV is not installed (``pip install av``).
@@ -178,20 +184,23 @@ def read_video(path: str | os.PathLike, frames: int | None = DEFAULT_FRAMES, *,
         raise VideoError(f"{path} is truncated or damaged: {total} frames present, its header announces "
                          f"about {expected}")
     wanted = _wanted(total, frames, every)
-    images, seen = _decode(av, path, wanted)
+    images, seen = _decode(av, path, wanted, keep_uint8)
     if len(images) < len(wanted):
         raise VideoError(f"{path} is truncated or damaged: only {seen} of {total} frames could be decoded")
     return VideoFrames(path, images, wanted, total, fps)
 
 
 def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int | None = DEFAULT_FRAMES, *,
-                               every: int | None = None) -> list[tuple[str, Tensor]]:
+                               every: int | None = None, keep_uint8: bool = False) -> list[tuple[str, Tensor]]:
     """(name, [3, H, W] image in [0, 1]) for every image file and every kept frame of every video.
 
     Args:
         paths: image files (PNG, JPEG, ...; alpha composited on black, as renders are) and video files
             (by suffix, :data:`VIDEO_SUFFIXES`), mixed.
         frames, every: frames kept per video (:func:`read_video`).
+        keep_uint8: 8-bit images without alpha and video frames as uint8 0..255 (a quarter of the memory and
+            no conversion here; :func:`gsw.data.images.to_unit` where they are used gives the float32 images
+            bitwise); the others float32.
 
     Returns:
         One entry per image and per kept frame, in order; a frame is named ``"<path>#<frame number>"``.
@@ -207,15 +216,15 @@ def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int |
     out: list[tuple[str, Tensor]] = []
     for p in paths:
         if is_video(p):
-            clip = read_video(p, frames, every=every)
+            clip = read_video(p, frames, every=every, keep_uint8=keep_uint8)
             out += [(f"{p}#{i}", img) for i, img in zip(clip.indices, clip.images)]
         else:
-            img = read_image(p)
+            img = read_image(p, keep_uint8=keep_uint8)
             out.append((str(p), composite(img, torch.zeros(3))[0] if img.shape[0] == 4 else img))
     return out
 
 
 def load_images_or_video(paths: Sequence[str | os.PathLike], frames: int | None = DEFAULT_FRAMES, *,
-                         every: int | None = None) -> list[Tensor]:
+                         every: int | None = None, keep_uint8: bool = False) -> list[Tensor]:
     """The [3, H, W] images of :func:`load_named_images_or_video`, without their names."""
-    return [img for _, img in load_named_images_or_video(paths, frames, every=every)]
+    return [img for _, img in load_named_images_or_video(paths, frames, every=every, keep_uint8=keep_uint8)]

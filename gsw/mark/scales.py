@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from gsw.data.images import resize_image
+from gsw.data.images import resize_image, to_unit
 from gsw.decoder.pretrain.evaluation import same_size_groups
 
 __all__ = ["SEARCH_FACTORS", "MIN_READ_SIDE", "MAX_READ_SIDE", "Reading", "read_plan", "read_images"]
@@ -150,7 +150,8 @@ def read_images(images: Tensor | Sequence[Tensor], decoder: torch.nn.Module, *,
 
     Args:
         images: [3, H, W] RGB images in [0, 1] (a list, sizes may differ, or a [B, 3, H, W] batch);
-            uint8 images are divided by 255.
+            uint8 images (0..255) are moved to the decoder's device as they are and divided by 255 there
+            (:func:`gsw.data.images.to_unit`).
         decoder: a module with ``decode_image(images [B,3,H,W]) -> logits [B,k]``
             (:class:`gsw.decoder.zoo.WatermarkDecoder`), or a custom one mapping the LL2 subband to logits.
         embed_size: ``(height, width)`` of the embedding renders, if known (one reading per image).
@@ -169,8 +170,8 @@ def read_images(images: Tensor | Sequence[Tensor], decoder: torch.nn.Module, *,
              for im in imgs]
     logits: list[list[Tensor | None]] = [[None] * len(p) for p in plans]
     for group in same_size_groups(imgs, batch_size):
-        x = torch.stack([imgs[i] for i in group]).to(device)
-        x = x.float() / 255.0 if x.dtype == torch.uint8 else x.float().clamp(0, 1)
+        # each image moved as it is (uint8 is a quarter of float32's bytes), then made float32 on the device
+        x = torch.stack([to_unit(imgs[i].to(device)) for i in group])
         h, w = x.shape[-2:]
         # images of one shape share their plan; one resize + decode per reading for the whole group
         for s, (_, size) in enumerate(plans[group[0]]):
