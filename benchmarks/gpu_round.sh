@@ -8,7 +8,8 @@
 #   GPU 3: the whole test suite with this CUDA build;
 #   GPU 0: fingerprint_multi_gpu.py prepare (lego trained 60 s), then pool_round.sh's "host" step on that model
 #          (#26: the loss A/B, a 30-step profile with the device's busy share and a trace, the quality preset on
-#          32 recipients and the throughput preset on 16, K = 16, one process);
+#          32 recipients and the throughput preset on 16, K = 16, one process), then the quality preset on 32
+#          fresh recipients again (a second sample of the same setting);
 #   GPUs 1-2, once the model exists: `gsw fingerprint` through Ray on 2 GPUs (1, 2), then on 1 GPU (1) (#27).
 # Phase 2, the host otherwise idle: `gsw scan` over 10,000 files on 1 GPU (in one process and on Ray), 2 and 4
 #   GPUs (Ray Data); `gsw fingerprint` through Ray on 4 GPUs; the copies of the 1-, 2- and 4-GPU runs compared.
@@ -37,7 +38,10 @@ STOP=quality
 step suite on_gpu 3 python3 -m pytest -q -p no:cacheprovider -rfE tests &
 suite=$!
 step prepare on_gpu 0 $FP prepare --data "$LEGO" --workdir "$W/fp"
-on_gpu 0 bash benchmarks/pool_round.sh "$W" "$LEGO" host &
+PHOTOS=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['photos'])" "$W/fp/prepare.json")
+(on_gpu 0 bash benchmarks/pool_round.sh "$W" "$LEGO" host
+ step tp_repeat on_gpu 0 python3 benchmarks/fingerprint_throughput.py --device cuda --out "$W" --scene lego \
+   --model "$W/fp/model" --data "$PHOTOS" --budget-s 900 --setting "k=16 n=32 stop=quality" --tag lego_repeat) &
 pool=$!
 step fingerprint_2 $FP run --gpus 2 --first-gpu 1 --early-stop $STOP --workdir "$W/fp"
 step fingerprint_1 $FP run --gpus 1 --first-gpu 1 --early-stop $STOP --workdir "$W/fp"
