@@ -18,6 +18,8 @@
      their null models again), the next source read ahead on one thread;
    * ``batched``: ``scan(use_ray=False, batch_size=--batch-size, readers=--readers)`` on ``--device``
      (one GPU);
+   * ``batched-f32``: the same with the readers before commit 61f9121 (images decoded to contiguous float32 on
+     the reader threads instead of kept as views of their uint8 samples), for an A/B in one run;
    * ``ray``: ``scan(use_ray=True, workers=--workers)`` on a local Ray cluster started here with ``--gpus``
      GPUs (``CUDA_VISIBLE_DEVICES`` restricted to the first ``--gpus`` when it is not set) or, on the CPU,
      ``--workers`` CPUs: one Ray Data worker per GPU (per CPU), each running the batched pipeline. Ray Data
@@ -60,7 +62,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-MODES = ("per-source", "batched", "ray")
+MODES = ("per-source", "batched", "batched-f32", "ray")
 
 
 def _parse_args() -> argparse.Namespace:
@@ -86,8 +88,8 @@ def _parse_args() -> argparse.Namespace:
     ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/scan_<device>.json)")
     args = ap.parse_args()
     bad = [m for m in args.modes.split(",") if m not in MODES]
-    if bad or args.images < 1 or args.views < 1 or args.marks < max(1, args.carriers, args.chosen):
-        ap.error(f"bad --modes {bad}" if bad else "need --images, --views >= 1 and --marks >= --carriers, --chosen")
+    if bad or args.images < 1 or not 1 <= args.views <= args.images or args.marks < max(1, args.carriers, args.chosen):
+        ap.error(f"bad --modes {bad}" if bad else "need --images >= --views >= 1 and --marks >= --carriers, --chosen")
     if args.gpus and args.device != "cuda":
         ap.error("--gpus needs --device cuda")
     return args
@@ -187,6 +189,23 @@ def _per_source(paths: list[Path], marks: list, device: str | None) -> list:
     return rows
 
 
+def _batched_f32(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
+    """``batched`` with the readers of commit 51831ad and before: every image decoded to contiguous float32 on
+    its reader thread (4x the bytes to move, and a torch copy per image there)."""
+    import gsw.fingerprint.scan as scan_module
+    from gsw.io.video import load_images_or_video
+
+    def old_load(path: Path, frames: int) -> tuple[list, str]:
+        return load_images_or_video([path], frames), ""
+
+    new_load, scan_module._load = scan_module._load, old_load
+    try:
+        return scan_module.scan(paths, marks, device=device, use_ray=False, batch_size=args.batch_size,
+                                readers=args.readers)
+    finally:
+        scan_module._load = new_load
+
+
 def _machine(args: argparse.Namespace) -> dict:
     import torch
 
@@ -219,6 +238,8 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
     t0 = time.perf_counter()
     if mode == "per-source":
         rows = _per_source(paths, marks, device)
+    elif mode == "batched-f32":
+        rows = _batched_f32(paths, marks, device, args)
     else:
         rows = scan(paths, marks, device=device, use_ray=mode == "ray", workers=args.workers,
                     batch_size=args.batch_size, readers=args.readers)

@@ -11,6 +11,7 @@ rejected by name, as are images larger than :data:`gsw.camera.MAX_IMAGE_SIZE` on
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -62,8 +63,9 @@ def read_image(path: str | os.PathLike, *, keep_uint8: bool = False) -> Tensor:
     Args:
         path: a PNG, JPEG or other Pillow-readable file.
         keep_uint8: return an 8-bit image without alpha as its ``[3, H, W]`` uint8 samples (0..255, a quarter
-            of the memory; ``x.float() / 255`` is bitwise the float32 result) -- for readers that hand
-            images to a GPU. Images with alpha and 16-bit images still come back as float32.
+            of the memory; a channel-first view of the decoded ``[H, W, 3]`` array, not contiguous;
+            :func:`to_unit` makes it the float32 result bitwise) -- for readers that hand images to a GPU.
+            Images with alpha and 16-bit images still come back as float32.
 
     Returns:
         ``[C, H, W]`` float32 in ``[0, 1]`` (or uint8, see ``keep_uint8``); ``C = 4`` (RGBA, straight alpha)
@@ -108,7 +110,10 @@ def read_image(path: str | os.PathLike, *, keep_uint8: bool = False) -> Tensor:
         raise ImageError(f"cannot decode image {path}: {exc}") from exc
     if arr.shape[:2] != (height, width):
         raise ImageError(f"cannot decode image {path}: decoded {arr.shape[:2]} pixels, header says {height}x{width}")
-    return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).contiguous()
+    chw = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)
+    # the uint8 samples stay a view of the decoded [H, W, 3] array: no copy on the reader's thread (a torch copy
+    # there runs a parallel region per reader thread); ``.to(device)`` moves the buffer as it is
+    return chw if chw.dtype == torch.uint8 else chw.contiguous()
 
 
 def write_image(path: str | os.PathLike, image: Tensor, *, quality: int = 95) -> Path:
@@ -168,8 +173,15 @@ def to_unit(image: Tensor) -> Tensor:
         ``[..., H, W]`` float32 on the image's device.
     """
     if image.dtype == torch.uint8:
-        return image.float() / torch.tensor(255.0, device=image.device)
+        return image.float() / _divisor(image.device)
     return image.float().clamp(0, 1)
+
+
+@functools.lru_cache(maxsize=None)
+def _divisor(device: torch.device) -> Tensor:
+    """255 as a 0-d float32 tensor on ``device`` (made once per device: no host-to-device copy per image)."""
+    with torch.inference_mode(False), torch.no_grad():
+        return torch.tensor(255.0, device=device)
 
 
 def composite(rgba: Tensor, background: Tensor) -> tuple[Tensor, Tensor]:

@@ -138,7 +138,7 @@ def _decode(av: ModuleType, path: Path, wanted: list[int], keep_uint8: bool) -> 
             for frame in container.decode(stream):
                 if seen in keep:
                     rgb = torch.from_numpy(frame.to_ndarray(format="rgb24")).permute(2, 0, 1)  # [3, H, W] uint8
-                    images.append(rgb.contiguous() if keep_uint8 else to_unit(rgb))
+                    images.append(rgb if keep_uint8 else to_unit(rgb))
                 seen += 1
                 if seen > wanted[-1]:
                     break
@@ -157,8 +157,8 @@ def read_video(path: str | os.PathLike, frames: int | None = DEFAULT_FRAMES, *,
         frames: keep this many frames spread evenly (all of them when the video is shorter; None: every
             frame). Ignored when ``every`` is given.
         every: keep every ``every``-th frame (0, k, 2k, ...) instead.
-        keep_uint8: keep the frames as their [3, H, W] uint8 samples (:func:`gsw.data.images.to_unit` makes
-            them the float32 frames bitwise).
+        keep_uint8: keep the frames as their [3, H, W] uint8 samples (channel-first views of the decoded
+            [H, W, 3] arrays; :func:`gsw.data.images.to_unit` makes them the float32 frames bitwise).
 
     Returns:
         A :class:`VideoFrames` with the kept frames as [3, H, W] float32 RGB in [0, 1] (uint8 with
