@@ -94,10 +94,9 @@ def read_image(path: str | os.PathLike, *, keep_uint8: bool = False) -> Tensor:
                 arr = _sixteen_bit(im)
             elif im.mode in _EIGHT_BIT:
                 has_alpha = im.mode in _ALPHA_MODES or "transparency" in im.info
-                arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
-                if has_alpha or not keep_uint8:
-                    arr = arr.astype(np.float32) / np.float32(255.0)
-                elif not arr.flags.writeable:  # torch wants writable memory
+                target = "RGBA" if has_alpha else "RGB"
+                arr = np.asarray(im if im.mode == target else im.convert(target))  # no copy when already there
+                if not arr.flags.writeable:  # torch wants writable memory
                     arr = arr.copy()
             else:
                 raise ImageError(
@@ -111,9 +110,11 @@ def read_image(path: str | os.PathLike, *, keep_uint8: bool = False) -> Tensor:
     if arr.shape[:2] != (height, width):
         raise ImageError(f"cannot decode image {path}: decoded {arr.shape[:2]} pixels, header says {height}x{width}")
     chw = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)
-    # the uint8 samples stay a view of the decoded [H, W, 3] array: no copy on the reader's thread (a torch copy
-    # there runs a parallel region per reader thread); ``.to(device)`` moves the buffer as it is
-    return chw if chw.dtype == torch.uint8 else chw.contiguous()
+    if chw.dtype != torch.uint8:
+        return chw.contiguous()
+    if keep_uint8 and chw.shape[0] == 3:  # a view of the decoded [H, W, 3] samples; .to(device) moves them as they are
+        return chw
+    return to_unit(chw.contiguous())  # the 8-bit samples made channel-first, then divided by 255 (one float pass)
 
 
 def write_image(path: str | os.PathLike, image: Tensor, *, quality: int = 95) -> Path:
