@@ -23,7 +23,19 @@ BITS = 48
 def test_holm_adjustment() -> None:
     assert _holm([0.01, 0.04, 0.03, 0.5]) == pytest.approx([0.04, 0.09, 0.09, 0.5])
     assert _holm([0.3, 0.3]) == pytest.approx([0.6, 0.6])
-    assert _holm([]) == []
+    assert _holm([]).size == 0
+
+
+def test_holm_is_the_step_down_loop_bitwise() -> None:
+    """The vectorised adjustment equals the textbook loop (ties ranked in input order) exactly."""
+    rng = np.random.default_rng(3)
+    for m in (1, 7, 500):
+        p = np.round(rng.random(m) ** 3, 3)  # rounded: many ties
+        expected, running = [1.0] * m, 0.0
+        for rank, i in enumerate(sorted(range(m), key=lambda j: p[j])):
+            running = max(running, min(1.0, (m - rank) * float(p[i])))
+            expected[i] = running
+        assert _holm(p).tolist() == expected
 
 
 class _CoinDecoder(torch.nn.Module):
