@@ -11,7 +11,7 @@ import torch
 
 import gsw.mark
 import gsw.mark.identify
-from gsw.mark.identify import _holm, identify
+from gsw.mark.identify import _holm, decode_sources, identify, identify_readings, plan_identify
 from gsw.mark.image import ImageEmbedConfig, embed_image
 from gsw.mark.message import random_message
 from gsw.registry import Mark, open_registry, shipped_decoder_sha256
@@ -158,6 +158,25 @@ def test_a_thousand_marks_decode_once_and_stay_correct(marked, tmp_path, monkeyp
     assert sum(r.exact for r in found.results) >= 10
     assert nobody.recipients == []
     assert seconds < 20.0, f"identifying 2 images against 1,000 marks took {seconds:.1f} s"
+
+
+def test_keep_reports_the_best_marks_and_every_identified_one(marked) -> None:
+    """``keep`` trims the report, not the test: Holm still counts every mark, and no identified mark is dropped."""
+    path, cover, image = marked
+    with open_registry(path, create=False) as reg:
+        plan = plan_identify(reg.list(), device="cpu")
+    marked_src, cover_src = decode_sources([[image], [cover]], plan)
+    full = identify_readings(marked_src, plan)
+    for keep in (0, 1, 3):
+        kept = identify_readings(marked_src, plan, keep=keep)
+        assert kept.recipients == full.recipients == ["carol"]  # the identified mark survives keep=0
+        assert [r.to_dict(True) for r in kept.results] == [r.to_dict(True) for r in full.results[:max(keep, 1)]]
+    nobody = identify_readings(cover_src, plan, keep=1)
+    assert nobody.identified == [] and len(nobody.results) == 1
+    assert nobody.results[0].to_dict(True) == identify_readings(cover_src, plan).results[0].to_dict(True)
+    assert identify_readings(cover_src, plan, keep=0).results == []
+    with pytest.raises(ValueError, match="keep"):
+        identify_readings(cover_src, plan, keep=-1)
 
 
 def test_screening_keeps_the_decisions_and_bounds_the_screened_p_values(marked) -> None:

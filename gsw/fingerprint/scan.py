@@ -217,7 +217,7 @@ def _row(path: Path, images: int, error: str, readings: SourceReadings | str | N
     if isinstance(readings, str):
         row.error = readings
     elif readings is not None:
-        res = identify_readings(readings, plan, fpr=fpr)
+        res = identify_readings(readings, plan, fpr=fpr, keep=1)  # the row reports the best mark only
         row.identified = ";".join(res.recipients)
         if res.results:
             best = res.results[0]
