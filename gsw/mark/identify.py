@@ -118,7 +118,8 @@ class Identification:
 
     Attributes:
         identified: the marks whose adjusted p-value is at or below ``fpr``, most significant first.
-        results: every mark tested, most significant first.
+        results: every mark tested, most significant first (only the best ones when
+            :func:`identify_readings` was given ``keep``).
         skipped: marks not tested because their decoder is neither shipped nor given.
         num_images: images (frames) read.
         fpr: the family-wise false-positive rate of the decision.
