@@ -20,6 +20,8 @@
      (one GPU);
    * ``batched-f32``: the same with the readers before commit 61f9121 (images decoded to contiguous float32 on
      the reader threads instead of kept as views of their uint8 samples), for an A/B in one run;
+   * ``host-only``: ``batched`` with the decoder replaced by random logits (the readings of the scale search,
+     nothing decoded): the rate one worker's host side (reading, the pipeline, the tests) sustains;
    * ``ray``: ``scan(use_ray=True, workers=--workers)`` on a local Ray cluster started here with ``--gpus``
      GPUs (``CUDA_VISIBLE_DEVICES`` restricted to the first ``--gpus`` when it is not set) or, on the CPU,
      ``--workers`` CPUs: one Ray Data worker per GPU (per CPU), each running the batched pipeline. Ray Data
@@ -62,7 +64,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-MODES = ("per-source", "batched", "batched-f32", "ray")
+MODES = ("per-source", "batched", "batched-f32", "host-only", "ray")
 
 
 def _parse_args() -> argparse.Namespace:
@@ -200,10 +202,37 @@ def _batched_f32(paths: list[Path], marks: list, device, args: argparse.Namespac
 
     new_load, scan_module._load = scan_module._load, old_load
     try:
-        return scan_module.scan(paths, marks, device=device, use_ray=False, batch_size=args.batch_size,
-                                readers=args.readers)
+        return _batched(paths, marks, device, args)
     finally:
         scan_module._load = new_load
+
+
+def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
+    """``batched`` with the decoder replaced by random logits (one reading per scale of the search): what one
+    worker's host side (reading files, the pipeline, the tests) sustains when the decoder costs nothing."""
+    import torch
+
+    import gsw.mark.identify as identify_module
+    from gsw.mark.scales import Reading, read_plan
+
+    gen = torch.Generator().manual_seed(0)
+
+    def random_readings(images, decoder, *, embed_size=None, batch_size=16, **_):
+        plans = [read_plan(int(im.shape[1]), int(im.shape[2]), embed_size=embed_size) for im in images]
+        return [Reading([f for f, _ in p], [sz for _, sz in p], torch.randn(len(p), decoder.num_bits, generator=gen))
+                for p in plans]
+
+    real, identify_module.read_images = identify_module.read_images, random_readings
+    try:
+        return _batched(paths, marks, device, args)
+    finally:
+        identify_module.read_images = real
+
+
+def _batched(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
+    from gsw.fingerprint.scan import scan
+
+    return scan(paths, marks, device=device, use_ray=False, batch_size=args.batch_size, readers=args.readers)
 
 
 def _machine(args: argparse.Namespace) -> dict:
@@ -240,6 +269,8 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
         rows = _per_source(paths, marks, device)
     elif mode == "batched-f32":
         rows = _batched_f32(paths, marks, device, args)
+    elif mode == "host-only":
+        rows = _host_only(paths, marks, device, args)
     else:
         rows = scan(paths, marks, device=device, use_ray=mode == "ray", workers=args.workers,
                     batch_size=args.batch_size, readers=args.readers)
@@ -285,9 +316,9 @@ def main() -> int:
         for mode in modes:
             subset = paths[:args.per_source_images] if mode == "per-source" and args.per_source_images else paths
             res, rows = _time_mode(mode, args, subset, marks)
-            if first is None:
+            if first is None and mode != "host-only":  # random logits: nothing to agree with
                 first = {r.source: r for r in rows}
-            same = [r for r in rows if r.source in first]
+            same = [r for r in rows if r.source in first] if first is not None and mode != "host-only" else []
             res["agree_with_first"] = sum((r.identified, r.best_p) == (first[r.source].identified,
                                                                        first[r.source].best_p) for r in same)
             res["compared"] = len(same)
