@@ -34,6 +34,7 @@ def test_fingerprint_writes_registers_and_resumes(model_dir, tmp_path, capsys) -
     assert _fingerprint(model_dir, tmp_path, "recipient,key\nalice,\nbob,bobs-key\n", "--json") == 0
     report = json.loads(capsys.readouterr().out)
     assert [r["status"] for r in report["recipients"]] == ["embedded", "embedded"] and report["runner"] == "local"
+    assert 0 < report["timings"]["load"] and {"setup", "before_finetune", "finetune", "total"} <= set(report["timings"])
     assert (tmp_path / "out" / "bob" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
     with open_registry(tmp_path / "marks.sqlite") as reg:
         secrets = [m.message_hex for m in reg.list()]

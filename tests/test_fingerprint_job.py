@@ -69,6 +69,8 @@ def test_copies_registered_and_marked(job) -> None:
     assert rep["bob"].mark_id == marks["bob"].id and 0 <= rep["bob"].bit_accuracy <= 1 and rep["bob"].psnr > 20
     # when each copy reached the writer, and the one pool's scene preparation (paid once, before the first batch)
     assert 0 < rep["alice"].finished_s <= report.timings["finetune"]
+    t = report.timings
+    assert 0 < t["setup"] <= t["before_finetune"] and t["before_finetune"] + t["finetune"] <= t["total"]
     assert all(r.worker_setup_s == rep["alice"].worker_setup_s > 0 for r in report.recipients)
 
 

@@ -64,6 +64,9 @@ def test_four_recipients_on_two_workers(job, scene) -> None:
     assert report.runner == "ray" and report.names("embedded") == NAMES
     # the workers warmed up (original renders, loss) while the driver ran the set-up
     assert all(r.worker_warm_s > 0 for r in report.recipients) and report.timings["ray_start"] > 0
+    # the set-up ran on a thread while Ray started: both end before the fine-tune starts
+    t = report.timings
+    assert max(t["setup"], t["ray_start"]) <= t["before_finetune"] <= t["total"] - t["finetune"]
     from gsw.data import load_inria_model
 
     copy = load_inria_model(root / "out" / "r3").gaussians
