@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import random
-import time
 
 import numpy as np
 import pytest
@@ -147,9 +146,7 @@ def test_a_thousand_marks_decode_once_and_stay_correct(marked, tmp_path, monkeyp
             return real_read(images, decoder, **kwargs)
 
         monkeypatch.setattr(gsw.mark.identify, "read_images", counting_read)
-        start = time.perf_counter()
         found = identify([image, cover], reg)
-        seconds = time.perf_counter() - start
         nobody = identify([cover], reg)
     assert calls == [(BITS, None)] * 2  # one decoding pass of the images per call, not one per mark
     assert found.recipients == ["carol"] and len(found.results) == 1000
@@ -157,7 +154,6 @@ def test_a_thousand_marks_decode_once_and_stay_correct(marked, tmp_path, monkeyp
     assert found.identified[0].adjusted_p_value == pytest.approx(1000 * claim.p_value)
     assert sum(r.exact for r in found.results) >= 10
     assert nobody.recipients == []
-    assert seconds < 20.0, f"identifying 2 images against 1,000 marks took {seconds:.1f} s"
 
 
 def test_keep_reports_the_best_marks_and_every_identified_one(marked) -> None:
