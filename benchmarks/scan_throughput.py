@@ -230,6 +230,7 @@ def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace)
 
 
 def _batched(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
+    """The ``batched`` scan (in this process), for the modes that patch part of it."""
     from gsw.fingerprint.scan import scan
 
     return scan(paths, marks, device=device, use_ray=False, batch_size=args.batch_size, readers=args.readers)
