@@ -33,7 +33,8 @@
    alike); the summary gives each mode's median. Every run's rows are compared with the first run's
    (identified labels and best p-values).
 4. A JSON (``--out``) with the machine, versions, load averages before/after every mode, the settings and the
-   results, and a summary table on stdout.
+   results (with each pipeline's stage times, :class:`gsw.fingerprint.scan.StageTimes`, and their sums per worker
+   process), and a summary table on stdout.
 
 CPU (this 2-core machine; BENCHMARKS.md "Per-recipient fingerprints", `gsw scan`; add ``--batch-size 64`` for
 scan_cpu_batch64.json):
@@ -61,6 +62,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -191,7 +193,7 @@ def _per_source(paths: list[Path], marks: list, device: str | None) -> list:
     return rows
 
 
-def _batched_f32(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
+def _batched_f32(paths: list[Path], marks: list, device, args: argparse.Namespace, times: list) -> list:
     """``batched`` with the readers of commit 51831ad and before: every image decoded to contiguous float32 on
     its reader thread (4x the bytes to move, and a torch copy per image there)."""
     import gsw.fingerprint.scan as scan_module
@@ -202,12 +204,12 @@ def _batched_f32(paths: list[Path], marks: list, device, args: argparse.Namespac
 
     new_load, scan_module._load = scan_module._load, old_load
     try:
-        return _batched(paths, marks, device, args)
+        return _batched(paths, marks, device, args, times)
     finally:
         scan_module._load = new_load
 
 
-def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
+def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace, times: list) -> list:
     """``batched`` with the decoder replaced by random logits (one reading per scale of the search): what one
     worker's host side (reading files, the pipeline, the tests) sustains when the decoder costs nothing."""
     import torch
@@ -224,16 +226,17 @@ def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace)
 
     real, identify_module.read_images = identify_module.read_images, random_readings
     try:
-        return _batched(paths, marks, device, args)
+        return _batched(paths, marks, device, args, times)
     finally:
         identify_module.read_images = real
 
 
-def _batched(paths: list[Path], marks: list, device, args: argparse.Namespace) -> list:
-    """The ``batched`` scan (in this process), for the modes that patch part of it."""
+def _batched(paths: list[Path], marks: list, device, args: argparse.Namespace, times: list) -> list:
+    """The ``batched`` scan (in this process), for the modes that patch part of it; ``times`` gets its stages."""
     from gsw.fingerprint.scan import scan
 
-    return scan(paths, marks, device=device, use_ray=False, batch_size=args.batch_size, readers=args.readers)
+    return scan(paths, marks, device=device, use_ray=False, batch_size=args.batch_size, readers=args.readers,
+                times=times)
 
 
 def _machine(args: argparse.Namespace) -> dict:
@@ -265,22 +268,34 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
 
     device = None if args.device == "cpu" else torch.device(args.device)
     load_before = os.getloadavg()
+    times: list = []
     t0 = time.perf_counter()
     if mode == "per-source":
         rows = _per_source(paths, marks, device)
     elif mode == "batched-f32":
-        rows = _batched_f32(paths, marks, device, args)
+        rows = _batched_f32(paths, marks, device, args, times)
     elif mode == "host-only":
-        rows = _host_only(paths, marks, device, args)
+        rows = _host_only(paths, marks, device, args, times)
     else:
         rows = scan(paths, marks, device=device, use_ray=mode == "ray", workers=args.workers,
-                    batch_size=args.batch_size, readers=args.readers)
+                    batch_size=args.batch_size, readers=args.readers, times=times)
     if device is not None:
         torch.cuda.synchronize()
     seconds = time.perf_counter() - t0
     res = dict(mode=mode, images=len(paths), seconds=seconds, images_per_s=len(paths) / seconds,
                identified=sum(bool(r.identified) for r in rows), errors=sum(bool(r.error) for r in rows),
-               load_before=load_before, load_after=os.getloadavg())
+               load_before=load_before, load_after=os.getloadavg(), stages=[asdict(t) for t in times])
+    if times:  # per worker process: its pipelines' stage seconds summed
+        by_pid: dict = {}
+        for t in times:
+            acc = by_pid.setdefault(t.pid, dict.fromkeys(("wall", "read_wait", "decode_wait", "test", "decode",
+                                                           "sources"), 0))
+            for k in acc:
+                acc[k] += getattr(t, k)
+        res["stages_by_worker"] = list(by_pid.values())
+        print(f"{mode} stages per worker (s): " + "; ".join(
+            ", ".join(f"{k} {v:.1f}" if k != "sources" else f"{v} sources" for k, v in w.items())
+            for w in by_pid.values()), flush=True)
     if mode == "ray":
         import ray
 

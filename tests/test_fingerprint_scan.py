@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 from pathlib import Path
 
 import pytest
@@ -100,9 +102,13 @@ def test_a_source_the_decoder_rejects_gets_an_error_and_the_others_are_scanned(c
 
 def test_progress_and_bad_arguments(crawl, monkeypatch) -> None:
     paths, marks = crawl
-    seen = []
-    rows = scan(paths[:3], marks, use_ray=False, batch_size=2, readers=3, on_row=seen.append)
+    seen, times = [], []
+    rows = scan(paths[:3], marks, use_ray=False, batch_size=2, readers=3, on_row=seen.append, times=times)
     assert seen == rows
+    (st,) = times  # the pipeline's stages: the testing thread's waits and work fit in its wall time
+    assert (st.sources, st.images) == (3, sum(r.images for r in rows)) and st.pid == os.getpid()
+    assert min(st.read_wait, st.decode_wait, st.test) >= 0 and st.decode > 0
+    assert st.read_wait + st.decode_wait + st.test <= st.wall
     for bad in (dict(batch_size=0), dict(readers=0), dict(batch_size=2.5)):
         with pytest.raises(ValueError, match="must be a positive int"):
             scan(paths[:1], marks, use_ray=False, **bad)

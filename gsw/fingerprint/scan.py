@@ -28,7 +28,9 @@ Ray Data was slower there in every measurement (BENCHMARKS.md, #26 / #27).
 from __future__ import annotations
 
 import glob
+import json
 import os
+import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -43,7 +45,7 @@ from gsw.stats import DETECTION_FPR
 if TYPE_CHECKING:
     from gsw.mark.identify import IdentifyPlan, SourceReadings
 
-__all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
+__all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow", "StageTimes",
            "expand_inputs", "ray_block_size", "ray_by_default", "scan", "scan_sources"]
 
 #: Sources from which :func:`scan` uses Ray Data by default on several GPUs (:func:`ray_by_default`).
@@ -57,6 +59,8 @@ DEFAULT_BATCH_SIZES = {"cuda": 64, "cpu": 4}
 DEFAULT_READERS = 4
 #: A Ray Data worker is handed at most this many x ``batch_size`` sources per call (:func:`ray_block_size`).
 RAY_SOURCES_PER_CALL = 16
+#: The extra output column of a timed Ray Data call (its :class:`StageTimes` as JSON, on its first row).
+_TIMES = "_stage_times"
 
 
 def ray_block_size(sources: int, workers: int, batch_size: int) -> int:
@@ -132,6 +136,32 @@ class ScanRow:
     def to_dict(self) -> dict[str, Any]:
         """A flat dict (CSV / JSON row)."""
         return asdict(self)
+
+
+@dataclass
+class StageTimes:
+    """Where one scanning pipeline's time went, in seconds (benchmarks: :func:`scan`'s ``times``).
+
+    Attributes:
+        wall: the pipeline from start to end.
+        read_wait: the testing thread waiting for the readers (the next group of sources).
+        decode_wait: the testing thread waiting for the decoding thread.
+        test: the testing thread testing sources (:func:`gsw.mark.identify.identify_readings`, rows).
+        decode: the decoding thread in :func:`gsw.mark.identify.decode_sources` (moving the images, resizing,
+            the decoders, the logits back).
+        sources: sources scanned.
+        images: images read.
+        pid: the process (one per Ray worker).
+    """
+
+    wall: float = 0.0
+    read_wait: float = 0.0
+    decode_wait: float = 0.0
+    test: float = 0.0
+    decode: float = 0.0
+    sources: int = 0
+    images: int = 0
+    pid: int = 0
 
 
 def _batching(batch_size: int | None, readers: int, device: torch.device | str | None) -> int:
@@ -227,35 +257,58 @@ def _row(path: Path, images: int, error: str, readings: SourceReadings | str | N
 
 
 def _scan_planned(paths: Sequence[Path], plan: IdentifyPlan, *, fpr: float, frames: int, batch_size: int,
-                  readers: int, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+                  readers: int, on_row: Callable[[ScanRow], None] | None = None,
+                  times: StageTimes | None = None) -> list[ScanRow]:
     """:func:`scan_sources` with the decoders already loaded (``plan``): what every Ray worker runs.
 
     A chunk of sources is decoded on a thread while the previous chunk is tested here (the decoder's
-    kernels release the GIL), so that a GPU does not wait for the tests."""
+    kernels release the GIL), so that a GPU does not wait for the tests. ``times`` (if given) gets the
+    stages' seconds added."""
     rows: list[ScanRow] = []
+    st = times if times is not None else StageTimes()
+    start = time.perf_counter()
+
+    def decode(sources: list[list[torch.Tensor]]) -> list[SourceReadings | str]:
+        t0 = time.perf_counter()
+        try:
+            return _decode(sources, plan, batch_size)
+        finally:
+            st.decode += time.perf_counter() - t0
 
     def finish(chunk: list[tuple[Path, list[torch.Tensor], str]], decoding: Future) -> None:
+        t0 = time.perf_counter()
         decoded = iter(decoding.result())
+        t1 = time.perf_counter()
         for path, images, error in chunk:
             rows.append(_row(path, len(images), error, next(decoded) if images else None, plan, fpr))
+            st.sources, st.images = st.sources + 1, st.images + len(images)
             if on_row is not None:
                 on_row(rows[-1])
+        st.decode_wait, st.test = st.decode_wait + t1 - t0, st.test + time.perf_counter() - t1
 
     previous = None
     with ThreadPoolExecutor(max_workers=1) as decoder:
-        for chunk in _chunks(_read_ahead(paths, frames, readers, ahead=max(2 * batch_size, readers)), batch_size):
-            decoding = decoder.submit(_decode, [images for _, images, _ in chunk if images], plan, batch_size)
+        chunks = _chunks(_read_ahead(paths, frames, readers, ahead=max(2 * batch_size, readers)), batch_size)
+        while True:
+            t0 = time.perf_counter()
+            chunk = next(chunks, None)
+            st.read_wait += time.perf_counter() - t0
+            if chunk is None:
+                break
+            decoding = decoder.submit(decode, [images for _, images, _ in chunk if images])
             if previous is not None:
                 finish(*previous)
             previous = (chunk, decoding)
         if previous is not None:
             finish(*previous)
+    st.wall, st.pid = st.wall + time.perf_counter() - start, os.getpid()
     return rows
 
 
 def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTION_FPR,
                  device: torch.device | None = None, frames: int = 16, batch_size: int | None = None,
-                 readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+                 readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None,
+                 times: StageTimes | None = None) -> list[ScanRow]:
     """Identifies each source in this process, the images of consecutive sources decoded in batches.
 
     Sources are read by ``readers`` threads ahead of the decoding (image and video decoding release the
@@ -275,6 +328,7 @@ def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTI
             of ``device``.
         readers: threads reading sources.
         on_row: called after each source (progress).
+        times: gets the pipeline's stage times added (:class:`StageTimes`).
 
     Returns:
         One :class:`ScanRow` per path, in order; an unreadable source (or one the decoder cannot read) has
@@ -288,24 +342,28 @@ def scan_sources(paths: Sequence[Path], marks: Sequence, *, fpr: float = DETECTI
     batch_size = _batching(batch_size, readers, device)
     plan = plan_identify(marks, device=device or "cpu")
     return _scan_planned(paths, plan, fpr=fpr, frames=frames, batch_size=batch_size, readers=readers,
-                         on_row=on_row)
+                         on_row=on_row, times=times)
 
 
 class _RayScanner:  # pragma: no cover - runs in Ray Data workers
     """One Ray Data worker: the decoders loaded once, each batch of paths scanned by :func:`_scan_planned`."""
 
     def __init__(self, marks: Sequence, fpr: float, frames: int, batch_size: int, readers: int, gpu: bool,
-                 threads: int = 1) -> None:
+                 threads: int = 1, timed: bool = False) -> None:
         from gsw.mark.identify import plan_identify
 
         torch.set_num_threads(threads)  # Ray caps a worker's threads at its num_cpus (OMP_NUM_THREADS)
         self.plan = plan_identify(marks, device="cuda" if gpu else "cpu")
-        self.fpr, self.frames, self.batch_size, self.readers = fpr, frames, batch_size, readers
+        self.fpr, self.frames, self.batch_size, self.readers, self.timed = fpr, frames, batch_size, readers, timed
 
     def __call__(self, batch: dict) -> dict:
+        times = StageTimes()
         rows = _scan_planned([Path(p) for p in batch["path"]], self.plan, fpr=self.fpr, frames=self.frames,
-                             batch_size=self.batch_size, readers=self.readers)
-        return {k: [getattr(r, k) for r in rows] for k in ScanRow.__dataclass_fields__}
+                             batch_size=self.batch_size, readers=self.readers, times=times)
+        out = {k: [getattr(r, k) for r in rows] for k in ScanRow.__dataclass_fields__}
+        if self.timed:  # this call's stage times ride on its first row
+            out[_TIMES] = [json.dumps(asdict(times))] + [""] * (len(rows) - 1)
+        return out
 
 
 def _ray_data_available() -> bool:
@@ -318,7 +376,8 @@ def _ray_data_available() -> bool:
 
 
 def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
-              workers: int | None, batch_size: int, readers: int) -> list[ScanRow]:
+              workers: int | None, batch_size: int, readers: int,
+              times: list[StageTimes] | None = None) -> list[ScanRow]:
     """Ray Data: one worker per GPU (or CPU), each scanning blocks of sources (:func:`ray_block_size`); rows put
     back in input order. A GPU worker gets its share of the cluster's CPUs
     (reading, decoding files and the CPU side of the tests), as ``num_cpus`` and torch threads."""
@@ -332,10 +391,21 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
         n = workers or max(1, int(resources.get("GPU" if gpu else "CPU", 1)))
         cpus = max(1, int((resources.get("CPU", 1) - 1) // n)) if gpu else 1  # one CPU left to Ray Data
         ds = ray.data.from_items([{"path": str(p)} for p in paths])
-        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu, cpus),
-                            batch_size=ray_block_size(len(paths), n, batch_size), concurrency=n,
+        ds = ds.map_batches(_RayScanner, fn_constructor_args=(list(marks), fpr, frames, batch_size, readers, gpu, cpus,
+                                                              times is not None),
+                            batch_size=ray_block_size(len(paths), n, batch_size),
+                            # one call in flight per worker, so that a worker that started first does not queue
+                            # the others' blocks: Ray Data 2.60 starts the pool without waiting for every actor,
+                            # and one worker of two took all 48 sources of a CPU scan (BENCHMARKS.md)
+                            compute=ray.data.ActorPoolStrategy(size=n, max_tasks_in_flight_per_actor=1),
                             num_gpus=1 if gpu else 0, num_cpus=cpus)
-        by_path = {r["source"]: ScanRow(**r) for r in ds.iter_rows()}
+        by_path = {}
+        for row in ds.iter_rows():
+            r = dict(row)
+            timing = r.pop(_TIMES, "")
+            if timing and times is not None:
+                times.append(StageTimes(**json.loads(timing)))
+            by_path[r["source"]] = ScanRow(**r)
     finally:
         if started:
             ray.shutdown()
@@ -345,8 +415,8 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
 def ray_by_default(sources: int, device: torch.device | str | None) -> bool:
     """Whether :func:`scan` uses Ray Data when not told: at least :data:`RAY_DATA_MIN_SOURCES` sources on CUDA
     with more than one GPU visible, the one case where Ray Data adds hardware this process cannot use. On one
-    GPU (lego 800x800: 86 against 206 images/s in one process) and on a 2-core CPU (1.73 against 2.60) it was
-    slower (BENCHMARKS.md)."""
+    GPU it was slower (lego 800x800: 203-226 against 254-287 images/s in one process); on a 2-core CPU two workers
+    beat one process only once their ~7-s start is paid (6.8 against 5.1 images/s after it; BENCHMARKS.md)."""
     gpu = device is not None and torch.device(device).type == "cuda"
     return sources >= RAY_DATA_MIN_SOURCES and gpu and torch.cuda.device_count() > 1
 
@@ -354,7 +424,8 @@ def ray_by_default(sources: int, device: torch.device | str | None) -> bool:
 def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = DETECTION_FPR,
          device: torch.device | None = None, frames: int = 16, use_ray: bool | None = None,
          address: str | None = None, workers: int | None = None, batch_size: int | None = None,
-         readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None) -> list[ScanRow]:
+         readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None,
+         times: list[StageTimes] | None = None) -> list[ScanRow]:
     """Tests every image and video found in ``inputs`` against the registered marks.
 
     Args:
@@ -371,6 +442,8 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
             :data:`DEFAULT_BATCH_SIZES` of ``device``.
         readers: threads reading sources (in this process and in every Ray worker).
         on_row: called after each source in this process (progress; not called with Ray).
+        times: gets one :class:`StageTimes` per pipeline run (this process: one; Ray: one per worker call), for
+            benchmarks.
 
     Returns:
         One :class:`ScanRow` per source, in input order.
@@ -392,6 +465,10 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
     if want_ray:
         gpu = device is not None and torch.device(device).type == "cuda"
         return _scan_ray(paths, marks, fpr=fpr, frames=frames, gpu=gpu, address=address, workers=workers,
-                         batch_size=batch_size, readers=readers)
-    return scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, batch_size=batch_size,
-                        readers=readers, on_row=on_row)
+                         batch_size=batch_size, readers=readers, times=times)
+    st = None if times is None else StageTimes()
+    rows = scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, batch_size=batch_size,
+                        readers=readers, on_row=on_row, times=st)
+    if st is not None:
+        times.append(st)
+    return rows
