@@ -21,8 +21,9 @@ scanned. On a cluster (an ``address``), when asked (``use_ray=True``), or by def
 :data:`RAY_DATA_MIN_SOURCES` sources on CUDA with several GPUs visible (:func:`ray_by_default`), and with Ray Data
 installed (``pip install gsw[ray]``), the paths go to Ray Data workers instead (``map_batches``, one worker per GPU
 on CUDA or per CPU), each running the same pipeline on blocks of sources, as many blocks for every worker
-(:func:`ray_block_size`); the rows come back in input order. On one GPU or a CPU the default is this process:
-Ray Data was slower there in every measurement (BENCHMARKS.md, #26 / #27).
+(:func:`ray_block_size`), one block in flight per worker at a time; the rows come back in input order. On one
+GPU or a CPU the default is this process (:func:`ray_by_default` says why). ``times`` collects each pipeline's
+:class:`StageTimes` (benchmarks).
 """
 
 from __future__ import annotations
@@ -361,7 +362,7 @@ class _RayScanner:  # pragma: no cover - runs in Ray Data workers
         rows = _scan_planned([Path(p) for p in batch["path"]], self.plan, fpr=self.fpr, frames=self.frames,
                              batch_size=self.batch_size, readers=self.readers, times=times)
         out = {k: [getattr(r, k) for r in rows] for k in ScanRow.__dataclass_fields__}
-        if self.timed:  # this call's stage times ride on its first row
+        if self.timed and rows:  # this call's stage times ride on its first row
             out[_TIMES] = [json.dumps(asdict(times))] + [""] * (len(rows) - 1)
         return out
 
