@@ -33,6 +33,8 @@ Example:
 
 from __future__ import annotations
 
+import functools
+
 import math
 from collections.abc import Sequence
 
@@ -140,16 +142,28 @@ def weighted_sign_tail(weights: ArrayLike) -> np.ndarray:
     lead, k = w.shape[:-1], w.shape[-1]
     rows, inverse = np.unique(np.sort(w.reshape(-1, k), axis=1), axis=0, return_inverse=True)
     total = int(rows.sum(axis=1).max())
-    pmf = np.zeros((rows.shape[0], total + 1))
-    pmf[:, 0] = 1.0
-    cols = np.arange(total + 1)
-    for i in range(k):
-        src = cols[None, :] - rows[:, i : i + 1]
-        moved = np.where(src >= 0, np.take_along_axis(pmf, np.maximum(src, 0), axis=1), 0.0)
-        pmf = 0.5 * (pmf + moved)
-    tail = np.cumsum(pmf[:, ::-1], axis=1)[:, ::-1]
-    tail = np.concatenate([np.minimum(tail, 1.0), np.zeros((rows.shape[0], 1))], axis=1)
+    tail = np.zeros((rows.shape[0], total + 2))
+    for r, row in enumerate(rows):  # a row's entries above its own total stay 0
+        own = _sorted_weights_tail(row.tobytes(), k)
+        tail[r, :own.size] = own
     return tail[inverse.reshape(-1)].reshape(lead + (total + 2,))
+
+
+@functools.lru_cache(maxsize=1024)
+def _sorted_weights_tail(row: bytes, k: int) -> np.ndarray:
+    """:func:`weighted_sign_tail` of one row of sorted int64 weights (given as bytes, so that it can be cached:
+    rank weights are the same multiset for every reading), length ``total + 1``; read-only."""
+    w = np.frombuffer(row, dtype=np.int64, count=k)
+    total = int(w.sum())
+    pmf = np.zeros(total + 1)
+    pmf[0] = 1.0
+    for wi in w.tolist():
+        moved = np.zeros(total + 1)
+        moved[wi:] = pmf[:total + 1 - wi] if wi > 0 else pmf
+        pmf = 0.5 * (pmf + moved)
+    tail = np.minimum(np.cumsum(pmf[::-1])[::-1], 1.0)
+    tail.flags.writeable = False
+    return tail
 
 
 def weighted_sign_sf(weights: ArrayLike, matched: ArrayLike) -> np.ndarray:

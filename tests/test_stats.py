@@ -155,6 +155,18 @@ def test_weighted_sign_tail_matches_enumeration():
     assert np.array_equal(weighted_sign_sf(rows, obs), np.take_along_axis(tails, obs, axis=1))
 
 
+def test_weighted_sign_tail_cache_is_invisible():
+    """Rows are cached by their sorted weights: the same table whatever was computed before, never shared."""
+    from gsw.stats import weighted_sign_tail
+
+    ranks = np.stack([np.random.default_rng(i).permutation(np.arange(1, 33)) for i in range(3)])
+    first = weighted_sign_tail(ranks)
+    again = weighted_sign_tail(ranks[::-1])
+    assert np.array_equal(first, again[::-1]) and np.array_equal(first[0], first[2])
+    first[0, 1] = 7.0  # the caller's copy
+    assert weighted_sign_tail(ranks[0])[1] != 7.0
+
+
 def test_weighted_sign_tail_matches_simulation_and_keeps_tiny_tails():
     from gsw.stats import weighted_sign_sf
 
