@@ -34,7 +34,6 @@ Example:
 from __future__ import annotations
 
 import functools
-
 import math
 from collections.abc import Sequence
 
@@ -128,7 +127,8 @@ def weighted_sign_tail(weights: ArrayLike) -> np.ndarray:
     integer weights ``w_i >= 0``: entry ``s`` is ``P(sum_i w_i B_i >= s)``.  In terms of the signed sum
     ``T = sum_i w_i eps_i`` (``eps_i = 2 B_i - 1`` Rademacher, ``S = sum_i w_i``): ``P(T >= 2 s - S)``.
     Dynamic programme over the integer sums (``O(k S)`` per row; rows with the same multiset of weights
-    are computed once); every entry is a sum of non-negative terms, so tails down to ``2^-k`` keep their
+    are computed once, and kept for later calls: the default rank weights give every reading the same
+    multiset); every entry is a sum of non-negative terms, so tails down to ``2^-k`` keep their
     relative accuracy.
 
     Args:
@@ -159,7 +159,7 @@ def _sorted_weights_tail(row: bytes, k: int) -> np.ndarray:
     pmf[0] = 1.0
     for wi in w.tolist():
         moved = np.zeros(total + 1)
-        moved[wi:] = pmf[:total + 1 - wi] if wi > 0 else pmf
+        moved[wi:] = pmf[:total + 1 - wi]
         pmf = 0.5 * (pmf + moved)
     tail = np.minimum(np.cumsum(pmf[::-1])[::-1], 1.0)
     tail.flags.writeable = False
