@@ -7,11 +7,12 @@ Every place that takes a device name (training, embedding, the evaluation grid, 
 from __future__ import annotations
 
 import contextlib
+import functools
 from typing import Iterator
 
 import torch
 
-__all__ = ["DEVICE_CHOICES", "cudnn_flags", "deterministic", "parse_device", "resolve_device"]
+__all__ = ["DEVICE_CHOICES", "constant", "cudnn_flags", "deterministic", "parse_device", "resolve_device"]
 
 #: How a device is named (the ``--device`` help of the command line).
 DEVICE_CHOICES = "auto|cpu|cuda|cuda:N"
@@ -99,3 +100,12 @@ def deterministic() -> contextlib.AbstractContextManager[None]:
     fingerprinting relies on: a copy does not depend on which worker or how many GPUs made it).
     """
     return cudnn_flags(deterministic=True, benchmark=False)
+
+
+@functools.lru_cache(maxsize=64)
+def constant(values: float | tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``torch.tensor(values)`` made on ``device`` once and cached (a 0-d tensor for a number): a host-to-device copy
+    of a new tensor waits for the device, a synchronisation on every call where a per-render or per-image constant
+    is built. Read-only by convention; made outside any inference mode, so that later autograd may save it."""
+    with torch.inference_mode(False):
+        return torch.tensor(values, dtype=dtype, device=device)

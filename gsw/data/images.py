@@ -11,7 +11,6 @@ rejected by name, as are images larger than :data:`gsw.camera.MAX_IMAGE_SIZE` on
 
 from __future__ import annotations
 
-import functools
 import os
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from torch import Tensor
 
 from gsw._atomic import atomic_write
 from gsw.camera import MAX_IMAGE_SIZE
+from gsw.device import constant
 
 __all__ = ["ImageError", "read_image", "write_image", "resize_image", "composite", "to_unit", "IMAGE_SUFFIXES"]
 
@@ -174,15 +174,8 @@ def to_unit(image: Tensor) -> Tensor:
         ``[..., H, W]`` float32 on the image's device.
     """
     if image.dtype == torch.uint8:
-        return image.float() / _divisor(image.device)
+        return image.float() / constant(255.0, torch.float32, image.device)
     return image.float().clamp(0, 1)
-
-
-@functools.lru_cache(maxsize=None)
-def _divisor(device: torch.device) -> Tensor:
-    """255 as a 0-d float32 tensor on ``device`` (made once per device: no host-to-device copy per image)."""
-    with torch.inference_mode(False), torch.no_grad():
-        return torch.tensor(255.0, device=device)
 
 
 def composite(rgba: Tensor, background: Tensor) -> tuple[Tensor, Tensor]:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from gsw.data.images import to_unit
 from gsw.mark.message import MessageLike, as_message, message_to_hex
 from gsw.stats import binomial_p_value
 from gsw.metrics.image import psnr
@@ -63,7 +64,7 @@ def _check_image(image: Tensor) -> Tensor:
     if min(image.shape[1:]) < MIN_SIDE:
         raise ValueError(f"image is {image.shape[1]}x{image.shape[2]}; both sides must be >= {MIN_SIDE} pixels")
     if image.dtype == torch.uint8:
-        return image.float() / 255.0
+        return to_unit(image)
     if not image.is_floating_point():
         raise TypeError(f"image must be uint8 or floating point, got {image.dtype}")
     if not bool(torch.isfinite(image).all()):
@@ -76,13 +77,11 @@ def _check_image(image: Tensor) -> Tensor:
 def _quantise_8bit(images: Tensor) -> Tensor:
     """What a saved 8-bit image holds: each value becomes exactly the float32 nearest to ``k / 255``.
 
-    The codes go through a table made on the CPU: a GPU division by 255 multiplies by a rounded reciprocal
-    and can land one ulp off ``k / 255`` (then reading the saved file back, or quantising again, would
-    not reproduce the result bit for bit).
+    The codes are divided by :func:`gsw.data.images.to_unit` (a GPU division by the number 255 multiplies by a
+    rounded reciprocal and can land one ulp off ``k / 255``; then reading the saved file back, or quantising
+    again, would not reproduce the result bit for bit).
     """
-    codes = (images.float() * 255.0).round().clamp_(0, 255).long()
-    table = (torch.arange(256, dtype=torch.float32) / 255.0).to(images.device)
-    return table[codes]
+    return to_unit((images.float() * 255.0).round().clamp_(0, 255).to(torch.uint8))
 
 
 def embed_image(image: Tensor, message: MessageLike = None, *, num_bits: int = 32,

@@ -20,13 +20,14 @@ y down, z forward); 2-D means are pixels in the `K p` frame, pixel (i, j) has it
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from gsw._ext import _C
+from gsw.device import constant
 from gsw.render import _ops
 
 if TYPE_CHECKING:
@@ -216,19 +217,10 @@ def _background(background: Tensor | tuple[float, float, float] | None, like: Te
         if torch.compiler.is_compiling():  # traced: a constant of the graph
             bg = torch.tensor(values, dtype=like.dtype, device=like.device)
         else:
-            bg = _constant_background(values, like.dtype, like.device)
+            bg = constant(values, like.dtype, like.device)  # made once: no synchronisation per render
     if bg.shape != (3,):
         raise ValueError(f"background must have shape [3], got {list(bg.shape)}")
     return bg
-
-
-@lru_cache(maxsize=64)
-def _constant_background(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
-    """A background given as numbers, made on the device once: a host-to-device copy of a new tensor waits for the
-    device (a synchronisation per render; the pool renders 16 views per step). Read-only by convention; made outside
-    any inference mode, so that later renders with gradients may save it."""
-    with torch.inference_mode(False):
-        return torch.tensor(values, dtype=dtype, device=device)
 
 
 def _resolve_sh_degree(gaussians: Gaussians, sh_degree: int | None) -> int:

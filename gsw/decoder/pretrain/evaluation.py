@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
+from gsw.data.images import to_unit
 from gsw.decoder.dwt import ll_subband
 from gsw.decoder.hidden import bit_accuracy
 from gsw.attacks.layers import NoiseLayer, draws_per_batch
@@ -131,7 +132,7 @@ def _decoded_bits(decode_fn: Callable[[torch.Tensor], torch.Tensor], img: torch.
                   device: torch.device | str) -> torch.Tensor:
     """Bits [1,k] (CPU) of one image [3,H,W]: uint8, or float in [0, 1] (e.g. a render)."""
     x = img[None].to(device)
-    x = x.float() / 255.0 if x.dtype == torch.uint8 else x.float()
+    x = to_unit(x) if x.dtype == torch.uint8 else x.float()  # uint8: as the file reader's float32, bitwise
     return (decode_fn(ll_subband(x)).float() > 0).float().cpu()
 
 
