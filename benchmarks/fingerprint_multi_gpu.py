@@ -49,8 +49,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The pool's best measured rule on lego (BENCHMARKS.md, #26: K = 16, confirm 0.99, 790 recipients/h).
-EARLY_STOP = "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99"
+#: The early-stopping rule of the runs (a preset of gsw.fingerprint.stopping.PRESETS; the seventh round used it).
+EARLY_STOP = "quality"
 
 
 def _write_json(path: Path, obj) -> None:

@@ -10,7 +10,8 @@
 #          (#26: the loss A/B, a 30-step profile with the device's busy share and a trace, the quality preset on
 #          32 recipients and the throughput preset on 16, K = 16, one process), then the quality preset on 32
 #          fresh recipients again (a second sample of the same setting);
-#   GPUs 1-2, once the model exists: `gsw fingerprint` through Ray on 2 GPUs (1, 2), then on 1 GPU (1) (#27).
+#   GPUs 1-2, once the model exists: `gsw fingerprint` through Ray on 2 GPUs (1, 2), then on 1 GPU (1) (#27), with
+#          the quality preset (fingerprint_multi_gpu.py's default).
 # Phase 2, the host otherwise idle: `gsw scan` over 10,000 files on 1 GPU (in one process and on Ray), 2 and 4
 #   GPUs (Ray Data); `gsw fingerprint` through Ray on 4 GPUs; the copies of the 1-, 2- and 4-GPU runs compared.
 #
@@ -33,7 +34,6 @@ LEGO=${2:?LEGO_DIR}
 . benchmarks/steps.sh
 on_gpu() { local g=$1; shift; CUDA_VISIBLE_DEVICES=$g "$@"; }
 FP="python3 benchmarks/fingerprint_multi_gpu.py"
-STOP=quality
 
 step suite on_gpu 3 python3 -m pytest -q -p no:cacheprovider -rfE tests &
 suite=$!
@@ -43,8 +43,8 @@ PHOTOS=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['photo
  step tp_repeat on_gpu 0 python3 benchmarks/fingerprint_throughput.py --device cuda --out "$W" --scene lego \
    --model "$W/fp/model" --data "$PHOTOS" --budget-s 900 --setting "k=16 n=32 stop=quality" --tag lego_repeat) &
 pool=$!
-step fingerprint_2 $FP run --gpus 2 --first-gpu 1 --early-stop $STOP --workdir "$W/fp"
-step fingerprint_1 $FP run --gpus 1 --first-gpu 1 --early-stop $STOP --workdir "$W/fp"
+step fingerprint_2 $FP run --gpus 2 --first-gpu 1 --workdir "$W/fp"
+step fingerprint_1 $FP run --gpus 1 --first-gpu 1 --workdir "$W/fp"
 wait $pool
 log "pool finished"
 while kill -0 "$suite" 2>/dev/null; do sleep 2; done
@@ -55,6 +55,6 @@ step scan_1 "${SC[@]}" --gpus 1 --modes batched,ray --out "$W/scan_cuda_1gpu.jso
 for g in 2 4; do
   step "scan_$g" "${SC[@]}" --gpus "$g" --modes ray --out "$W/scan_cuda_${g}gpu.json"
 done
-step fingerprint_4 $FP run --gpus 4 --early-stop $STOP --workdir "$W/fp"
+step fingerprint_4 $FP run --gpus 4 --workdir "$W/fp"
 step compare $FP compare --runs 1 2 4 --workdir "$W/fp" --out "$W/fingerprint_multi_gpu.json"
 log "round done"

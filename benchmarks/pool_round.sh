@@ -21,8 +21,8 @@ set -uo pipefail
 W=${1:?WORKDIR}
 LEGO=${2:?LEGO_DIR}
 . benchmarks/steps.sh
-ES="min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99"
-EX="min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5"
+ES=throughput  # gsw.fingerprint.stopping.PRESETS: min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99
+EX=quality     # the same with confirm=0.995,extend=0.5
 TP="python3 benchmarks/fingerprint_throughput.py --device cuda --out $W"
 
 STEPS=("${@:3}")
@@ -46,7 +46,7 @@ for s in "${STEPS[@]}"; do
       --setting "k=16 n=32 stop=$EX,accuracy_window=32" --setting "k=32 n=32 stop=$EX,accuracy_window=32" \
       --tag lego_window ;;
     window998) lego_model; step tp_window998 $TP "${M[@]}" \
-      --setting "k=16 n=32 stop=${EX/confirm=0.995/confirm=0.998},accuracy_window=32" --tag lego_window998 ;;
+      --setting "k=16 n=32 stop=$EX,confirm=0.998,accuracy_window=32" --tag lego_window998 ;;
     host) lego_model
       step loss_ab python3 benchmarks/pool_loss_ab.py --device cuda --k 16 --size 800 --out "$W/pool_loss_ab.json"
       step profile $TP "${M[@]}" --setting "k=16 n=16 stop=quality" --profile 30 --trace --tag lego_profile

@@ -64,6 +64,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
+from unittest import mock
 
 ROOT = Path(__file__).resolve().parents[1]
 MODES = ("per-source", "batched", "batched-f32", "host-only", "ray")
@@ -202,11 +203,8 @@ def _batched_f32(paths: list[Path], marks: list, device, args: argparse.Namespac
     def old_load(path: Path, frames: int) -> tuple[list, str]:
         return load_images_or_video([path], frames), ""
 
-    new_load, scan_module._load = scan_module._load, old_load
-    try:
+    with mock.patch.object(scan_module, "_load", old_load):
         return _batched(paths, marks, device, args, times)
-    finally:
-        scan_module._load = new_load
 
 
 def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace, times: list) -> list:
@@ -224,11 +222,8 @@ def _host_only(paths: list[Path], marks: list, device, args: argparse.Namespace,
         return [Reading([f for f, _ in p], [sz for _, sz in p], torch.randn(len(p), decoder.num_bits, generator=gen))
                 for p in plans]
 
-    real, identify_module.read_images = identify_module.read_images, random_readings
-    try:
+    with mock.patch.object(identify_module, "read_images", random_readings):
         return _batched(paths, marks, device, args, times)
-    finally:
-        identify_module.read_images = real
 
 
 def _batched(paths: list[Path], marks: list, device, args: argparse.Namespace, times: list) -> list:

@@ -38,10 +38,9 @@ __all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
 _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
 
-#: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round"):
-#: ``quality``: every recipient >= 99 % bits and >= 37 dB held-out in 3 of 3 jobs of 16 (799 per GPU-hour before the
-#: cheaper loss pass, 954 and 1,014 after it);
-#: ``throughput``: 1,268 per GPU-hour, 13 of 16 recipients meeting both.
+#: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" and
+#: "Seventh GPU round"): ``quality``: 954-1,110 per GPU-hour in four jobs, 94 of their 96 copies >= 99 % bits and
+#: >= 37 dB held-out; ``throughput``: 1,268-1,295 per GPU-hour, 13-14 of 16 meeting both.
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
     "throughput": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99",
