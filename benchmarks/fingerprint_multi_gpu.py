@@ -100,7 +100,8 @@ def prepare(args) -> None:
 
         data = png_dataset(Path(args.data), work / "lego_png")
         photos = str(data)
-        ns = argparse.Namespace(data=str(data), size=args.size, train_seconds=args.train_seconds)
+        ns = argparse.Namespace(data=str(data), size=args.size, train_seconds=args.train_seconds,
+                                train_seed=args.train_seed)
         g, train_set, test_set, info = _train_lego(ns, dev)
         cams, held = train_set.cameras, test_set.cameras
     else:
@@ -269,6 +270,7 @@ def main() -> int:
     ap.add_argument("--scene", choices=["lego", "builtin"], default="lego")
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "lego"))
     ap.add_argument("--train-seconds", type=float, default=60.0)
+    ap.add_argument("--train-seed", type=int, default=0, help="prepare: lego's training seed")
     ap.add_argument("--size", type=int, default=800)
     ap.add_argument("--views", type=int, default=24, help="builtin: embedding views")
     ap.add_argument("--held-out", type=int, default=8, help="builtin: held-out views")

@@ -65,7 +65,8 @@ def _train_lego(args, dev):
     train_set = load_nerf_synthetic(args.data, "train", downscale=down, background=(1.0, 1.0, 1.0))
     test_set = load_nerf_synthetic(args.data, "test", downscale=down, background=(1.0, 1.0, 1.0))
     t0 = time.perf_counter()
-    cfg = TrainConfig(max_train_time_s=args.train_seconds, device=str(dev), seed=0)  # INRIA recipe, cut by time
+    cfg = TrainConfig(max_train_time_s=args.train_seconds, device=str(dev),  # INRIA recipe, cut by time
+                      seed=getattr(args, "train_seed", 0))
     res = train(train_set, config=cfg, progress=False, test_set=test_set, background=(1.0, 1.0, 1.0))
     info = dict(iterations=res.iterations, seconds=time.perf_counter() - t0, gaussians=len(res.gaussians),
                 test_psnr=(res.test_metrics or {}).get("psnr"))

@@ -200,12 +200,29 @@ def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     assert stuck.steps == 6 and stuck.message_weight == pytest.approx(cfg.weights.message)
 
 
+def test_boost_raises_a_hard_messages_weight_only_in_its_extension() -> None:
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    w = cfg.weights.message
+    # PSNR to spare, bits that never pass (zeros against a decoder that reads ones), no early stop before the cap
+    common = "min_steps=100,window=1,check_every=1,psnr_target=-100,adapt=2,confirm=0.9,extend=1"
+    plain = finetune_batch(ws, ["y"], torch.zeros(1, 32), stop=EarlyStop.parse(common))[0]
+    assert (plain.steps, plain.message_weight) == (12, pytest.approx(w))  # 6 + 6 extension steps, capped at w
+    boosted = finetune_batch(ws, ["y"], torch.zeros(1, 32), stop=EarlyStop.parse(common + ",boost=3"))[0]
+    assert (boosted.steps, boosted.message_weight) == (12, pytest.approx(3 * w))
+    easy = finetune_batch(ws, ["x"], torch.ones(1, 32), stop=EarlyStop.parse(common + ",boost=3"))[0]
+    assert (easy.steps, easy.message_weight) == (6, pytest.approx(w))  # confirmed at the cap: no extension
+
+
 def test_early_stop_settings() -> None:
     rule = EarlyStop.parse("min_steps=50, window=8,margin=1.5,psnr_target=37,adapt=1.2")
     assert (rule.min_steps, rule.window, rule.margin, rule.psnr_target, rule.adapt) == (50, 8, 1.5, 37.0, 1.2)
     assert EarlyStop.parse("psnr_target=none").psnr_target is None
     assert EarlyStop.parse("confirm=0.998").confirm == 0.998
     assert EarlyStop.parse("extend=0.5").extend == 0.5
+    assert EarlyStop.parse("quality,boost=2").boost == 2.0
     assert EarlyStop.parse("confirm=0.99,accuracy_window=32").accuracy_window == 32
     quality = EarlyStop.parse("quality")
     assert (quality.psnr_target, quality.confirm, quality.extend, quality.window) == (37.4, 0.995, 0.5, 16)
@@ -214,7 +231,8 @@ def test_early_stop_settings() -> None:
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
                        ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number"),
-                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value")]:
+                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value"), ("boost=0.5", "boost"),
+                       ("throughput,boost=2", "extend > 0"), ("confirm=0.9,extend=1,boost=2", "adapt > 1")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
 

@@ -436,6 +436,7 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
             return None
         if pool.caps[j] == pool.cap and rule.extension(pool.cap):
             pool.caps[j] = pool.cap + rule.extension(pool.cap)
+            pool.monitor.extend(j)
             return None
     weight = float(pool.monitor.weights[j])
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,

@@ -20,7 +20,10 @@ cap or earlier by the rule.
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
 ``w``), multiplied by ``adapt`` while the PSNR is above it and its bits do not pass yet (up to ``w``: the
-control only ever lowers the configured recipe's weight).
+control only lowers the configured recipe's weight), except in an extension with ``boost > 1``: a copy that
+failed the confirmation at the cap with PSNR to spare (a *hard* message, whose weight sat at ``w`` while its
+bits did not pass) may then be pushed up to ``boost x w``, spending that PSNR on its bits; the PSNR target still
+holds its weight back.
 
 The statistics stay on the device; the host reads them every ``check_every`` steps (one synchronisation).
 """
@@ -67,6 +70,8 @@ class EarlyStop:
         accuracy_window: 0, or: a recipient also passes when the running mean bit accuracy of its training steps
             (over about this many steps, counted since it started or its last refused stop, doubled per refusal)
             is >= ``confirm`` (which must then be > 0).
+        boost: in an extension the weight control may raise a recipient's message weight up to this multiple of
+            the configured weight (1: never above it; > 1 needs ``adapt > 1`` and ``extend > 0``).
     """
 
     min_steps: int = 100
@@ -79,6 +84,7 @@ class EarlyStop:
     confirm: float = 0.0
     extend: float = 0.0
     accuracy_window: int = 0
+    boost: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -95,6 +101,10 @@ class EarlyStop:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
             raise ValueError(f"EarlyStop.adapt and max_factor must be >= 1, got {self.adapt}, {self.max_factor}")
+        if self.boost < 1 or self.boost > 1 and (self.adapt <= 1 or self.extend <= 0):
+            raise ValueError("EarlyStop.boost must be >= 1, and > 1 only with the weight control and an extension "
+                             f"(adapt > 1, extend > 0), got boost={self.boost}, adapt={self.adapt}, "
+                             f"extend={self.extend}")
         if self.adapt > 1 and self.psnr_target is None:
             raise ValueError("EarlyStop.adapt > 1 steers the message weight towards psnr_target: give one")
 
@@ -155,6 +165,7 @@ class SlotMonitor:
         self.streak = torch.zeros(k, device=device)
         self.psnr = torch.zeros(k, device=device)
         self.weights = torch.full((k,), self.weight, device=device)
+        self.ceilings = [self.weight] * k  # per slot: the most the control may raise its weight to
         self.count = torch.zeros(k, device=device)  # steps observed per slot
         self.accuracy = torch.zeros(k, device=device)  # running bit accuracy (rule.accuracy_window)
         self.since = torch.zeros(k, device=device)  # steps since the recipient started or its last refused stop
@@ -171,6 +182,12 @@ class SlotMonitor:
         self.since[j] = 0.0
         self.rejections[j] = 0
         self.weights[j] = self.weight
+        self.ceilings[j] = self.weight
+
+    def extend(self, j: int) -> None:
+        """Slot ``j``'s recipient enters its extension: the control may now raise its weight to
+        ``rule.boost`` x the configured one."""
+        self.ceilings[j] = self.weight * self.rule.boost
 
     @torch.no_grad()
     def observe(self, slots: Tensor, logits: Tensor, messages: Tensor, renders: Tensor, targets: Tensor) -> None:
@@ -237,4 +254,5 @@ class SlotMonitor:
         self.rejections[j] += 1
 
     def _scale(self, j: int, factor: float) -> None:
-        self.weights[j] = steer_weight(float(self.weights[j]), factor, self.weight / self.rule.max_factor, self.weight)
+        self.weights[j] = steer_weight(float(self.weights[j]), factor, self.weight / self.rule.max_factor,
+                                       self.ceilings[j])
