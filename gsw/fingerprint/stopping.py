@@ -17,13 +17,17 @@ unless ``extend`` is set: then a copy whose score at the cap fails the same conf
 accuracy, the PSNR target) goes on for up to ``extend`` x the cap more steps, once, and finishes at that second
 cap or earlier by the rule.
 
+With ``validation`` every confirmation also scores the copy on that many *validation views*: poses between two
+embedding cameras (directions slerped around the content, the cameras' intrinsics and size;
+:func:`gsw.fingerprint.shared.validation_cameras`), which the fine-tune never trains on; the copy is confirmed only
+when its mean bit accuracy there is >= ``validation_bits`` (and its mean PSNR there >= ``validation_psnr`` when
+given). The embedding views alone say how well a copy learned the views it trained on, not whether its mark reaches
+the views between them.
+
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
 ``w``), multiplied by ``adapt`` while the PSNR is above it and its bits do not pass yet (up to ``w``: the
-control only lowers the configured recipe's weight), except in an extension with ``boost > 1``: a copy that
-failed the confirmation at the cap with PSNR to spare (a *hard* message, whose weight sat at ``w`` while its
-bits did not pass) may then be pushed up to ``boost x w``, spending that PSNR on its bits; the PSNR target still
-holds its weight back.
+control only ever lowers the configured recipe's weight).
 
 The statistics stay on the device; the host reads them every ``check_every`` steps (one synchronisation).
 """
@@ -39,7 +43,7 @@ from gsw.mark.loss import steer_weight
 
 __all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
-_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
+_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "validation")
 
 #: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" and
 #: "Seventh GPU round"): ``quality``: 954-1,110 per GPU-hour in four jobs, 94 of their 96 copies >= 99 % bits and
@@ -70,8 +74,10 @@ class EarlyStop:
         accuracy_window: 0, or: a recipient also passes when the running mean bit accuracy of its training steps
             (over about this many steps, counted since it started or its last refused stop, doubled per refusal)
             is >= ``confirm`` (which must then be > 0).
-        boost: in an extension the weight control may raise a recipient's message weight up to this multiple of
-            the configured weight (1: never above it; > 1 needs ``adapt > 1`` and ``extend > 0``).
+        validation: 0, or the number of validation views a confirmation also scores (see the module docstring;
+            needs ``confirm > 0``).
+        validation_bits: the mean bit accuracy the copy needs on the validation views.
+        validation_psnr: the mean PSNR (dB) it needs there; None: no PSNR condition on them.
     """
 
     min_steps: int = 100
@@ -84,7 +90,9 @@ class EarlyStop:
     confirm: float = 0.0
     extend: float = 0.0
     accuracy_window: int = 0
-    boost: float = 1.0
+    validation: int = 0
+    validation_bits: float = 0.99
+    validation_psnr: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -97,21 +105,26 @@ class EarlyStop:
         if self.accuracy_window < 0 or self.accuracy_window > 0 and self.confirm <= 0:
             raise ValueError("EarlyStop.accuracy_window must be >= 0, and > 0 only with a confirmation (confirm > 0), "
                              f"got accuracy_window={self.accuracy_window}, confirm={self.confirm}")
+        if self.validation < 0 or self.validation > 0 and self.confirm <= 0:
+            raise ValueError("EarlyStop.validation must be >= 0, and > 0 only with a confirmation (confirm > 0), "
+                             f"got validation={self.validation}, confirm={self.confirm}")
+        if not 0.0 <= self.validation_bits <= 1.0:
+            raise ValueError(f"EarlyStop.validation_bits is a bit accuracy in [0, 1], got {self.validation_bits}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
             raise ValueError(f"EarlyStop.adapt and max_factor must be >= 1, got {self.adapt}, {self.max_factor}")
-        if self.boost < 1 or self.boost > 1 and (self.adapt <= 1 or self.extend <= 0):
-            raise ValueError("EarlyStop.boost must be >= 1, and > 1 only with the weight control and an extension "
-                             f"(adapt > 1, extend > 0), got boost={self.boost}, adapt={self.adapt}, "
-                             f"extend={self.extend}")
         if self.adapt > 1 and self.psnr_target is None:
             raise ValueError("EarlyStop.adapt > 1 steers the message weight towards psnr_target: give one")
 
     def confirmed(self, bit_accuracy: float, psnr: float) -> bool:
         """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early (or, with
-        ``extend``, finish at the step cap)."""
+        ``extend``, finish at the step cap), as far as those views tell."""
         return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
+
+    def validated(self, bit_accuracy: float, psnr: float) -> bool:
+        """Whether a copy's mean ``bit_accuracy`` / ``psnr`` (dB) on the validation views pass."""
+        return bit_accuracy >= self.validation_bits and (self.validation_psnr is None or psnr >= self.validation_psnr)
 
     def extension(self, cap: int) -> int:
         """Extra steps a recipient that fails :meth:`confirmed` at the step ``cap`` gets (0: none)."""
@@ -141,7 +154,7 @@ class EarlyStop:
                 raise ValueError(f"early-stop setting {part!r}: expected key=value with key one of "
                                  f"{', '.join(fields)}")
             try:
-                if key == "psnr_target":
+                if key in ("psnr_target", "validation_psnr"):
                     kwargs[key] = None if value.strip().lower() == "none" else float(value)
                 else:
                     kwargs[key] = int(value) if key in _INTEGER_FIELDS else float(value)
@@ -165,7 +178,6 @@ class SlotMonitor:
         self.streak = torch.zeros(k, device=device)
         self.psnr = torch.zeros(k, device=device)
         self.weights = torch.full((k,), self.weight, device=device)
-        self.ceilings = [self.weight] * k  # per slot: the most the control may raise its weight to
         self.count = torch.zeros(k, device=device)  # steps observed per slot
         self.accuracy = torch.zeros(k, device=device)  # running bit accuracy (rule.accuracy_window)
         self.since = torch.zeros(k, device=device)  # steps since the recipient started or its last refused stop
@@ -182,12 +194,6 @@ class SlotMonitor:
         self.since[j] = 0.0
         self.rejections[j] = 0
         self.weights[j] = self.weight
-        self.ceilings[j] = self.weight
-
-    def extend(self, j: int) -> None:
-        """Slot ``j``'s recipient enters its extension: the control may now raise its weight to
-        ``rule.boost`` x the configured one."""
-        self.ceilings[j] = self.weight * self.rule.boost
 
     @torch.no_grad()
     def observe(self, slots: Tensor, logits: Tensor, messages: Tensor, renders: Tensor, targets: Tensor) -> None:
@@ -254,5 +260,4 @@ class SlotMonitor:
         self.rejections[j] += 1
 
     def _scale(self, j: int, factor: float) -> None:
-        self.weights[j] = steer_weight(float(self.weights[j]), factor, self.weight / self.rule.max_factor,
-                                       self.ceilings[j])
+        self.weights[j] = steer_weight(float(self.weights[j]), factor, self.weight / self.rule.max_factor, self.weight)
