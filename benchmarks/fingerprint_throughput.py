@@ -190,9 +190,8 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
         copy = load_inria_model(r.folder).gaussians.to(dev)
         accs, ps = held_out_scores(copy, held_orig, held, bg, messages[r.name].float(), dec)
         rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
-                         seconds=r.seconds, train_bits=r.bit_accuracy, train_min_bits=r.min_bit_accuracy,
-                         train_psnr=r.psnr, validation_bits=r.validation_bit_accuracy,
-                         validation_psnr=r.validation_psnr, held_out_bits=accs, held_out_psnr=ps))
+                         seconds=r.seconds, train_bits=r.bit_accuracy,
+                         train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,
                lpips=setting["lpips"], freeze=setting["freeze"],

@@ -185,44 +185,6 @@ def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
     assert rule.extension(12) == 6 and EarlyStop().extension(12) == 0
 
 
-def test_validation_views_hold_back_a_copy_the_embedding_views_confirm() -> None:
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
-    base = "min_steps=4,window=2,check_every=2,confirm=0.9,extend=0.5,validation=3"
-    passing = finetune_batch(ws, ["a"], torch.ones(1, 32), stop=EarlyStop.parse(base))[0]
-    assert (passing.steps, passing.stopped_early, passing.refusals) == (4, True, 0)
-    assert passing.validation[0] == 1.0 and passing.validation[1] > 20  # every bit read, a close render
-    # the same copies, but a PSNR no render reaches on the validation views: every early stop refused (the window
-    # doubles: attempts at 4, 8 and 16 steps), the cap (12) extended once (to 18), the copy finishes there
-    held = finetune_batch(ws, ["a"], torch.ones(1, 32), stop=EarlyStop.parse(base + ",validation_psnr=1000"))[0]
-    assert (held.steps, held.stopped_early, held.refusals) == (18, False, 3)
-    assert held.validation[0] == 1.0
-    # a copy the embedding views refuse is never scored on the validation views
-    wrong = finetune_batch(ws, ["b"], torch.zeros(1, 32), stop=EarlyStop.parse(base))[0]
-    assert wrong.validation is None and wrong.steps == 18
-    assert len(ws.validation(3)[0]) == 3 and ws.validation(3) is ws.validation(3)  # made once
-
-
-def test_validation_cameras_lie_between_the_embedding_cameras() -> None:
-    from gsw.fingerprint.shared import validation_cameras
-    from gsw.mark.views import content_bounds
-
-    scene = default_scene(width=64, height=48, n_cameras=6, detail=0.3)
-    cams = validation_cameras(scene.gaussians, scene.cameras, 8)
-    again = validation_cameras(scene.gaussians, scene.cameras, 8)
-    assert all(torch.equal(a.viewmat, b.viewmat) for a, b in zip(cams, again))  # the same views every time
-    centre, _ = content_bounds(scene.gaussians)
-    dist = [float((c.center.double() - centre).norm()) for c in scene.cameras]
-    for c in cams:
-        assert (c.width, c.height) == (64, 48) and c.fx == scene.cameras[0].fx
-        assert min(dist) - 1e-4 <= float((c.center.double() - centre).norm()) <= max(dist) + 1e-4
-        assert not any(torch.allclose(c.viewmat, e.viewmat) for e in scene.cameras)
-    with pytest.raises(ValueError, match="between two embedding cameras"):
-        validation_cameras(scene.gaussians, scene.cameras[:1], 2)
-
-
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
@@ -244,9 +206,6 @@ def test_early_stop_settings() -> None:
     assert EarlyStop.parse("psnr_target=none").psnr_target is None
     assert EarlyStop.parse("confirm=0.998").confirm == 0.998
     assert EarlyStop.parse("extend=0.5").extend == 0.5
-    checked = EarlyStop.parse("quality,validation=16,validation_bits=0.995,validation_psnr=37.1")
-    assert (checked.validation, checked.validation_bits, checked.validation_psnr) == (16, 0.995, 37.1)
-    assert EarlyStop.parse("quality,validation=16,validation_psnr=none").validation_psnr is None
     assert EarlyStop.parse("confirm=0.99,accuracy_window=32").accuracy_window == 32
     quality = EarlyStop.parse("quality")
     assert (quality.psnr_target, quality.confirm, quality.extend, quality.window) == (37.4, 0.995, 0.5, 16)
@@ -255,8 +214,7 @@ def test_early_stop_settings() -> None:
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
                        ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number"),
-                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value"),
-                       ("validation=4", "confirmation"), ("confirm=0.9,validation_bits=2", "validation_bits")]:
+                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
 

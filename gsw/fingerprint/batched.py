@@ -250,8 +250,6 @@ class CopyResult:
             loss) before its batch began: 0 when the worker had it cached from an earlier batch.
         worker_warm_s: seconds its worker's warm-up took (:func:`gsw.fingerprint.shared.warm_worker`: the
             original renders and the loss, made while the driver ran the set-up); 0 without one.
-        validation: (mean bit accuracy, mean PSNR in dB) on the rule's validation views at its last
-            confirmation that got that far (:attr:`~gsw.fingerprint.stopping.EarlyStop.validation`), else None.
     """
 
     name: str
@@ -267,7 +265,6 @@ class CopyResult:
     refusals: int = 0
     worker_setup_s: float = 0.0
     worker_warm_s: float = 0.0
-    validation: tuple[float, float] | None = None
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
@@ -431,13 +428,9 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
     steps = pool.params.steps[j]
     with torch.no_grad():
         copy = pool.params.gaussians(j).detach().clone()
-    target = pool.messages[slot.index]
-    acc, acc_min, ps, ps_min = _score(pool.scene, copy, target, pool.scene.shared.cameras, pool.scene.originals)
+    acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
     rule = pool.monitor.rule
-    val = None
-    if rule is not None and rule.validation and rule.confirmed(acc, ps):
-        val = _score(pool.scene, copy, target, *pool.scene.validation(rule.validation))[::2]
-    if rule is not None and not (rule.confirmed(acc, ps) and (val is None or rule.validated(*val))):
+    if rule is not None and not rule.confirmed(acc, ps):
         if steps < pool.caps[j]:  # an early stop (before the cap or the extension's cap)
             pool.monitor.refuse(j)
             return None
@@ -447,12 +440,11 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
     weight = float(pool.monitor.weights[j])
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
                                   (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,
-                                  pool.monitor.rejections[j], validation=val)
+                                  pool.monitor.rejections[j])
 
 
-def _score(scene, copy: Gaussians, target: Tensor, cameras, originals) -> tuple[float, float, float, float]:
-    """(mean, worst) bit accuracy and (mean, worst) PSNR of one copy over ``cameras`` (the embedding views or the
-    validation views) against the input model's renders ``originals``."""
-    acc, ps = (v.cpu() for v in final_scores(copy, cameras, originals, scene.loss.decoder, target,
+def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:
+    """(mean, worst) bit accuracy and (mean, worst) PSNR of one copy over the embedding views."""
+    acc, ps = (v.cpu() for v in final_scores(copy, scene.shared.cameras, scene.originals, scene.loss.decoder, target,
                                              scene.shared.config.background))
     return float(acc.mean()), float(acc.min()), float(ps.mean()), float(ps.min())

@@ -54,8 +54,6 @@ class RecipientReport:
             Ray, a batch's copies arrive together when the batch ends).
         worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
         worker_warm_s: seconds its worker's warm-up took, while the driver ran the set-up (Ray; 0 without).
-        validation_bit_accuracy, validation_psnr: mean scores on the early-stopping rule's validation views at
-            its last confirmation that scored them (embedded with ``validation`` only).
     """
 
     name: str
@@ -73,8 +71,6 @@ class RecipientReport:
     finished_s: float | None = None
     worker_setup_s: float | None = None
     worker_warm_s: float | None = None
-    validation_bit_accuracy: float | None = None
-    validation_psnr: float | None = None
 
 
 @dataclass
@@ -200,8 +196,7 @@ class _Writer:
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
                                                    r.seconds, r.steps, r.stopped_early, r.refusals,
-                                                   self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s,
-                                                   *(r.validation or (None, None)))
+                                                   self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 

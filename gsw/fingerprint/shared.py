@@ -23,37 +23,7 @@ from gsw.gaussians import Gaussians
 from gsw.fingerprint.batched import References, check_pool_config, pool_config
 from gsw.mark.embed import EmbedConfig, prepare_embedding
 
-__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "validation_cameras",
-           "warm_worker", "worker_scene"]
-
-#: Seed of :func:`validation_cameras` (the same views on every worker and in every run of a job).
-VALIDATION_SEED = 20261127
-
-
-def validation_cameras(original: Gaussians, cameras: Sequence[Camera], n: int) -> list[Camera]:
-    """``n`` views between the embedding ``cameras``, for checking a copy on poses it was not fine-tuned on.
-
-    Each is :class:`gsw.mark.views.ViewSampler`'s ``interpolate`` mode: two embedding cameras drawn at random,
-    their directions from the content centre slerped and their distances and up vectors interpolated at a random
-    point between them, looking at the content centre, with the nearer camera's intrinsics and image size.
-    Computed on the CPU from a fixed seed: the same views on every worker.
-
-    Args:
-        original: the input model (its means and opacities give the content centre).
-        cameras: the embedding views (at least 2).
-        n: how many.
-
-    Raises:
-        ValueError: fewer than 2 cameras.
-    """
-    from gsw.camera import MAX_IMAGE_SIZE
-    from gsw.mark.views import ViewSampler, ViewSamplerConfig
-
-    if len(cameras) < 2:
-        raise ValueError(f"validation views lie between two embedding cameras: got {len(cameras)} camera(s)")
-    cfg = ViewSamplerConfig(modes=(("interpolate", 1.0),), focal_range=(1.0, 1.0), size_range=(1.0, 1.0),
-                            target_jitter=0.0, max_side=MAX_IMAGE_SIZE)
-    return ViewSampler(original.detach().to("cpu"), cameras, cfg, seed=VALIDATION_SEED).sample_many(n)
+__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "warm_worker", "worker_scene"]
 
 
 def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, config: EmbedConfig,
@@ -173,20 +143,6 @@ class WorkerScene:
     loss: torch.nn.Module
     warm_s: float = 0.0
     _references: dict[int, References] = field(default_factory=dict, repr=False)
-    _validation: dict[int, tuple[list[Camera], list[Tensor]]] = field(default_factory=dict, repr=False)
-
-    def validation(self, n: int) -> tuple[list[Camera], list[Tensor]]:
-        """``n`` validation views (:func:`validation_cameras`) and the input model's [3, H, W] renders of them on
-        :attr:`device`, made once per ``n``."""
-        if n not in self._validation:
-            from gsw.render.rasterize import rasterize
-
-            cams = validation_cameras(self.shared.original, self.shared.cameras, n)
-            original = self.shared.original.to(self.device)
-            with torch.no_grad():
-                renders = [rasterize(original, cam, background=self.shared.config.background).image for cam in cams]
-            self._validation[n] = cams, renders
-        return self._validation[n]
 
     def references(self, views: Sequence[int]) -> References:
         """The loss's :class:`~gsw.fingerprint.batched.References` of ``views``' original renders, stacked in the

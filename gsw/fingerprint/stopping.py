@@ -17,13 +17,6 @@ unless ``extend`` is set: then a copy whose score at the cap fails the same conf
 accuracy, the PSNR target) goes on for up to ``extend`` x the cap more steps, once, and finishes at that second
 cap or earlier by the rule.
 
-With ``validation`` every confirmation also scores the copy on that many *validation views*: poses between two
-embedding cameras (directions slerped around the content, the cameras' intrinsics and size;
-:func:`gsw.fingerprint.shared.validation_cameras`), which the fine-tune never trains on; the copy is confirmed only
-when its mean bit accuracy there is >= ``validation_bits`` (and its mean PSNR there >= ``validation_psnr`` when
-given). The embedding views alone say how well a copy learned the views it trained on, not whether its mark reaches
-the views between them.
-
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
 ``w``), multiplied by ``adapt`` while the PSNR is above it and its bits do not pass yet (up to ``w``: the
@@ -43,10 +36,10 @@ from gsw.mark.loss import steer_weight
 
 __all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
-_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "validation")
+_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
 
-#: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" and
-#: "Seventh GPU round"): ``quality``: 954-1,110 per GPU-hour in four jobs, 94 of their 96 copies >= 99 % bits and
+#: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" to
+#: "Eighth GPU round"): ``quality``: 954-1,122 per GPU-hour in five jobs, 122 of their 128 copies >= 99 % bits and
 #: >= 37 dB held-out; ``throughput``: 1,268-1,295 per GPU-hour, 13-14 of 16 meeting both.
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
@@ -74,10 +67,6 @@ class EarlyStop:
         accuracy_window: 0, or: a recipient also passes when the running mean bit accuracy of its training steps
             (over about this many steps, counted since it started or its last refused stop, doubled per refusal)
             is >= ``confirm`` (which must then be > 0).
-        validation: 0, or the number of validation views a confirmation also scores (see the module docstring;
-            needs ``confirm > 0``).
-        validation_bits: the mean bit accuracy the copy needs on the validation views.
-        validation_psnr: the mean PSNR (dB) it needs there; None: no PSNR condition on them.
     """
 
     min_steps: int = 100
@@ -90,9 +79,6 @@ class EarlyStop:
     confirm: float = 0.0
     extend: float = 0.0
     accuracy_window: int = 0
-    validation: int = 0
-    validation_bits: float = 0.99
-    validation_psnr: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -105,11 +91,6 @@ class EarlyStop:
         if self.accuracy_window < 0 or self.accuracy_window > 0 and self.confirm <= 0:
             raise ValueError("EarlyStop.accuracy_window must be >= 0, and > 0 only with a confirmation (confirm > 0), "
                              f"got accuracy_window={self.accuracy_window}, confirm={self.confirm}")
-        if self.validation < 0 or self.validation > 0 and self.confirm <= 0:
-            raise ValueError("EarlyStop.validation must be >= 0, and > 0 only with a confirmation (confirm > 0), "
-                             f"got validation={self.validation}, confirm={self.confirm}")
-        if not 0.0 <= self.validation_bits <= 1.0:
-            raise ValueError(f"EarlyStop.validation_bits is a bit accuracy in [0, 1], got {self.validation_bits}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
@@ -119,12 +100,8 @@ class EarlyStop:
 
     def confirmed(self, bit_accuracy: float, psnr: float) -> bool:
         """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early (or, with
-        ``extend``, finish at the step cap), as far as those views tell."""
+        ``extend``, finish at the step cap)."""
         return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
-
-    def validated(self, bit_accuracy: float, psnr: float) -> bool:
-        """Whether a copy's mean ``bit_accuracy`` / ``psnr`` (dB) on the validation views pass."""
-        return bit_accuracy >= self.validation_bits and (self.validation_psnr is None or psnr >= self.validation_psnr)
 
     def extension(self, cap: int) -> int:
         """Extra steps a recipient that fails :meth:`confirmed` at the step ``cap`` gets (0: none)."""
@@ -154,7 +131,7 @@ class EarlyStop:
                 raise ValueError(f"early-stop setting {part!r}: expected key=value with key one of "
                                  f"{', '.join(fields)}")
             try:
-                if key in ("psnr_target", "validation_psnr"):
+                if key == "psnr_target":
                     kwargs[key] = None if value.strip().lower() == "none" else float(value)
                 else:
                     kwargs[key] = int(value) if key in _INTEGER_FIELDS else float(value)
