@@ -44,8 +44,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
     fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
-                         "optionally a preset, 'quality' (every copy >= 99 %% bits / >= 37 dB held-out in the "
-                         "measured lego jobs) or 'throughput', and/or 'min_steps=N,window=N,margin=X,check_every=N,"
+                         "optionally a preset, 'quality' (95 %% of the copies >= 99 %% bits and >= 37 dB held-out in "
+                         "the measured lego jobs) or 'throughput' (faster, ~85 %%), and/or 'min_steps=N,window=N,margin=X,check_every=N,"
                          "psnr_target=DB,adapt=X,confirm=ACC,extend=F,accuracy_window=N' (extend: a copy below "
                          "confirm / psnr_target at the cap goes on F x the cap; accuracy_window: a recipient whose "
                          "running bit accuracy over ~N steps reaches confirm may also finish), e.g. 'quality,extend=1' "
