@@ -41,9 +41,16 @@ def test_fingerprint_writes_registers_and_resumes(model_dir, tmp_path, capsys) -
     assert len(secrets) == 2 and not any(s in json.dumps(report) for s in secrets)
     assert _fingerprint(model_dir, tmp_path, "recipient,key\nalice,\nbob,bobs-key\ncarol,\n",
                         "--early-stop", "min_steps=1,window=1,margin=50") == 0
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out = captured.out
     assert "skipped alice" in out and "skipped bob" in out and "embedded carol" in out
     assert "2 steps" in out  # a margin no decoder reaches: carol runs to the cap (1 epoch of 2 views)
+    assert "warning" not in captured.err  # no confirmation asked for: nothing to warn about
+    unreachable = "min_steps=1,confirm=1,psnr_target=200"  # a confirmation no copy passes: dave gets a warning
+    assert _fingerprint(model_dir, tmp_path, "recipient\ndave\n", "--early-stop", unreachable) == 0
+    err = capsys.readouterr().err
+    assert "warning: 1 of 1 copies reached the step cap" in err and "dave (" in err
+    assert ">= 100 % bits, >= 200 dB" in err
 
 
 def test_bad_early_stop_setting(model_dir, tmp_path, capsys) -> None:

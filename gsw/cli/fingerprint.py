@@ -45,8 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
                          "optionally a preset, 'quality' (95 %% of the copies >= 99 %% bits and >= 37 dB held-out in "
-                         "the measured lego jobs) or 'throughput' (faster, ~85 %%), and/or 'min_steps=N,window=N,margin=X,check_every=N,"
-                         "psnr_target=DB,adapt=X,confirm=ACC,extend=F,accuracy_window=N' (extend: a copy below "
+                         "the measured lego jobs) or 'throughput' (faster, ~85 %%), and/or "
+                         "'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,extend=F,"
+                         "accuracy_window=N' (extend: a copy below "
                          "confirm / psnr_target at the cap goes on F x the cap; accuracy_window: a recipient whose "
                          "running bit accuracy over ~N steps reaches confirm may also finish), e.g. 'quality,extend=1' "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
@@ -144,7 +145,25 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     print(f"{len(report.names('embedded'))} embedded, {len(report.recipients) - len(report.names('embedded'))} "
           f"already done ({report.runner} runner, {report.timings.get('total', 0.0):.1f} s); messages are in the "
           "registry only")
+    _warn_unconfirmed(report, early_stop)
     return 0
+
+
+def _warn_unconfirmed(report, rule) -> None:
+    """Names on stderr the copies of this run that finished without passing ``rule``'s confirmation on the
+    embedding views (the step cap, and any extension, reached first)."""
+    if rule is None or (rule.confirm <= 0 and rule.psnr_target is None):
+        return
+    weak = [r for r in report.recipients if r.status == "embedded" and not rule.confirmed(r.bit_accuracy, r.psnr)]
+    if not weak:
+        return
+    bar = f">= {100 * rule.confirm:g} % bits" + ("" if rule.psnr_target is None else f", >= {rule.psnr_target:g} dB")
+    names = ", ".join(f"{r.name} ({100 * r.bit_accuracy:.2f} %, {r.psnr:.2f} dB)" for r in weak)
+    print(f"warning: {len(weak)} of {len(report.names('embedded'))} copies reached the step cap without passing the "
+          f"early-stop confirmation on the embedding views ({bar}): {names}. Their marks may read below 99 % on other "
+          "views (in the measured lego jobs such copies read 96-99 % of their bits held-out); a longer extension "
+          "(e.g. --early-stop quality,extend=2) gives such copies more steps and costs the others nothing.",
+          file=sys.stderr)
 
 
 def _write_report(rows: list, output: str | None) -> None:
