@@ -160,9 +160,9 @@ def _warn_unconfirmed(report, rule) -> None:
     bar = f">= {100 * rule.confirm:g} % bits" + ("" if rule.psnr_target is None else f", >= {rule.psnr_target:g} dB")
     names = ", ".join(f"{r.name} ({100 * r.bit_accuracy:.2f} %, {r.psnr:.2f} dB)" for r in weak)
     print(f"warning: {len(weak)} of {len(report.names('embedded'))} copies reached the step cap without passing the "
-          f"early-stop confirmation on the embedding views ({bar}): {names}. In the lego jobs of BENCHMARKS.md 10 of 30 such "
-          "copies read below 99 % of their bits or 37 dB on held-out views (3 of 162 confirmed copies did): check "
-          "their renders with gsw verify before shipping them.", file=sys.stderr)
+          f"early-stop confirmation on the embedding views ({bar}): {names}. In the lego jobs of BENCHMARKS.md 10 of "
+          "30 such copies read below 99 % of their bits or 37 dB on held-out views (3 of 162 confirmed copies did): "
+          "check their renders with gsw verify before shipping them.", file=sys.stderr)
 
 
 def _write_report(rows: list, output: str | None) -> None:
