@@ -132,6 +132,26 @@ def held_out_scores(copy, originals, cams, bg, message=None, dec=None):
     return accs, psnrs
 
 
+@torch.no_grad()
+def original_logits(g, cams, bg, dec) -> torch.Tensor:
+    """[V, k] the decoder's logits of the input model's renders of ``cams`` (message-free): what every
+    recipient's fine-tune starts from."""
+    from gsw.decoder.dwt import ll_subband
+    from gsw.render.rasterize import rasterize
+
+    return torch.stack([dec(ll_subband(rasterize(g, cam, background=bg).image.clamp(0, 1)[None]))[0].float().cpu()
+                        for cam in cams])
+
+
+def head_start(logits: torch.Tensor, message: torch.Tensor) -> dict:
+    """How far a message is from what the decoder reads on the input model's renders (``original_logits``):
+    the mean signed logit towards the message, the share of (view, bit) pairs already read right, and the bits
+    whose mean logit over the views points away from the message (a diagnostic of hard messages)."""
+    signed = logits * (2 * message.float() - 1)
+    return dict(original_signed_logit=float(signed.mean()), original_matching=float((signed > 0).float().mean()),
+                original_opposed_bits=int((signed.mean(0) < 0).sum()))
+
+
 def _quartiles(values: list[float]) -> list[float]:
     v = sorted(values)
     return [v[round(q * (len(v) - 1))] for q in (0.0, 0.25, 0.5, 0.75, 1.0)]
@@ -164,7 +184,8 @@ def setting_config(setting: dict, bg):
 
 
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
-    """One fingerprinting job of the sweep and its held-out measurements."""
+    """One fingerprinting job of the sweep and its held-out measurements (and each message's
+    :func:`head_start` on the embedding views)."""
     import gsw
     from gsw.data import load_inria_model
     from gsw.decoder.zoo import load_decoder
@@ -185,13 +206,15 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
         wall = time.perf_counter() - t0
         messages = {m.label: m.message for m in reg.list()}
     dec = load_decoder(args.bits).to(dev)
+    start_logits = original_logits(g, cams, bg, dec)
     rows = []
     for r in report.recipients:
         copy = load_inria_model(r.folder).gaussians.to(dev)
         accs, ps = held_out_scores(copy, held_orig, held, bg, messages[r.name].float(), dec)
         rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
                          seconds=r.seconds, train_bits=r.bit_accuracy,
-                         train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps))
+                         train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps,
+                         **head_start(start_logits, messages[r.name].cpu())))
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,
                lpips=setting["lpips"], freeze=setting["freeze"],
