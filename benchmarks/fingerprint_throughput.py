@@ -136,10 +136,9 @@ def held_out_scores(copy, originals, cams, bg, message=None, dec=None):
 def original_logits(g, cams, bg, dec) -> torch.Tensor:
     """[V, k] the decoder's logits of the input model's renders of ``cams`` (message-free): what every
     recipient's fine-tune starts from."""
-    from gsw.decoder.dwt import ll_subband
     from gsw.render.rasterize import rasterize
 
-    return torch.stack([dec(ll_subband(rasterize(g, cam, background=bg).image.clamp(0, 1)[None]))[0].float().cpu()
+    return torch.stack([dec.decode_image(rasterize(g, cam, background=bg).image.clamp(0, 1)[None])[0].float().cpu()
                         for cam in cams])
 
 

@@ -33,7 +33,7 @@ import torch
 
 from calibrate_null import DATA, ROOT, photo_files
 from gsw._atomic import atomic_write
-from gsw.decoder.pretrain.evaluation import max_dev_p_value
+from recentre_bias import deviation
 from gsw.decoder.zoo import load_decoder
 from gsw.mark.scales import read_images
 
@@ -50,12 +50,6 @@ def klein(direct: np.ndarray, transformed: dict) -> np.ndarray:
     """``D(x) - D(h(x)) - D(v(x)) + D(r(x))``: negated by the horizontal flip and by the vertical flip alike, so
     fair per bit on a population symmetric under either one (no choice of t)."""
     return direct - transformed["hflip"] - transformed["vflip"] + transformed["rot180"]
-
-
-def deviation(bits: np.ndarray) -> dict:
-    n, k = bits.shape
-    dev = float(np.abs(bits.mean(0) - 0.5).max())
-    return {"images": n, "max_abs_dev": round(dev, 4), "fair_p_value": max_dev_p_value(dev, n, k)}
 
 
 def by_kind(bits: np.ndarray, kinds: np.ndarray) -> dict:

@@ -152,7 +152,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
 def _warn_unconfirmed(report, rule) -> None:
     """Names on stderr the copies of this run that finished without passing ``rule``'s confirmation on the
     embedding views (the step cap, and any extension, reached first)."""
-    if rule is None or (rule.confirm <= 0 and rule.psnr_target is None):
+    if rule is None:
         return
     weak = [r for r in report.recipients if r.status == "embedded" and not rule.confirmed(r.bit_accuracy, r.psnr)]
     if not weak:

@@ -46,8 +46,8 @@ from gsw.stats import DETECTION_FPR
 if TYPE_CHECKING:
     from gsw.mark.identify import IdentifyPlan, SourceReadings
 
-__all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow", "StageTimes",
-           "expand_inputs", "ray_block_size", "ray_by_default", "scan", "scan_sources"]
+__all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
+           "StageTimes", "expand_inputs", "ray_block_size", "ray_by_default", "scan", "scan_sources"]
 
 #: Sources from which :func:`scan` uses Ray Data by default on several GPUs (:func:`ray_by_default`).
 RAY_DATA_MIN_SOURCES = 256
