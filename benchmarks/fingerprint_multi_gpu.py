@@ -16,7 +16,9 @@ Three steps, each one command (so that each fits one device call; ``--workdir`` 
    "finetune" time (after the once-per-scene set-up). Recipients per hour = 3600 x recipients / wall time.
    ``--local`` runs ``gsw fingerprint --local`` (one process, no Ray), ``--limit N`` only the first N
    recipients, ``--first-gpu K`` on GPUs K.. (for a run beside another); the run is named by its GPU count,
-   ``local`` and ``xN`` (or ``--tag``).
+   ``local``, ``cluster`` and ``xN`` (or ``--tag``). ``--cluster`` starts a Ray cluster first (``ray start
+   --head``, untimed) and joins it (``--address auto``), as on a host that keeps Ray running: the job then
+   pays neither the cluster's start nor its shutdown.
 3. ``compare --runs NAME...``: every run's copies against the first run's (normally 1 GPU): bitwise equal
    parameters or the largest difference; then each copy of each run on the held-out views (never used by
    the job): bit accuracy of each view's render with its registered message, PSNR against the original
@@ -126,8 +128,8 @@ def run_tag(args) -> str:
     """The run's name: its GPU count, ``local`` for ``--local``, ``xN`` for ``--limit N``, or ``--tag``."""
     if args.tag:
         return args.tag
-    return (f"{args.gpus[0]}" + ("local" if args.local else "") + ("nophotos" if args.no_photos else "")
-            + (f"x{args.limit}" if args.limit else ""))
+    return (f"{args.gpus[0]}" + ("local" if args.local else "") + ("cluster" if args.cluster else "")
+            + ("nophotos" if args.no_photos else "") + (f"x{args.limit}" if args.limit else ""))
 
 
 def run(args) -> None:
@@ -154,13 +156,23 @@ def run(args) -> None:
         cmd += ["--images", prep["photos"]]
     if args.early_stop != "none":
         cmd += ["--early-stop", args.early_stop]
+    if args.cluster:  # a Ray cluster already running on this host (started untimed below), joined by address
+        cmd += ["--address", "auto"]
+        ray_cli = [sys.executable, "-c", "import sys; from ray.scripts.scripts import main; sys.argv[0] = 'ray'; "
+                   "sys.exit(main())"]
+        subprocess.run(ray_cli + ["start", "--head", f"--num-gpus={g}", "--include-dashboard=false",
+                                  "--disable-usage-stats"], env=env, check=True, capture_output=True)
     if args.workers:  # CPU: Ray's CPUs (a test of the path, not a measurement)
         cmd = [sys.executable, "-c", "import ray,runpy,sys; ray.init(num_cpus=%d, include_dashboard=False, "
                "log_to_driver=False); sys.argv=sys.argv[1:]; runpy.run_module('gsw', run_name='__main__')"
                % args.workers, "gsw"] + cmd[3:]
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
+    try:
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    finally:
+        wall = time.perf_counter() - t0
+        if args.cluster:
+            subprocess.run(ray_cli + ["stop", "--force"], env=env, capture_output=True)
     if proc.returncode != 0:
         sys.stderr.write(proc.stderr[-4000:])
         raise SystemExit(f"gsw fingerprint exited {proc.returncode}")
@@ -280,6 +292,9 @@ def main() -> int:
     ap.add_argument("--gpus", type=int, nargs=1, default=[1], help="run: GPUs (0: CPU)")
     ap.add_argument("--first-gpu", type=int, default=0, help="run: the first GPU's index (the run takes --gpus from it)")
     ap.add_argument("--local", action="store_true", help="run: gsw fingerprint --local (one process, no Ray)")
+    ap.add_argument("--cluster", action="store_true",
+                    help="run: start a Ray cluster on this host first (untimed; ray start --head with the run's "
+                         "GPUs) and join it (gsw fingerprint --address auto), as a host that keeps Ray running does")
     ap.add_argument("--no-photos", action="store_true",
                     help="run: without --images (FGD without the photos; lego's photos are used by default)")
     ap.add_argument("--limit", type=int, default=0, help="run: only the first N recipients")

@@ -89,6 +89,11 @@ def _parse_args() -> argparse.Namespace:
     ap.add_argument("--readers", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=1, help="runs of every mode, interleaved")
     ap.add_argument("--threads", type=int, default=0, help="torch threads of this process (0: torch's default)")
+    ap.add_argument("--shard", default=None, metavar="I/N",
+                    help="scan only files I, I+N, I+2N, ... of the crawl (several processes side by side, one per "
+                         "GPU: whether the host limits them without Ray)")
+    ap.add_argument("--sources-per-call", type=int, default=None,
+                    help="Ray Data calls of at most this many x batch sources (gsw's RAY_SOURCES_PER_CALL)")
     ap.add_argument("--workdir", default=None, help="crawl folder (default: a new temporary one)")
     ap.add_argument("--out", default=None, help="JSON file (default benchmarks/results/scan_<device>.json)")
     args = ap.parse_args()
@@ -97,6 +102,14 @@ def _parse_args() -> argparse.Namespace:
         ap.error(f"bad --modes {bad}" if bad else "need --images >= --views >= 1 and --marks >= --carriers, --chosen")
     if args.gpus and args.device != "cuda":
         ap.error("--gpus needs --device cuda")
+    if args.shard is not None:
+        try:
+            i, n = map(int, args.shard.split("/"))
+        except ValueError:
+            ap.error(f"--shard takes I/N, got {args.shard!r}")
+        if not 0 <= i < n:
+            ap.error(f"--shard I/N needs 0 <= I < N, got {args.shard}")
+        args.shard = (i, n)
     return args
 
 
@@ -264,7 +277,7 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
     device = None if args.device == "cpu" else torch.device(args.device)
     load_before = os.getloadavg()
     times: list = []
-    t0 = time.perf_counter()
+    t0, epoch = time.perf_counter(), time.time()
     if mode == "per-source":
         rows = _per_source(paths, marks, device)
     elif mode == "batched-f32":
@@ -288,6 +301,11 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
             for k in acc:
                 acc[k] += getattr(t, k)
         res["stages_by_worker"] = list(by_pid.values())
+        res["timeline"] = tl = _timeline(times, epoch, len(paths))
+        print(f"{mode} timeline: calls from {tl['first_call']:.2f} to {tl['last_end']:.2f} s, "
+              f"{tl['scanning_rate']:.1f} images/s between; per worker (ready s, calls, busy s, images/s busy): "
+              + "; ".join(f"{w['ready']}, {len(w['calls'])}, {w['busy_s']:.2f}, {w['busy_rate']:.1f}"
+                          for w in tl["workers"]), flush=True)
         print(f"{mode} stages per worker (s): " + "; ".join(
             ", ".join(f"{k} {v:.1f}" if k != "sources" else f"{v} sources" for k, v in w.items())
             for w in by_pid.values()), flush=True)
@@ -301,6 +319,24 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
         res["startup_s"] = time.perf_counter() - t0
         res["images_per_s_after_startup"] = len(paths) / max(seconds - res["startup_s"], 1e-9)
     return res, rows
+
+
+def _timeline(times: list, epoch: float, images: int) -> dict:
+    """When each worker was ready and ran its calls, in seconds from the scan's start; the scanning phase (first
+    call's start to last call's end) and each worker's rate while busy."""
+    workers: dict = {}
+    for t in sorted(times, key=lambda t: t.started):
+        w = workers.setdefault(t.pid, dict(ready=round(t.worker_ready - epoch, 3) if t.worker_ready else None,
+                                           init_s=round(t.worker_init, 3), calls=[], busy_s=0.0, sources=0))
+        w["calls"].append([round(t.started - epoch, 3), round(t.ended - epoch, 3), t.sources])
+        w["busy_s"] += t.ended - t.started
+        w["sources"] += t.sources
+    for w in workers.values():
+        w["busy_rate"] = w["sources"] / max(w["busy_s"], 1e-9)
+    first = min(t.started for t in times) - epoch
+    last = max(t.ended for t in times) - epoch
+    return dict(first_call=first, last_end=last, scanning_rate=images / max(last - first, 1e-9),
+                workers=list(workers.values()))
 
 
 def main() -> int:
@@ -317,6 +353,12 @@ def main() -> int:
     modes = args.modes.split(",")
     paths = _crawl(args, workdir, args.device)
     marks = _registry(args, workdir, paths)
+    if args.shard is not None:
+        paths = paths[args.shard[0]::args.shard[1]]
+    if args.sources_per_call is not None:
+        import gsw.fingerprint.scan as scan_module
+
+        scan_module.RAY_SOURCES_PER_CALL = args.sources_per_call  # read on this process (the driver)
     if "ray" in modes:
         import ray
 

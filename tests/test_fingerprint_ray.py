@@ -168,4 +168,6 @@ def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path, monkey
     # one stage record per worker call (blocks of 4 sources), from the workers' processes
     assert sum(t.sources for t in times) == len(remote) and len(times) >= 2 and all(t.wall > 0 for t in times)
     assert 1 <= len({t.pid for t in times}) <= 2 and os.getpid() not in {t.pid for t in times}
+    # a timeline: every call ran after its worker had loaded the decoders
+    assert all(0 < t.worker_ready <= t.started <= t.ended and t.worker_init > 0 for t in times)
     assert sum(bool(r.error) for r in remote) == 2 and {"alice", "carol"} <= {r.identified for r in remote}

@@ -109,6 +109,8 @@ def test_progress_and_bad_arguments(crawl, monkeypatch) -> None:
     assert (st.sources, st.images) == (3, sum(r.images for r in rows)) and st.pid == os.getpid()
     assert min(st.read_wait, st.decode_wait, st.test) >= 0 and st.decode > 0
     assert st.read_wait + st.decode_wait + st.test <= st.wall
+    assert st.started <= st.ended and st.ended - st.started == pytest.approx(st.wall, abs=0.05)
+    assert st.worker_ready == 0 and st.worker_init == 0  # in this process: no Ray worker
     for bad in (dict(batch_size=0), dict(readers=0), dict(batch_size=2.5)):
         with pytest.raises(ValueError, match="must be a positive int"):
             scan(paths[:1], marks, use_ray=False, **bad)

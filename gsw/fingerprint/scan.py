@@ -153,6 +153,10 @@ class StageTimes:
         sources: sources scanned.
         images: images read.
         pid: the process (one per Ray worker).
+        started: when the pipeline started (seconds since the epoch: a timeline across processes).
+        ended: when it ended (seconds since the epoch).
+        worker_ready: on Ray, when this worker had loaded its decoders (seconds since the epoch; 0 here).
+        worker_init: on Ray, the seconds this worker spent loading them (0 here).
     """
 
     wall: float = 0.0
@@ -163,6 +167,10 @@ class StageTimes:
     sources: int = 0
     images: int = 0
     pid: int = 0
+    started: float = 0.0
+    ended: float = 0.0
+    worker_ready: float = 0.0
+    worker_init: float = 0.0
 
 
 def _batching(batch_size: int | None, readers: int, device: torch.device | str | None) -> int:
@@ -267,7 +275,7 @@ def _scan_planned(paths: Sequence[Path], plan: IdentifyPlan, *, fpr: float, fram
     stages' seconds added."""
     rows: list[ScanRow] = []
     st = times if times is not None else StageTimes()
-    start = time.perf_counter()
+    start, st.started = time.perf_counter(), st.started or time.time()
 
     def decode(sources: list[list[torch.Tensor]]) -> list[SourceReadings | str]:
         t0 = time.perf_counter()
@@ -302,7 +310,7 @@ def _scan_planned(paths: Sequence[Path], plan: IdentifyPlan, *, fpr: float, fram
             previous = (chunk, decoding)
         if previous is not None:
             finish(*previous)
-    st.wall, st.pid = st.wall + time.perf_counter() - start, os.getpid()
+    st.wall, st.pid, st.ended = st.wall + time.perf_counter() - start, os.getpid(), time.time()
     return rows
 
 
@@ -353,12 +361,14 @@ class _RayScanner:  # pragma: no cover - runs in Ray Data workers
                  threads: int = 1, timed: bool = False) -> None:
         from gsw.mark.identify import plan_identify
 
+        t0 = time.perf_counter()
         torch.set_num_threads(threads)  # Ray caps a worker's threads at its num_cpus (OMP_NUM_THREADS)
         self.plan = plan_identify(marks, device="cuda" if gpu else "cpu")
         self.fpr, self.frames, self.batch_size, self.readers, self.timed = fpr, frames, batch_size, readers, timed
+        self.init_s, self.ready = time.perf_counter() - t0, time.time()
 
     def __call__(self, batch: dict) -> dict:
-        times = StageTimes()
+        times = StageTimes(worker_ready=self.ready, worker_init=self.init_s)
         rows = _scan_planned([Path(p) for p in batch["path"]], self.plan, fpr=self.fpr, frames=self.frames,
                              batch_size=self.batch_size, readers=self.readers, times=times)
         out = {k: [getattr(r, k) for r in rows] for k in ScanRow.__dataclass_fields__}
