@@ -145,4 +145,5 @@ def test_ray_blocks_are_shared_evenly(sources, workers, batch) -> None:
     if sources >= workers:  # calls dealt in turn: no worker gets a whole call more than another
         per_worker = [sum(min(size, sources - c * size) for c in range(w, calls, workers)) for w in range(workers)]
         assert max(per_worker) - min(per_worker) < size
-    assert ray_block_size(10_000, 4, 64) == 834  # 12 calls, 3 per worker (was 10 calls of 1,024)
+    assert ray_block_size(10_000, 4, 64) == 2_500  # one call per worker (was 10 calls of 1,024, then 12 of 834)
+    assert ray_block_size(100_000, 4, 64) == 3_572  # 28 calls of at most 64 x 64 sources, 7 per worker

@@ -58,8 +58,12 @@ RAY_DATA_MIN_SOURCES = 256
 DEFAULT_BATCH_SIZES = {"cuda": 64, "cpu": 4}
 #: Threads reading (decoding the files of) sources ahead of the decoder.
 DEFAULT_READERS = 4
-#: A Ray Data worker is handed at most this many x ``batch_size`` sources per call (:func:`ray_block_size`).
-RAY_SOURCES_PER_CALL = 16
+#: A Ray Data worker is handed at most this many x ``batch_size`` sources per call (:func:`ray_block_size`). Each
+#: call starts its pipeline anew (the readers' first group, the last group's tests not overlapped): on 4 GPUs,
+#: 10,000 lego files in calls of 4 x 64 were scanned at 932 images/s, in calls of 16 x 64 at 1,056, four processes
+#: with one call each (no Ray) at 1,213 (BENCHMARKS.md, ninth round); so calls are large, and a crawl
+#: of up to 64 x 64 sources per worker is one call per worker.
+RAY_SOURCES_PER_CALL = 64
 #: The extra output column of a timed Ray Data call (its :class:`StageTimes` as JSON, on its first row).
 _TIMES = "_stage_times"
 
@@ -67,7 +71,7 @@ _TIMES = "_stage_times"
 def ray_block_size(sources: int, workers: int, batch_size: int) -> int:
     """Sources per Ray Data call: at most :data:`RAY_SOURCES_PER_CALL` x ``batch_size``, and the same number of
     calls for every worker (10,000 sources in calls of 1,024 on 4 workers left one worker a third call of
-    1,024 while the others had done 2,048 each; 12 calls of 834 give every worker 2,502)."""
+    1,024 while the others had done 2,048 each; 4 calls of 2,500 give every worker one)."""
     cap = RAY_SOURCES_PER_CALL * batch_size
     calls = workers * -(-sources // (workers * cap))  # a multiple of the workers
     return max(1, -(-sources // max(1, calls)))
