@@ -16,8 +16,8 @@ Three steps, each one command (so that each fits one device call; ``--workdir`` 
    "finetune" time (after the once-per-scene set-up). Recipients per hour = 3600 x recipients / wall time.
    ``--local`` runs ``gsw fingerprint --local`` (one process, no Ray), ``--limit N`` only the first N
    recipients, ``--first-gpu K`` on GPUs K.. (for a run beside another); the run is named by its GPU count,
-   ``local``, ``cluster`` and ``xN`` (or ``--tag``). ``--cluster`` starts a Ray cluster first (``ray start
-   --head``, untimed) and joins it (``--address auto``), as on a host that keeps Ray running: the job then
+   ``local``, ``cluster`` and ``xN`` (or ``--tag``). ``--cluster`` starts a Ray cluster first (a process that
+   holds one, untimed) and joins it (``--address auto``), as on a host that keeps Ray running: the job then
    pays neither the cluster's start nor its shutdown.
 3. ``compare --runs NAME...``: every run's copies against the first run's (normally 1 GPU): bitwise equal
    parameters or the largest difference; then each copy of each run on the held-out views (never used by
@@ -51,6 +51,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: ``run --cluster``: a process holding a local Ray cluster with argv[1] GPUs until its stdin closes.
+HOLD_CLUSTER = ("import ray, sys; ray.init(num_gpus=int(sys.argv[1]), include_dashboard=False, log_to_driver=False); "
+                "print('up', flush=True); sys.stdin.read(); ray.shutdown()")
 #: The early-stopping rule of the runs (a preset of gsw.fingerprint.stopping.PRESETS; the seventh round used it).
 EARLY_STOP = "quality"
 
@@ -156,12 +159,15 @@ def run(args) -> None:
         cmd += ["--images", prep["photos"]]
     if args.early_stop != "none":
         cmd += ["--early-stop", args.early_stop]
+    head = None
     if args.cluster:  # a Ray cluster already running on this host (started untimed below), joined by address
         cmd += ["--address", "auto"]
-        ray_cli = [sys.executable, "-c", "import sys; from ray.scripts.scripts import main; sys.argv[0] = 'ray'; "
-                   "sys.exit(main())"]
-        subprocess.run(ray_cli + ["start", "--head", f"--num-gpus={g}", "--include-dashboard=false",
-                                  "--disable-usage-stats"], env=env, check=True, capture_output=True)
+        # a process that starts a local cluster and holds it until its stdin closes (the stripped Ray bundle of
+        # the GPU machines has no `ray start`)
+        head = subprocess.Popen([sys.executable, "-c", HOLD_CLUSTER, str(g)], env=env, stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, text=True)
+        if head.stdout.readline().strip() != "up":
+            raise SystemExit("the Ray cluster of --cluster did not start")
     if args.workers:  # CPU: Ray's CPUs (a test of the path, not a measurement)
         cmd = [sys.executable, "-c", "import ray,runpy,sys; ray.init(num_cpus=%d, include_dashboard=False, "
                "log_to_driver=False); sys.argv=sys.argv[1:]; runpy.run_module('gsw', run_name='__main__')"
@@ -171,8 +177,9 @@ def run(args) -> None:
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     finally:
         wall = time.perf_counter() - t0
-        if args.cluster:
-            subprocess.run(ray_cli + ["stop", "--force"], env=env, capture_output=True)
+        if head is not None:
+            head.stdin.close()
+            head.wait(timeout=120)
     if proc.returncode != 0:
         sys.stderr.write(proc.stderr[-4000:])
         raise SystemExit(f"gsw fingerprint exited {proc.returncode}")
@@ -293,8 +300,8 @@ def main() -> int:
     ap.add_argument("--first-gpu", type=int, default=0, help="run: the first GPU's index (the run takes --gpus from it)")
     ap.add_argument("--local", action="store_true", help="run: gsw fingerprint --local (one process, no Ray)")
     ap.add_argument("--cluster", action="store_true",
-                    help="run: start a Ray cluster on this host first (untimed; ray start --head with the run's "
-                         "GPUs) and join it (gsw fingerprint --address auto), as a host that keeps Ray running does")
+                    help="run: start a Ray cluster on this host first (untimed; with the run's GPUs) and join it "
+                         "(gsw fingerprint --address auto), as a host that keeps Ray running does")
     ap.add_argument("--no-photos", action="store_true",
                     help="run: without --images (FGD without the photos; lego's photos are used by default)")
     ap.add_argument("--limit", type=int, default=0, help="run: only the first N recipients")

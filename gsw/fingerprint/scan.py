@@ -61,8 +61,9 @@ DEFAULT_READERS = 4
 #: A Ray Data worker is handed at most this many x ``batch_size`` sources per call (:func:`ray_block_size`). Each
 #: call starts its pipeline anew (the readers' first group, the last group's tests not overlapped): on 4 GPUs,
 #: 10,000 lego files in calls of 4 x 64 were scanned at 932 images/s, in calls of 16 x 64 at 1,056, four processes
-#: with one call each (no Ray) at 1,213 (BENCHMARKS.md, ninth round); so calls are large, and a crawl
-#: of up to 64 x 64 sources per worker is one call per worker.
+#: with one call each (no Ray) at 1,213; so calls are large, and a crawl of up to 64 x 64 sources per worker is
+#: one call per worker (then 10,000 built-in scene files: 1,177 images/s, 0.85 of 4 x one worker; BENCHMARKS.md,
+#: ninth round).
 RAY_SOURCES_PER_CALL = 64
 #: The extra output column of a timed Ray Data call (its :class:`StageTimes` as JSON, on its first row).
 _TIMES = "_stage_times"
