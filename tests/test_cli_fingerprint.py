@@ -98,10 +98,12 @@ def test_scan_reports_detections(crawl, capsys) -> None:
     assert rows["leak.png"]["identified"] == "alice" and float(rows["leak.png"]["best_adjusted_p"]) <= 1e-6
     assert rows["plain.png"]["identified"] == ""
     assert "c0ffee42" not in report.read_text()
-    assert "1 identified" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "1 identified" in err and "scan [" in err and "2/2" in err  # the progress bar over the sources
     js = crawl / "report.json"
     assert main(["scan", str(crawl / "web" / "*.png"), "--registry", str(crawl / "marks.sqlite"), "--output",
-                 str(js), "--local"]) == 1  # only the unmarked image matches the pattern: nobody identified
+                 str(js), "--local", "--no-progress"]) == 1  # only the unmarked image matches: nobody identified
+    assert "scan [" not in capsys.readouterr().err
     data = json.loads(js.read_text())
     assert [r["identified"] for r in data] == [""] and data[0]["images"] == 1
 

@@ -162,9 +162,11 @@ def test_scan_on_two_ray_workers_equals_the_local_scan(cluster, tmp_path, monkey
     monkeypatch.setattr(scan_module, "RAY_SOURCES_PER_CALL", 2)  # the block size is set on the driver
     marks = scan_crawl(tmp_path / "web")
     local = scan([tmp_path / "web"], marks, use_ray=False, batch_size=2)
-    times = []
-    remote = scan([tmp_path / "web"], marks, use_ray=True, workers=2, batch_size=2, times=times)
+    times, seen = [], []
+    remote = scan([tmp_path / "web"], marks, use_ray=True, workers=2, batch_size=2, times=times, on_row=seen.append)
     assert [r.to_dict() for r in remote] == [r.to_dict() for r in local]
+    # on_row saw every row in the driver, as the calls returned
+    assert sorted(r.source for r in seen) == sorted(r.source for r in remote) and len(seen) == len(remote)
     # one stage record per worker call (blocks of 4 sources), from the workers' processes
     assert sum(t.sources for t in times) == len(remote) and len(times) >= 2 and all(t.wall > 0 for t in times)
     assert 1 <= len({t.pid for t in times}) <= 2 and os.getpid() not in {t.pid for t in times}

@@ -92,6 +92,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                                                       DEFAULT_BATCH_SIZES.items()) + ")")
     sc.add_argument("--readers", type=positive_int, default=DEFAULT_READERS,
                     help="threads reading images and videos, per process (default %(default)s)")
+    sc.add_argument("--no-progress", action="store_true",
+                    help="no progress bar (on Ray it advances as each worker call returns)")
     sc.set_defaults(func=cmd_scan)
 
 
@@ -204,7 +206,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     rows = scan(args.inputs, marks, fpr=args.fpr, device=None if device.type == "cpu" else device,
                 frames=args.frames, use_ray=_use_ray(args), address=args.address, workers=args.workers,
-                batch_size=args.batch_size, readers=args.readers)
+                batch_size=args.batch_size, readers=args.readers, progress=not args.no_progress)
     _write_report(rows, args.output)
     hits = [r for r in rows if r.identified]
     errors = [r for r in rows if r.error]

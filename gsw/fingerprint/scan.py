@@ -392,11 +392,12 @@ def _ray_data_available() -> bool:
 
 
 def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int, gpu: bool, address: str | None,
-              workers: int | None, batch_size: int, readers: int,
+              workers: int | None, batch_size: int, readers: int, on_row: Callable[[ScanRow], None] | None = None,
               times: list[StageTimes] | None = None) -> list[ScanRow]:
     """Ray Data: one worker per GPU (or CPU), each scanning blocks of sources (:func:`ray_block_size`); rows put
-    back in input order. A GPU worker gets its share of the cluster's CPUs
-    (reading, decoding files and the CPU side of the tests), as ``num_cpus`` and torch threads."""
+    back in input order (``on_row`` sees them here as they arrive, a worker call's rows at a time). A GPU worker gets
+    its share of the cluster's CPUs (reading, decoding files and the CPU side of the tests), as ``num_cpus`` and
+    torch threads."""
     import ray
 
     from gsw.fingerprint.run import connect_ray
@@ -421,7 +422,9 @@ def _scan_ray(paths: Sequence[Path], marks: Sequence, *, fpr: float, frames: int
             timing = r.pop(_TIMES, "")
             if timing and times is not None:
                 times.append(StageTimes(**json.loads(timing)))
-            by_path[r["source"]] = ScanRow(**r)
+            by_path[r["source"]] = row = ScanRow(**r)
+            if on_row is not None:
+                on_row(row)
     finally:
         if started:
             ray.shutdown()
@@ -441,7 +444,7 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
          device: torch.device | None = None, frames: int = 16, use_ray: bool | None = None,
          address: str | None = None, workers: int | None = None, batch_size: int | None = None,
          readers: int = DEFAULT_READERS, on_row: Callable[[ScanRow], None] | None = None,
-         times: list[StageTimes] | None = None) -> list[ScanRow]:
+         progress: bool = False, times: list[StageTimes] | None = None) -> list[ScanRow]:
     """Tests every image and video found in ``inputs`` against the registered marks.
 
     Args:
@@ -457,7 +460,9 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
         batch_size: images per decoder call (in this process and in every Ray worker); None:
             :data:`DEFAULT_BATCH_SIZES` of ``device``.
         readers: threads reading sources (in this process and in every Ray worker).
-        on_row: called after each source in this process (progress; not called with Ray).
+        on_row: called with each source's row as it is finished (in input order in this process; with Ray, in the
+            order the workers' calls return, a call's rows at a time).
+        progress: a progress bar over the sources on stderr (:class:`gsw.progress.Progress`).
         times: gets one :class:`StageTimes` per pipeline run (this process: one; Ray: one per worker call), for
             benchmarks.
 
@@ -478,13 +483,21 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
             raise ImportError("scanning on Ray needs Ray Data (ray[data], with pandas and pyarrow): install the Ray "
                               "extra (pip install gsw[ray])")
         want_ray = False
-    if want_ray:
-        gpu = device is not None and torch.device(device).type == "cuda"
-        return _scan_ray(paths, marks, fpr=fpr, frames=frames, gpu=gpu, address=address, workers=workers,
-                         batch_size=batch_size, readers=readers, times=times)
-    st = None if times is None else StageTimes()
-    rows = scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, batch_size=batch_size,
-                        readers=readers, on_row=on_row, times=st)
+    from gsw.progress import Progress
+
+    with Progress(len(paths), "scan", enabled=progress) as bar:
+        def done(row: ScanRow) -> None:
+            bar.update(1)
+            if on_row is not None:
+                on_row(row)
+
+        if want_ray:
+            gpu = device is not None and torch.device(device).type == "cuda"
+            return _scan_ray(paths, marks, fpr=fpr, frames=frames, gpu=gpu, address=address, workers=workers,
+                             batch_size=batch_size, readers=readers, on_row=done, times=times)
+        st = None if times is None else StageTimes()
+        rows = scan_sources(paths, marks, fpr=fpr, device=device, frames=frames, batch_size=batch_size,
+                            readers=readers, on_row=done, times=st)
     if st is not None:
         times.append(st)
     return rows
