@@ -167,6 +167,7 @@ def run(args) -> None:
         head = subprocess.Popen([sys.executable, "-c", HOLD_CLUSTER, str(g)], env=env, stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, text=True)
         if head.stdout.readline().strip() != "up":
+            head.kill()
             raise SystemExit("the Ray cluster of --cluster did not start")
     if args.workers:  # CPU: Ray's CPUs (a test of the path, not a measurement)
         cmd = [sys.executable, "-c", "import ray,runpy,sys; ray.init(num_cpus=%d, include_dashboard=False, "

@@ -28,7 +28,7 @@ import sys
 import time
 
 
-def _warm(device: str) -> float:  # pragma: no cover - runs in a Ray worker
+def _warm(device: str) -> None:  # pragma: no cover - runs in a Ray worker
     import torch
 
     import gsw.fingerprint.shared  # noqa: F401 - what a fingerprint worker imports
@@ -36,7 +36,6 @@ def _warm(device: str) -> float:  # pragma: no cover - runs in a Ray worker
     if device == "cuda":
         torch.zeros(1, device="cuda")
         torch.cuda.synchronize()
-    return time.time()
 
 
 def _child(workers: int, device: str) -> dict:
@@ -55,10 +54,9 @@ def _child(workers: int, device: str) -> dict:
     t["ray_init"] = time.time()
     pool = run.RayWorkers(workers, num_gpus=1.0 if device == "cuda" else 0.0, num_cpus=1.0, warm=_warm,
                           warm_args=(device,))
-    t["actors_created"] = time.time()
     ready = ray.get([a.run.remote(lambda _s, _p: time.time(), None, None, ()) for a in pool.actors])
     t["actors_ready"] = time.time()
-    t["first_ready"], t["last_ready"] = min(ready), max(ready)
+    t["first_ready"] = min(ready)
     pool.shutdown()
     ray.shutdown()
     t["shutdown"] = time.time()
@@ -109,8 +107,10 @@ def main() -> int:
     for c, s in summary.items():
         print(f"median {c or 'as is'}: " + ", ".join(f"{k} {v:.2f}" for k, v in s.items()))
     if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=1)
+        from gsw._atomic import atomic_write
+
+        with atomic_write(args.out, "w") as f:
+            f.write(json.dumps(out, indent=1) + "\n")
     return 0
 
 

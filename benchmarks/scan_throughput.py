@@ -68,6 +68,8 @@ from unittest import mock
 
 ROOT = Path(__file__).resolve().parents[1]
 MODES = ("per-source", "batched", "batched-f32", "host-only", "ray")
+#: The :class:`gsw.fingerprint.scan.StageTimes` fields summed per worker process.
+STAGES = ("wall", "read_wait", "decode_wait", "test", "decode", "sources")
 
 
 def _parse_args() -> argparse.Namespace:
@@ -293,22 +295,16 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
     res = dict(mode=mode, images=len(paths), seconds=seconds, images_per_s=len(paths) / seconds,
                identified=sum(bool(r.identified) for r in rows), errors=sum(bool(r.error) for r in rows),
                load_before=load_before, load_after=os.getloadavg(), stages=[asdict(t) for t in times])
-    if times:  # per worker process: its pipelines' stage seconds summed
-        by_pid: dict = {}
-        for t in times:
-            acc = by_pid.setdefault(t.pid, dict.fromkeys(("wall", "read_wait", "decode_wait", "test", "decode",
-                                                           "sources"), 0))
-            for k in acc:
-                acc[k] += getattr(t, k)
-        res["stages_by_worker"] = list(by_pid.values())
+    if times:  # per worker process: when it ran its calls, and its pipelines' stage seconds summed
         res["timeline"] = tl = _timeline(times, epoch, len(paths))
+        res["stages_by_worker"] = [w["stages"] for w in tl["workers"]]
         print(f"{mode} timeline: calls from {tl['first_call']:.2f} to {tl['last_end']:.2f} s, "
               f"{tl['scanning_rate']:.1f} images/s between; per worker (ready s, calls, busy s, images/s busy): "
               + "; ".join(f"{w['ready']}, {len(w['calls'])}, {w['busy_s']:.2f}, {w['busy_rate']:.1f}"
                           for w in tl["workers"]), flush=True)
         print(f"{mode} stages per worker (s): " + "; ".join(
             ", ".join(f"{k} {v:.1f}" if k != "sources" else f"{v} sources" for k, v in w.items())
-            for w in by_pid.values()), flush=True)
+            for w in res["stages_by_worker"]), flush=True)
     if mode == "ray":
         import ray
 
@@ -322,15 +318,18 @@ def _time_mode(mode: str, args: argparse.Namespace, paths: list[Path], marks: li
 
 
 def _timeline(times: list, epoch: float, images: int) -> dict:
-    """When each worker was ready and ran its calls, in seconds from the scan's start; the scanning phase (first
-    call's start to last call's end) and each worker's rate while busy."""
+    """Per worker process: when it was ready and ran its calls (seconds from the scan's start), its rate while
+    busy and its pipelines' stage seconds summed; and the scanning phase (first call's start to last call's end)."""
     workers: dict = {}
     for t in sorted(times, key=lambda t: t.started):
         w = workers.setdefault(t.pid, dict(ready=round(t.worker_ready - epoch, 3) if t.worker_ready else None,
-                                           init_s=round(t.worker_init, 3), calls=[], busy_s=0.0, sources=0))
+                                           init_s=round(t.worker_init, 3), calls=[], busy_s=0.0, sources=0,
+                                           stages=dict.fromkeys(STAGES, 0)))
         w["calls"].append([round(t.started - epoch, 3), round(t.ended - epoch, 3), t.sources])
         w["busy_s"] += t.ended - t.started
         w["sources"] += t.sources
+        for k in STAGES:
+            w["stages"][k] += getattr(t, k)
     for w in workers.values():
         w["busy_rate"] = w["sources"] / max(w["busy_s"], 1e-9)
     first = min(t.started for t in times) - epoch
