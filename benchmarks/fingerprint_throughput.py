@@ -167,8 +167,7 @@ def _summary(rows: list[dict]) -> dict:
                 meeting_99=sum(m >= 0.99 for m in means), meeting_37=sum(p >= 37 for p in ps),
                 mean_steps=sum(steps) / len(steps), min_steps=min(steps), max_steps=max(steps),
                 stopped_early=sum(bool(r["stopped_early"]) for r in rows),
-                refusals=sum(r.get("refusals") or 0 for r in rows),
-                restarted=sum((r.get("attempts") or 1) > 1 for r in rows))
+                refusals=sum(r.get("refusals") or 0 for r in rows))
 
 
 def setting_config(setting: dict, bg):
@@ -212,7 +211,6 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
         copy = load_inria_model(r.folder).gaussians.to(dev)
         accs, ps = held_out_scores(copy, held_orig, held, bg, messages[r.name].float(), dec)
         rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
-                         attempts=r.attempts,
                          seconds=r.seconds, train_bits=r.bit_accuracy,
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps,
                          **head_start(start_logits, messages[r.name].cpu())))

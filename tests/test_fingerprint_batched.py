@@ -11,7 +11,7 @@ import torch
 from gsw.decoder.zoo import load_decoder
 from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch, pool_config
 from gsw.fingerprint.shared import prepare_scene, worker_scene
-from gsw.fingerprint.stopping import PRESETS, RESTART_SEED_STRIDE, EarlyStop
+from gsw.fingerprint.stopping import PRESETS, EarlyStop
 from gsw.mark.embed import EmbedConfig, embed
 from gsw.mark.loss import LossWeights, WatermarkLoss
 from gsw.mark.message import as_message
@@ -185,37 +185,6 @@ def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
     assert rule.extension(12) == 6 and EarlyStop().extension(12) == 0
 
 
-def test_a_copy_failing_the_confirmation_at_its_last_cap_restarts() -> None:
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
-    progress = []
-    # "bad" (all zeros) never passes: cap 12, extension 6, then two fresh starts of 18 steps each; "good" refills
-    rule = EarlyStop(min_steps=100, window=1, check_every=2, confirm=0.9, extend=0.5, restart=2)
-    bad, good = finetune_batch(ws, ["bad", "good"], torch.stack([torch.zeros(32), torch.ones(32)]), progress.append,
-                               slots=1, stop=rule)
-    assert (bad.steps, bad.attempts, bad.bit_accuracy, bad.stopped_early) == (3 * 18, 3, 0.0, False)
-    assert (good.steps, good.attempts, good.attempt) == (12, 1, 0)
-    assert sum(progress) == 2 * 12  # only the first attempt's steps up to the cap count: the bar's total is R x cap
-
-
-def test_a_restarted_attempt_is_gsw_embed_with_its_seed_and_the_best_attempt_is_kept() -> None:
-    scene, cfg, ws = _cpu_scene()
-    message = as_message("c0ffee42", 32)
-    never = EarlyStop(min_steps=100, window=1, check_every=1, confirm=1.0, psnr_target=500.0, restart=1)
-    copy = finetune_batch(ws, ["a"], message[None], stop=never)[0]
-    assert (copy.steps, copy.attempts) == (6, 2)
-    attempts = [embed(scene.gaussians, scene.cameras, message=message, progress=False,
-                      config=dataclasses.replace(cfg, seed=cfg.seed + RESTART_SEED_STRIDE * a)) for a in (0, 1)]
-    assert not torch.equal(attempts[0].gaussians.sh, attempts[1].gaussians.sh)  # another view order
-    scores = [(sum(r.bit_accuracy) / len(r.bit_accuracy), sum(r.psnr) / len(r.psnr)) for r in attempts]
-    kept = max((0, 1), key=lambda a: scores[a])  # neither meets the PSNR target: bits first, then PSNR
-    assert copy.attempt == kept
-    assert (copy.gaussians.sh - attempts[kept].gaussians.sh).abs().max() < 1e-3
-    assert abs(copy.psnr - scores[kept][1]) < 0.05
-
-
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
@@ -238,7 +207,6 @@ def test_early_stop_settings() -> None:
     assert EarlyStop.parse("confirm=0.998").confirm == 0.998
     assert EarlyStop.parse("extend=0.5").extend == 0.5
     assert EarlyStop.parse("confirm=0.99,accuracy_window=32").accuracy_window == 32
-    assert EarlyStop.parse("quality,restart=1").restart == 1
     quality = EarlyStop.parse("quality")
     assert (quality.psnr_target, quality.confirm, quality.extend, quality.window) == (37.4, 0.995, 0.5, 16)
     assert EarlyStop.parse("quality, extend=1") == dataclasses.replace(quality, extend=1.0)  # later keys override
@@ -246,8 +214,7 @@ def test_early_stop_settings() -> None:
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
                        ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number"),
-                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value"), ("restart=9", "restart"),
-                       ("restart=1", "confirmation"), ("restart=1.5", "not a number")]:
+                       ("fastest", "not a preset"), ("quality,bogus=1", "key=value")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
 

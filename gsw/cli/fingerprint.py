@@ -47,11 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "optionally a preset, 'quality' (95 %% of the copies >= 99 %% bits and >= 37 dB held-out in "
                          "the measured lego jobs) or 'throughput' (faster, ~85 %%), and/or "
                          "'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,extend=F,"
-                         "accuracy_window=N,restart=N' (extend: a copy below "
+                         "accuracy_window=N' (extend: a copy below "
                          "confirm / psnr_target at the cap goes on F x the cap; accuracy_window: a recipient whose "
-                         "running bit accuracy over ~N steps reaches confirm may also finish; restart: a copy still "
-                         "below them at its last cap starts over with a new view order, up to N times, and the best "
-                         "attempt is kept), e.g. 'quality,extend=1' "
+                         "running bit accuracy over ~N steps reaches confirm may also finish), e.g. 'quality,extend=1' "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")
@@ -143,8 +141,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     for r in report.recipients:
         if r.status == "embedded":
             print(f"embedded {r.name}: {100 * r.bit_accuracy:.2f} % of the bits (worst view "
-                  f"{100 * r.min_bit_accuracy:.1f} %), {r.psnr:.2f} dB, {r.steps} steps"
-                  f"{f' over {r.attempts} attempts' if (r.attempts or 1) > 1 else ''} -> {r.folder}")
+                  f"{100 * r.min_bit_accuracy:.1f} %), {r.psnr:.2f} dB, {r.steps} steps -> {r.folder}")
         else:
             print(f"{r.status} {r.name} (finished earlier) -> {r.folder}")
     print(f"{len(report.names('embedded'))} embedded, {len(report.recipients) - len(report.names('embedded'))} "

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 from torch.autograd.profiler import record_function
 
-from gsw.fingerprint.stopping import RESTART_SEED_STRIDE, EarlyStop, SlotMonitor
+from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, final_scores, paper_config
 
@@ -241,13 +241,11 @@ class CopyResult:
         psnr: mean PSNR (dB) of the final renders against the original renders.
         min_psnr: the worst view's.
         seconds: this recipient's share of the pool's wall time (its time in a slot / slots).
-        steps: optimisation steps it took, over all its attempts (more than the step cap when the rule extended
-            or restarted it, :attr:`~gsw.fingerprint.stopping.EarlyStop.extend` / ``restart``).
-        stopped_early: whether the stopping rule finished its copy's attempt before that attempt's step cap.
+        steps: optimisation steps it took (more than the step cap when the rule extended it,
+            :attr:`~gsw.fingerprint.stopping.EarlyStop.extend`).
+        stopped_early: whether the stopping rule finished it before the step cap.
         message_weight: its message weight at the end (differs from the configured one under control).
-        refusals: early stops refused by the confirmation before it finished (all attempts).
-        attempts: fresh starts it took (1: none restarted; :attr:`~gsw.fingerprint.stopping.EarlyStop.restart`).
-        attempt: which of them is the copy (0-based; the best one when none passed the confirmation).
+        refusals: early stops refused by the confirmation before it finished.
         worker_setup_s: seconds its worker spent on the scene (models and original renders on the device, the
             loss) before its batch began: 0 when the worker had it cached from an earlier batch.
         worker_warm_s: seconds its worker's warm-up took (:func:`gsw.fingerprint.shared.warm_worker`: the
@@ -265,8 +263,6 @@ class CopyResult:
     stopped_early: bool = False
     message_weight: float | None = None
     refusals: int = 0
-    attempts: int = 1
-    attempt: int = 0
     worker_setup_s: float = 0.0
     worker_warm_s: float = 0.0
 
@@ -282,18 +278,13 @@ def _attack_layers(cfg: EmbedConfig) -> dict | None:
 
 @dataclass
 class _Slot:
-    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in; which
-    attempt it is on, the steps and refusals of its earlier attempts, and the best earlier attempt's copy."""
+    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in."""
 
     index: int
     rng: random.Random
     tgen: torch.Generator
     order: list[int] = field(default_factory=list)
     start: float = 0.0
-    attempt: int = 0
-    prior_steps: int = 0
-    prior_refusals: int = 0
-    best: tuple | None = None  # (rank key, CopyResult) of the best unconfirmed earlier attempt
 
     def next_view(self, views: int) -> int:
         if not self.order:  # a new epoch: the shuffle of gsw.mark.embed
@@ -326,17 +317,6 @@ class _Pool:
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
                               start=time.perf_counter())
-
-    def restart(self, j: int, best: tuple) -> None:
-        """Slot ``j``'s recipient starts over (its next attempt, seeded apart), keeping ``best`` and its counts."""
-        old, steps, refusals = self.slots[j], self.params.steps[j], self.monitor.rejections[j]
-        self.params.reset(j)
-        self.monitor.reset(j)
-        self.caps[j] = self.cap
-        seed = self.cfg.seed + RESTART_SEED_STRIDE * (old.attempt + 1)
-        self.slots[j] = _Slot(old.index, random.Random(seed), torch.Generator().manual_seed(seed), start=old.start,
-                              attempt=old.attempt + 1, prior_steps=old.prior_steps + steps,
-                              prior_refusals=old.prior_refusals + refusals, best=best)
 
     def _indices(self, slots: tuple[int, ...]) -> tuple[Tensor, Tensor]:
         """The device index tensor of ``slots`` and their recipients' messages (cached while they stay)."""
@@ -401,7 +381,7 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         messages: [R, k] their bits.
         on_step: progress: called with the number of recipient-steps done (after every step; a recipient
             that stops early reports the steps it skipped when it leaves; steps of an extension beyond the cap
-            and of restarted attempts are not counted, so the total is recipients x cap).
+            are not counted, so the total is recipients x cap).
         slots: recipients fine-tuned together (default: all of them).
         stop: the early-stopping rule (default: none; every recipient runs ``EmbedConfig.epochs`` passes).
         on_copy: called with each copy as soon as it is finished (in finishing order).
@@ -421,7 +401,7 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         tick += 1
         steps = pool.params.steps
         if on_step is not None:
-            on_step(sum(steps[j] <= pool.cap and pool.slots[j].attempt == 0 for j in pool.active()))
+            on_step(sum(steps[j] <= pool.cap for j in pool.active()))
         if tick % every and not any(steps[j] >= pool.caps[j] for j in pool.active()):
             continue
         occupied = [s is not None for s in pool.slots]
@@ -430,7 +410,7 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
             if result is None:  # its copy failed the confirmation on the embedding views: go on
                 continue
             results[result[0]] = result[1]
-            if on_step is not None and result[1].attempts == 1 and pool.cap > result[1].steps:
+            if on_step is not None and pool.cap > result[1].steps:
                 on_step(pool.cap - result[1].steps)
             if on_copy is not None:
                 on_copy(result[1])
@@ -442,39 +422,25 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
 
 def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | None:
     """Slot ``j``'s copy, scored on the embedding views; None when the score fails the rule's confirmation and
-    the recipient goes on: before the step cap (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`), at
-    the cap with :attr:`~gsw.fingerprint.stopping.EarlyStop.extend` not yet used (its cap moves up once), or at
-    its last cap with :attr:`~gsw.fingerprint.stopping.EarlyStop.restart` attempts left (it starts over; the best
-    attempt is kept in case none is confirmed)."""
+    the recipient goes on: before the step cap (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`), or at
+    the cap with :attr:`~gsw.fingerprint.stopping.EarlyStop.extend` not yet used (its cap moves up once)."""
     slot = pool.slots[j]
     steps = pool.params.steps[j]
     with torch.no_grad():
         copy = pool.params.gaussians(j).detach().clone()
     acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
     rule = pool.monitor.rule
-    confirmed = rule is None or rule.confirmed(acc, ps)
-    if not confirmed:
+    if rule is not None and not rule.confirmed(acc, ps):
         if steps < pool.caps[j]:  # an early stop (before the cap or the extension's cap)
             pool.monitor.refuse(j)
             return None
         if pool.caps[j] == pool.cap and rule.extension(pool.cap):
             pool.caps[j] = pool.cap + rule.extension(pool.cap)
             return None
-    result = CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
-                        (time.perf_counter() - slot.start) / k, slot.prior_steps + steps, steps < pool.cap,
-                        float(pool.monitor.weights[j]), slot.prior_refusals + pool.monitor.rejections[j],
-                        slot.attempt + 1, slot.attempt)
-    if confirmed:
-        return slot.index, result
-    key = (rule.psnr_target is None or ps >= rule.psnr_target, acc, ps)
-    best = slot.best if slot.best is not None and slot.best[0] >= key else (key, result)
-    if slot.attempt < rule.restart:
-        pool.restart(j, best)
-        return None
-    copy = best[1]  # no attempt confirmed: the best one, with the totals of all
-    copy.seconds, copy.steps, copy.refusals, copy.attempts = result.seconds, result.steps, result.refusals, \
-        result.attempts
-    return slot.index, copy
+    weight = float(pool.monitor.weights[j])
+    return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
+                                  (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,
+                                  pool.monitor.rejections[j])
 
 
 def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:

@@ -50,7 +50,6 @@ class RecipientReport:
         steps: its optimisation steps (embedded only).
         stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
         refusals: early stops refused by the rule's confirmation (embedded only).
-        attempts: fresh starts its fine-tune took (embedded only; > 1 with ``EarlyStop.restart``).
         finished_s: seconds after the fine-tunes began when its copy reached the writer (embedded only; with
             Ray, a batch's copies arrive together when the batch ends).
         worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
@@ -69,7 +68,6 @@ class RecipientReport:
     steps: int | None = None
     stopped_early: bool | None = None
     refusals: int | None = None
-    attempts: int | None = None
     finished_s: float | None = None
     worker_setup_s: float | None = None
     worker_warm_s: float | None = None
@@ -197,7 +195,7 @@ class _Writer:
             self.folder.mark_done(r.name, h, mark_id)
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
-                                                   r.seconds, r.steps, r.stopped_early, r.refusals, r.attempts,
+                                                   r.seconds, r.steps, r.stopped_early, r.refusals,
                                                    self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")

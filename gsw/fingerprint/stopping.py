@@ -15,10 +15,7 @@ strings ``window`` perfect steps together, yet passes the confirmation. A recipi
 reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes there, as without early stopping,
 unless ``extend`` is set: then a copy whose score at the cap fails the same confirmation (``confirm`` bit
 accuracy, the PSNR target) goes on for up to ``extend`` x the cap more steps, once, and finishes at that second
-cap or earlier by the rule. With ``restart``, a copy that still fails the confirmation at its last cap starts over
-from the starting model (fresh parameters and Adam state, a new view order and attack draws: seed
-``EmbedConfig.seed + RESTART_SEED_STRIDE * attempt``), up to ``restart`` times; the first confirmed attempt is the
-copy, and when none is confirmed, the best attempt (PSNR target met first, then bit accuracy, then PSNR) is.
+cap or earlier by the rule.
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
@@ -37,12 +34,9 @@ from torch import Tensor
 
 from gsw.mark.loss import steer_weight
 
-__all__ = ["PRESETS", "RESTART_SEED_STRIDE", "EarlyStop", "SlotMonitor"]
+__all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
-_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "restart")
-
-#: Attempt ``a`` of a restarted recipient draws its view order and attacks from ``EmbedConfig.seed`` + this x ``a``.
-RESTART_SEED_STRIDE = 1_000_003
+_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
 
 #: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" to
 #: "Eighth GPU round"): ``quality``: 954-1,122 per GPU-hour in five jobs, 122 of their 128 copies >= 99 % bits and
@@ -73,8 +67,6 @@ class EarlyStop:
         accuracy_window: 0, or: a recipient also passes when the running mean bit accuracy of its training steps
             (over about this many steps, counted since it started or its last refused stop, doubled per refusal)
             is >= ``confirm`` (which must then be > 0).
-        restart: fresh starts (new view order) a recipient whose copy fails the confirmation at its last cap gets;
-            0: none. Needs a confirmation (``confirm`` > 0 or a ``psnr_target``).
     """
 
     min_steps: int = 100
@@ -87,7 +79,6 @@ class EarlyStop:
     confirm: float = 0.0
     extend: float = 0.0
     accuracy_window: int = 0
-    restart: int = 0
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -100,11 +91,6 @@ class EarlyStop:
         if self.accuracy_window < 0 or self.accuracy_window > 0 and self.confirm <= 0:
             raise ValueError("EarlyStop.accuracy_window must be >= 0, and > 0 only with a confirmation (confirm > 0), "
                              f"got accuracy_window={self.accuracy_window}, confirm={self.confirm}")
-        if not 0 <= self.restart <= 8:
-            raise ValueError(f"EarlyStop.restart is a number of fresh starts in [0, 8], got {self.restart}")
-        if self.restart > 0 and self.confirm <= 0 and self.psnr_target is None:
-            raise ValueError("EarlyStop.restart restarts copies that fail the confirmation: give confirm > 0 or a "
-                             "psnr_target")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
