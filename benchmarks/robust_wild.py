@@ -21,6 +21,11 @@ or a ``.spz`` with its camera files written by ``--prepare``; white background) 
 built-in scene at ``--size``). No photos are used (FGD phase 1 weighs the original renders). Writes
 ``<out>/robust_wild_<tag>.json`` after every cell (so a stopped run keeps what it measured) and a markdown table.
 
+``readout`` (a row key of ``--variant``, #22): ``"klein"`` embeds and reads every bit through
+:class:`KleinReadout`, ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on the decoder's LL2 input (h, v: flips, r: the
+half turn), fair per bit on a flip-symmetric image population; its ``clean_detected`` and size ``read`` use gsw's
+tests for the direct readout's null, so only its bit accuracies mean anything.
+
 Messages are reproducible (``--message-seed`` + the cell's seed), the same for every method. Subsets for quick
 comparisons: ``--image-attacks`` / ``--model-attacks`` / ``--sizes`` (an empty list skips them), ``--eval-views``;
 ``--embed '{"field": value}'`` adds EmbedConfig overrides to every method.
@@ -124,6 +129,26 @@ def _scene(args, dev):
         save_inria_cameras(s.cameras, args.prepare / "train_cameras.json")
         save_inria_cameras(s.eval_cameras, args.prepare / "eval_cameras.json")
     return g.to(dev), s.cameras, s.eval_cameras, white
+
+
+class KleinReadout(torch.nn.Module):
+    """A decoder read through ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on its LL2 input (the four in one batch):
+    negated by either flip of the subband, so fair per bit on a population symmetric under either flip, whatever
+    ``D`` leans to (``benchmarks/symmetric_readout.py`` reads the same combination of whole images)."""
+
+    def __init__(self, decoder: torch.nn.Module) -> None:
+        super().__init__()
+        self.inner, self.num_bits = decoder, decoder.num_bits
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        h = ll.flip(-1)
+        d = self.inner(torch.cat([ll, h, ll.flip(-2), h.flip(-2)])).unflatten(0, (4, ll.shape[0]))
+        return (d[0] - d[1] - d[2] + d[3]) / 2.0
+
+    def decode_image(self, images: torch.Tensor) -> torch.Tensor:
+        from gsw.decoder.dwt import LEVELS, ll_subband
+
+        return self(ll_subband(images, LEVELS))
 
 
 def _novel_cameras(g, cameras):
@@ -247,6 +272,7 @@ def main() -> int:
     rows = [(m, m, {}) for m in args.methods] + [(label, m, json.loads(js)) for label, m, js in args.variant]
     for label, method, overrides in rows:
         row_bits, row_seeds = overrides.pop("bits", args.bits), overrides.pop("seeds", args.seeds)
+        readout = overrides.pop("readout", "direct")
         for bits_n in row_bits:
             for seed in row_seeds:
                 if args.deadline_s and time.perf_counter() - start > args.deadline_s:
@@ -254,15 +280,17 @@ def main() -> int:
                     break
                 cfg = _config(args, method, seed, bg, overrides)
                 dec = load_decoder_for(bits_n, None, dev)
+                if readout == "klein":
+                    dec = KleinReadout(dec).to(dev).eval()
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
                 t0 = time.perf_counter()
                 message = as_message(None, bits_n, seed=args.message_seed + seed)  # public: the same for every method
                 res = embed(g, None if args.bare else cams, message=message, num_bits=bits_n, config=cfg,
-                            progress=False)
+                            decoder=dec, progress=False)
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
-                cell = dict(method=label, base_method=method, overrides=overrides, bits=bits_n, seed=seed,
+                cell = dict(method=label, base_method=method, overrides=overrides, readout=readout, bits=bits_n, seed=seed,
                             embed_s=time.perf_counter() - t0,
                             timings=res.timings, gaussians_after=len(res.gaussians),
                             train_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
