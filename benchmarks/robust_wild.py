@@ -22,7 +22,7 @@ built-in scene at ``--size``). No photos are used (FGD phase 1 weighs the origin
 ``<out>/robust_wild_<tag>.json`` after every cell (so a stopped run keeps what it measured) and a markdown table.
 
 ``readout`` (a row key of ``--variant``, #22): ``"klein"`` embeds and reads every bit through
-:class:`KleinReadout`, ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on the decoder's LL2 input (h, v: flips, r: the
+:class:`gsw.decoder.KleinReadout`, ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on the decoder's LL2 input (h, v: flips, r: the
 half turn), fair per bit on a flip-symmetric image population; its ``clean_detected`` and size ``read`` use gsw's
 tests for the direct readout's null, so only its bit accuracies mean anything.
 
@@ -129,26 +129,6 @@ def _scene(args, dev):
         save_inria_cameras(s.cameras, args.prepare / "train_cameras.json")
         save_inria_cameras(s.eval_cameras, args.prepare / "eval_cameras.json")
     return g.to(dev), s.cameras, s.eval_cameras, white
-
-
-class KleinReadout(torch.nn.Module):
-    """A decoder read through ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on its LL2 input (the four in one batch):
-    negated by either flip of the subband, so fair per bit on a population symmetric under either flip, whatever
-    ``D`` leans to (``benchmarks/symmetric_readout.py`` reads the same combination of whole images)."""
-
-    def __init__(self, decoder: torch.nn.Module) -> None:
-        super().__init__()
-        self.inner, self.num_bits = decoder, decoder.num_bits
-
-    def forward(self, ll: torch.Tensor) -> torch.Tensor:
-        h = ll.flip(-1)
-        d = self.inner(torch.cat([ll, h, ll.flip(-2), h.flip(-2)])).unflatten(0, (4, ll.shape[0]))
-        return (d[0] - d[1] - d[2] + d[3]) / 2.0
-
-    def decode_image(self, images: torch.Tensor) -> torch.Tensor:
-        from gsw.decoder.dwt import LEVELS, ll_subband
-
-        return self(ll_subband(images, LEVELS))
 
 
 def _novel_cameras(g, cameras):
@@ -281,6 +261,8 @@ def main() -> int:
                 cfg = _config(args, method, seed, bg, overrides)
                 dec = load_decoder_for(bits_n, None, dev)
                 if readout == "klein":
+                    from gsw.decoder import KleinReadout
+
                     dec = KleinReadout(dec).to(dev).eval()
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)

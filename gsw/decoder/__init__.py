@@ -8,6 +8,7 @@ Public API:
     - Networks: :class:`HiddenEncoder`, :class:`HiddenDecoder`, :class:`WhiteningLayer`, :func:`fit_whitening`.
     - Shipped decoders: :func:`load_decoder` -> :class:`WatermarkDecoder` (32/48/64 bits, sha256-checked),
       :func:`save_decoder`, :class:`WeightsError`.
+    - Readouts: :class:`KleinReadout` (flip-antisymmetric, fair per bit on flip-symmetric images; opt-in).
 
 Example:
     >>> import torch
@@ -18,12 +19,13 @@ Example:
 """
 
 from gsw.decoder.dwt import LEVELS, MODE, WAVELET, dwt2, idwt2, ll_subband
+from gsw.decoder.readout import KleinReadout
 from gsw.decoder.hidden import HiddenDecoder, HiddenEncoder, bit_accuracy, bits_from_logits
 from gsw.decoder.whitening import WhiteningLayer, fit_whitening
 from gsw.decoder.zoo import AVAILABLE_BITS, WatermarkDecoder, WeightsError, load_decoder, save_decoder
 
 __all__ = [
-    "AVAILABLE_BITS", "LEVELS", "MODE", "WAVELET", "HiddenDecoder", "HiddenEncoder", "WatermarkDecoder",
+    "AVAILABLE_BITS", "LEVELS", "MODE", "WAVELET", "HiddenDecoder", "HiddenEncoder", "KleinReadout", "WatermarkDecoder",
     "WeightsError", "WhiteningLayer", "bit_accuracy", "bits_from_logits", "dwt2", "fit_whitening", "idwt2",
     "ll_subband", "load_decoder", "save_decoder",
 ]

@@ -1,0 +1,54 @@
+"""Readouts of a decoder's logits: the flip-antisymmetric ``KleinReadout`` (issue #22).
+
+A decoder ``D`` (LL2 subband -> k logits, bit = sign) leans one way per bit on unmarked images (BENCHMARKS.md, #22:
+the shipped decoders' worst bit deviates from P(1) = 1/2 by 0.19-0.30 on held-out photos, p < 2e-4). Reading it
+through ``K(ll) = (D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` (h, v: the horizontal and vertical flips of the subband,
+r = h v the half turn) cancels any such lean: each flip negates ``K``, so on an image population that is as likely
+flipped as not, every bit of ``K`` is 1 with probability exactly 1/2, whatever ``D`` leans to. A mark is embedded
+for ``K`` by giving the wrapped decoder to the embedding (``gsw.embed(..., decoder=KleinReadout(load_decoder(32)))``)
+and read by giving it to the reading (``gsw.extract`` / ``gsw.verify``, ``decoder=``); it costs four decoder passes
+(one batch) per reading.
+
+Torch-only.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["KleinReadout"]
+
+
+class KleinReadout(nn.Module):
+    """A decoder read through ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on its LL2 input.
+
+    Args:
+        decoder: ``D``, a module mapping LL2 subbands [B, 3, h, w] to logits [B, k] (e.g. :func:`gsw.decoder.load_decoder`).
+
+    Attributes:
+        inner: the wrapped decoder.
+        num_bits: ``k`` (from ``decoder.num_bits`` when it has one, else None).
+    """
+
+    def __init__(self, decoder: nn.Module) -> None:
+        super().__init__()
+        self.inner = decoder
+        self.num_bits = getattr(decoder, "num_bits", None)
+
+    def forward(self, ll: Tensor) -> Tensor:
+        """ll [B, 3, h, w] -> logits [B, k]: the four orientations decoded as one batch of 4B."""
+        h = ll.flip(-1)
+        d = self.inner(torch.cat([ll, h, ll.flip(-2), h.flip(-2)])).unflatten(0, (4, ll.shape[0]))
+        return (d[0] - d[1] - d[2] + d[3]) / 2.0
+
+    def decode_image(self, images: Tensor) -> Tensor:
+        """images [B, 3, H, W] in [0, 1] -> logits [B, k] (the LL2 subband by the project's DWT, then :meth:`forward`)."""
+        from gsw.decoder.dwt import LEVELS, ll_subband
+
+        return self(ll_subband(images, LEVELS))
+
+    @torch.no_grad()
+    def bits(self, images: Tensor) -> Tensor:
+        """images [B, 3, H, W] in [0, 1] -> bits [B, k] in {0, 1} (float)."""
+        return (self.decode_image(images) > 0).float()
