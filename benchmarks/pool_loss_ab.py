@@ -10,7 +10,10 @@ for K renders of H x W that require grad, the rasteriser left out, under these r
   details, so one transform of the renders serves the decoder and the subband term;
 * ``cached+fold``: the same with the decoder's BatchNorms folded into its convolutions (the pool now);
 * ``cached+fold+bf16`` (CUDA only, not used by gsw): the decoder and LPIPS under bfloat16 autocast, the wavelet and
-  pixel terms in float32: what mixed precision would buy, and how far its gradient moves.
+  pixel terms in float32: what mixed precision would buy, and how far its gradient moves;
+* ``cached+fold+klein`` (with ``--klein``): ``cached+fold`` with the folded decoder read through
+  :class:`gsw.decoder.KleinReadout` (four decoder passes per render; #22): what that readout would cost the pool
+  (its loss and gradient differ from ``joint``'s by design).
 
 (The first GPU run, ``pool_loss_ab_h200.json``, had ``cached`` with the LPIPS features only and a channels-last
 rule, since dropped.) Each rule: ``--warmup`` passes, then the median of ``--repeats`` timed passes (CUDA events
@@ -48,6 +51,7 @@ def main() -> None:
     ap.add_argument("--lpips", default="alex")
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--klein", action="store_true", help="also the cached+fold+klein rule")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
 
@@ -82,9 +86,12 @@ def main() -> None:
             except AttributeError:
                 return getattr(self.module, name)
 
-    def make_loss(fold=False, bf16=False):
+    def make_loss(fold=False, bf16=False, klein=False):
+        from gsw.decoder import KleinReadout
+
         decoder = load_decoder(args.bits).eval()
         decoder = fold_batchnorm(decoder) if fold else decoder
+        decoder = KleinReadout(decoder) if klein else decoder
         loss = WatermarkLoss(decoder, lpips_weights(args.lpips, LossWeights()), args.lpips).to(dev)
         if bf16:
             loss.decoder = Autocast(loss.decoder)
@@ -97,9 +104,10 @@ def main() -> None:
             torch.cuda.synchronize(dev)
 
     rules = {}
-    variants = ["joint", "split", "cached", "cached+fold"] + (["cached+fold+bf16"] if dev.type == "cuda" else [])
+    variants = ["joint", "split", "cached", "cached+fold"] + (["cached+fold+bf16"] if dev.type == "cuda" else []) + (
+        ["cached+fold+klein"] if args.klein else [])
     for name in variants:
-        loss = make_loss(fold="fold" in name, bf16=name.endswith("bf16"))
+        loss = make_loss(fold="fold" in name, bf16=name.endswith("bf16"), klein=name.endswith("klein"))
         refs = None
         if name.startswith("cached"):
             with torch.no_grad():

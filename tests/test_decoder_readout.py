@@ -55,3 +55,14 @@ def test_a_mark_embedded_for_it_is_read_through_it_and_not_directly(decoder):
     assert res.bit_accuracy == 1.0 and abs(res.psnr - 32.0) < 0.3  # read through the decoder it was embedded for
     assert torch.equal(gsw.extract(res.image, num_bits=32, decoder=klein).bits[0], message_from_key("studio", 32))
     assert gsw.verify([res.image], "key:studio", num_bits=32, decoder=klein).detected()
+
+
+def test_it_is_another_decoder_for_the_registry_and_the_null_models(decoder):
+    from gsw.decoder.null import decoder_fingerprint
+    from gsw.mark.evidence import resolve_null_model
+
+    klein = KleinReadout(decoder)
+    assert decoder_fingerprint(klein) != decoder_fingerprint(decoder)  # marks made through it are told apart
+    # the shipped null model (calibrated on the direct readout) is not used for it
+    assert resolve_null_model(32, klein, None, False)[1] == "fair"
+    assert resolve_null_model(32, decoder, None, False)[1] == "calibrated"
