@@ -210,6 +210,9 @@ def test_early_stop_settings() -> None:
     quality = EarlyStop.parse("quality")
     assert (quality.psnr_target, quality.confirm, quality.extend, quality.window) == (37.4, 0.995, 0.5, 16)
     assert EarlyStop.parse("quality, extend=1") == dataclasses.replace(quality, extend=1.0)  # later keys override
+    careful = EarlyStop.parse("careful")
+    assert (careful.min_steps, careful.confirm, careful.accuracy_window, careful.extend) == (384, 0.998, 32, 0.5)
+    assert careful == EarlyStop.parse("quality,confirm=0.998,accuracy_window=32,min_steps=384")
     assert EarlyStop.parse("throughput,extend=0.25") == EarlyStop.parse(PRESETS["throughput"] + ",extend=0.25")
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),

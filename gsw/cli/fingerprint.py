@@ -45,7 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot): "
                          "optionally a preset, 'quality' (95 %% of the copies >= 99 %% bits and >= 37 dB held-out in "
-                         "the measured lego jobs) or 'throughput' (faster, ~85 %%), and/or "
+                         "the measured lego jobs), 'careful' (the same share, no early-stopped copy missing) or "
+                         "'throughput' (faster, ~85 %%), and/or "
                          "'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,extend=F,"
                          "accuracy_window=N' (extend: a copy below "
                          "confirm / psnr_target at the cap goes on F x the cap; accuracy_window: a recipient whose "
