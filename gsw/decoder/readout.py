@@ -3,8 +3,12 @@
 A decoder ``D`` (LL2 subband -> k logits, bit = sign) leans one way per bit on unmarked images (BENCHMARKS.md, #22:
 the shipped decoders' worst bit deviates from P(1) = 1/2 by 0.19-0.30 on held-out photos, p < 2e-4). Reading it
 through ``K(ll) = (D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` (h, v: the horizontal and vertical flips of the subband,
-r = h v the half turn) cancels any such lean: each flip negates ``K``, so on an image population that is as likely
-flipped as not, every bit of ``K`` is 1 with probability exactly 1/2, whatever ``D`` leans to. A mark is embedded
+r = h v the half turn) cancels any such lean: each flip of the subband negates ``K``, so on a population of subbands
+that is as likely flipped as not, every bit of ``K`` is 1 with probability exactly 1/2, whatever ``D`` leans to. For
+images this holds only approximately: the subband of a flipped image is not exactly the flipped subband (the
+wavelet filters' alignment and the borders; they differ by up to ~1 on a 64x48 image whose subband averages ~2), so
+fairness on images is a measurement (BENCHMARKS.md, #22: held-out photos, p = 0.27 / 0.93 / 0.91 for 32 / 48 / 64
+bits against a fair decoder), not a theorem. A mark is embedded
 for ``K`` by giving the wrapped decoder to the embedding (``gsw.embed(..., decoder=KleinReadout(load_decoder(32)))``)
 and read by giving it to the reading (``gsw.extract`` / ``gsw.verify``, ``decoder=``); it costs four decoder passes
 (one batch) per reading.
