@@ -22,9 +22,9 @@ built-in scene at ``--size``). No photos are used (FGD phase 1 weighs the origin
 ``<out>/robust_wild_<tag>.json`` after every cell (so a stopped run keeps what it measured) and a markdown table.
 
 ``readout`` (a row key of ``--variant``, #22): ``"klein"`` embeds and reads every bit through
-:class:`gsw.decoder.KleinReadout`, ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on the decoder's LL2 input (h, v: flips, r: the
-half turn), fair per bit on a flip-symmetric image population; its ``clean_detected`` and size ``read`` use gsw's
-tests for the direct readout's null, so only its bit accuracies mean anything.
+:class:`gsw.decoder.KleinReadout`, ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on the decoder's LL2 input (h, v:
+flips, r: the half turn), which cancels the decoder's per-bit lean; its ``clean_detected`` and size ``read`` p-values
+come from gsw's tests for a custom decoder (the exact test; the fair coin for chosen messages).
 
 Messages are reproducible (``--message-seed`` + the cell's seed), the same for every method. Subsets for quick
 comparisons: ``--image-attacks`` / ``--model-attacks`` / ``--sizes`` (an empty list skips them), ``--eval-views``;
@@ -272,7 +272,8 @@ def main() -> int:
                             decoder=dec, progress=False)
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
-                cell = dict(method=label, base_method=method, overrides=overrides, readout=readout, bits=bits_n, seed=seed,
+                cell = dict(method=label, base_method=method, overrides=overrides, readout=readout, bits=bits_n,
+                            seed=seed,
                             embed_s=time.perf_counter() - t0,
                             timings=res.timings, gaussians_after=len(res.gaussians),
                             train_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),

@@ -8,7 +8,7 @@ Public API:
     - Networks: :class:`HiddenEncoder`, :class:`HiddenDecoder`, :class:`WhiteningLayer`, :func:`fit_whitening`.
     - Shipped decoders: :func:`load_decoder` -> :class:`WatermarkDecoder` (32/48/64 bits, sha256-checked),
       :func:`save_decoder`, :class:`WeightsError`.
-    - Readouts: :class:`KleinReadout` (flip-antisymmetric, fair per bit on flip-symmetric images; opt-in).
+    - Readouts: :class:`KleinReadout` (flip-antisymmetric: cancels a decoder's per-bit lean; opt-in).
 
 Example:
     >>> import torch
@@ -25,7 +25,7 @@ from gsw.decoder.whitening import WhiteningLayer, fit_whitening
 from gsw.decoder.zoo import AVAILABLE_BITS, WatermarkDecoder, WeightsError, load_decoder, save_decoder
 
 __all__ = [
-    "AVAILABLE_BITS", "LEVELS", "MODE", "WAVELET", "HiddenDecoder", "HiddenEncoder", "KleinReadout", "WatermarkDecoder",
-    "WeightsError", "WhiteningLayer", "bit_accuracy", "bits_from_logits", "dwt2", "fit_whitening", "idwt2",
-    "ll_subband", "load_decoder", "save_decoder",
+    "AVAILABLE_BITS", "LEVELS", "MODE", "WAVELET", "HiddenDecoder", "HiddenEncoder", "KleinReadout",
+    "WatermarkDecoder", "WeightsError", "WhiteningLayer", "bit_accuracy", "bits_from_logits", "dwt2", "fit_whitening",
+    "idwt2", "ll_subband", "load_decoder", "save_decoder",
 ]

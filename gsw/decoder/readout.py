@@ -8,10 +8,13 @@ that is as likely flipped as not, every bit of ``K`` is 1 with probability exact
 images this holds only approximately: the subband of a flipped image is not exactly the flipped subband (the
 wavelet filters' alignment and the borders; they differ by up to ~1 on a 64x48 image whose subband averages ~2), so
 fairness on images is a measurement (BENCHMARKS.md, #22: held-out photos, p = 0.27 / 0.93 / 0.91 for 32 / 48 / 64
-bits against a fair decoder), not a theorem. A mark is embedded
-for ``K`` by giving the wrapped decoder to the embedding (``gsw.embed(..., decoder=KleinReadout(load_decoder(32)))``)
-and read by giving it to the reading (``gsw.extract`` / ``gsw.verify``, ``decoder=``); it costs four decoder passes
-(one batch) per reading.
+bits against a fair decoder), not a theorem.
+
+A mark is embedded for ``K`` by giving the wrapped decoder to the embedding
+(``gsw.embed(..., decoder=KleinReadout(load_decoder(32)))``) and read by giving it to the reading (``gsw.extract`` /
+``gsw.verify``, ``decoder=``); it costs four decoder passes (one batch) per reading. Its weights fingerprint differs
+from the wrapped decoder's, so a registry tells its marks apart and the shipped null models (calibrated on the direct
+readout) are not applied to it.
 
 Torch-only.
 """
@@ -28,7 +31,8 @@ class KleinReadout(nn.Module):
     """A decoder read through ``(D(ll) - D(h ll) - D(v ll) + D(r ll)) / 2`` on its LL2 input.
 
     Args:
-        decoder: ``D``, a module mapping LL2 subbands [B, 3, h, w] to logits [B, k] (e.g. :func:`gsw.decoder.load_decoder`).
+        decoder: ``D``, a module mapping LL2 subbands [B, 3, h, w] to logits [B, k]
+            (e.g. :func:`gsw.decoder.load_decoder`).
 
     Attributes:
         inner: the wrapped decoder.
@@ -47,7 +51,7 @@ class KleinReadout(nn.Module):
         return (d[0] - d[1] - d[2] + d[3]) / 2.0
 
     def decode_image(self, images: Tensor) -> Tensor:
-        """images [B, 3, H, W] in [0, 1] -> logits [B, k] (the LL2 subband by the project's DWT, then :meth:`forward`)."""
+        """images [B, 3, H, W] in [0, 1] -> logits [B, k]: their LL2 subband, then :meth:`forward`."""
         from gsw.decoder.dwt import LEVELS, ll_subband
 
         return self(ll_subband(images, LEVELS))
