@@ -210,6 +210,29 @@ def test_marks_of_unknown_decoders_are_skipped_and_custom_decoders_used(marked) 
     assert not found.skipped and len(found.results) == 6
 
 
+def test_marks_embedded_through_the_klein_readout_are_recognised(tmp_path) -> None:
+    from gsw.decoder import KleinReadout, load_decoder
+    from gsw.decoder.readout import shipped_klein_fingerprint
+
+    klein = KleinReadout(load_decoder(BITS))
+    path = tmp_path / "reg.sqlite"
+    with open_registry(path) as reg:
+        reg.add("kim", random_message(BITS, seed=7), decoder_sha256=shipped_klein_fingerprint(BITS), width=64,
+                height=64, origin="random")
+        reg.add("dan", random_message(BITS, seed=8), decoder_sha256=shipped_decoder_sha256(BITS), width=64, height=64,
+                origin="random")
+        kim = reg.get("kim")
+    cover = 0.25 + 0.5 * torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(1))
+    res = embed_image(cover, kim.message, num_bits=BITS, decoder=klein, progress=False,
+                      config=ImageEmbedConfig(steps=40, attack_every=0, psnr=32.0, device="cpu"))
+    assert res.bit_accuracy == 1.0
+    with open_registry(path, create=False) as reg:
+        found = identify(res.image, reg)  # no decoders given: the readout is recognised from the registry record
+        plain = identify(cover, reg)
+    assert found.recipients == ["kim"] and not found.skipped and len(found.results) == 2
+    assert plain.recipients == [] and not plain.skipped
+
+
 def test_bad_arguments(marked) -> None:
     path, _, image = marked
     with open_registry(path, create=False) as reg:

@@ -21,10 +21,12 @@ Torch-only.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor, nn
 
-__all__ = ["KleinReadout"]
+__all__ = ["KleinReadout", "shipped_klein_fingerprint"]
 
 
 class KleinReadout(nn.Module):
@@ -60,3 +62,18 @@ class KleinReadout(nn.Module):
     def bits(self, images: Tensor) -> Tensor:
         """images [B, 3, H, W] in [0, 1] -> bits [B, k] in {0, 1} (float)."""
         return (self.decode_image(images) > 0).float()
+
+
+@functools.lru_cache(maxsize=None)
+def shipped_klein_fingerprint(num_bits: int) -> str:
+    """The weights fingerprint (:func:`gsw.decoder.null.decoder_fingerprint`) of ``KleinReadout`` over the shipped
+    ``num_bits`` decoder: what a registry records for marks embedded through it, and how ``gsw identify`` /
+    ``gsw scan`` recognise them without being given the decoder.
+
+    Raises:
+        WeightsError: no shipped decoder of that length.
+    """
+    from gsw.decoder.null import decoder_fingerprint
+    from gsw.decoder.zoo import load_decoder
+
+    return decoder_fingerprint(KleinReadout(load_decoder(num_bits)))

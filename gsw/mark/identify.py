@@ -224,7 +224,8 @@ def plan_identify(registry: Registry | Sequence[Mark], *, decoders: Mapping[str,
 
     Args:
         registry: an open :class:`~gsw.registry.Registry`, or the marks to test.
-        decoders: custom decoders by the sha256 their marks record (see :func:`identify`).
+        decoders: custom decoders by the sha256 their marks record (see :func:`identify`); marks embedded through
+            :class:`gsw.decoder.KleinReadout` over a shipped decoder are recognised without it.
         device: where to decode.
 
     Returns:
@@ -235,8 +236,10 @@ def plan_identify(registry: Registry | Sequence[Mark], *, decoders: Mapping[str,
     """
     from gsw.mark.detect import load_decoder_for
 
+    from gsw.decoder.readout import KleinReadout, shipped_klein_fingerprint
+
     marks = registry.list() if isinstance(registry, Registry) else list(registry)
-    decoders = decoders or {}
+    decoders = dict(decoders or {})
     shipped: dict[int, str | None] = {}
     by_decoder: dict[tuple[str, int], list[Mark]] = {}
     skipped = []
@@ -247,6 +250,11 @@ def plan_identify(registry: Registry | Sequence[Mark], *, decoders: Mapping[str,
                 shipped[k] = shipped_decoder_sha256(k)
             except RuntimeError:  # WeightsError: no shipped decoder of that length
                 shipped[k] = None
+        if mark.decoder_sha256 not in decoders and shipped[k] is not None and mark.decoder_sha256 != shipped[k] \
+                and mark.decoder_sha256 == shipped_klein_fingerprint(k):  # embedded through KleinReadout
+            from gsw.decoder.zoo import load_decoder
+
+            decoders[mark.decoder_sha256] = KleinReadout(load_decoder(k))
         if mark.decoder_sha256 in decoders or mark.decoder_sha256 == shipped[k]:
             by_decoder.setdefault((mark.decoder_sha256, k), []).append(mark)
         else:
@@ -397,8 +405,10 @@ def identify(images: ImageLike, registry: Registry | Sequence[Mark], *, fpr: flo
         registry: an open :class:`~gsw.registry.Registry`, or the marks to test.
         fpr: family-wise false-positive rate: the chance that an unmarked source identifies anyone.
         decoders: custom decoders (LL2 subband -> logits) by the sha256 their marks record; the shipped
-            decoders are used for marks that record a shipped decoder's sha256. A custom decoder's p-values
-            use the fair coin unless its weights are the shipped ones.
+            decoders are used for marks that record a shipped decoder's sha256, and
+            :class:`gsw.decoder.KleinReadout` over a shipped decoder for marks that record its fingerprint
+            (:func:`gsw.decoder.readout.shipped_klein_fingerprint`). A custom decoder's p-values use the fair coin
+            (for chosen messages) unless its weights are the shipped ones.
         device: where to decode (default: where the images are).
         exact: besides the marks that could be identified, the calibrated p-value is computed for this many
             best marks of each decoder and embedding size (for reporting; decisions do not depend on it).
