@@ -18,37 +18,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from bench_cpu import machine_info
 from calibrate_null import DATA, ROOT, photo_files
 from gsw._atomic import atomic_write
 from symmetric_readout import logits, split
 
 READOUTS = ("direct", "klein")
-
-
-def machine_info(threads: int) -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                                check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = None
-    return {"cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
-            "python": platform.python_version(), "numpy": np.__version__, "platform": platform.platform(),
-            "commit": commit,
-            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "load_at_start": os.getloadavg()[0]}
 
 
 def bits_read(images: list[torch.Tensor], decoders: dict, target: np.ndarray) -> dict:
@@ -79,7 +60,7 @@ def main() -> None:
     picked = [i for i, kind in enumerate(kinds) if kind == "photo"][:args.photos]
     photos = [hold[i] for i in picked]
     attacks = {"jpeg50": lambda im: jpeg(im, quality=50), "noise0.05": lambda im: gaussian_noise(im, 0.05, seed=0)}
-    res: dict = {"script": "benchmarks/klein_embed.py", "machine": machine_info(args.threads),
+    res: dict = {"script": "benchmarks/klein_embed.py", "machine": machine_info(),
                  "settings": {"config": vars(gsw.ImageEmbedConfig()), "klein": "KleinReadout (LL2 flips, halved)",
                               "messages": "random_message(k, seed=k)", "readings": "one at 1x (read_images)"},
                  "photos": [{"name": names[i], "size": list(hold[i].shape[1:])} for i in picked],

@@ -15,14 +15,12 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from calibrate_null import DATA, ROOT
 from gsw._atomic import atomic_write
 from gsw.decoder import KleinReadout, load_decoder
-from gsw.mark.scales import read_images
-from symmetric_readout import by_kind, split
+from symmetric_readout import by_kind, logits, split
 
 
 def main() -> None:
@@ -37,10 +35,8 @@ def main() -> None:
     hold, kinds = split(args.data, True)
     res: dict = {"holdout_images": len(hold), "threads": args.threads, "torch": torch.__version__, "bits": {}}
     for k in args.bits:
-        dec = KleinReadout(load_decoder(k)).eval()
-        with torch.no_grad():
-            logits = np.stack([r.logits[0].numpy() for r in read_images(hold, dec, factors=(1.0,))])
-        res["bits"][str(k)] = by_kind((logits > 0).astype(float), kinds)
+        read = logits(hold, KleinReadout(load_decoder(k)).eval())
+        res["bits"][str(k)] = by_kind((read > 0).astype(float), kinds)
         print(k, json.dumps(res["bits"][str(k)]), flush=True)
     res["seconds"] = time.perf_counter() - t0
     with atomic_write(args.out, "w") as f:
