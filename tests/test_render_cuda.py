@@ -138,6 +138,16 @@ def _scene_heavy():
     return g, cam, (0.0, 0.0, 0.0), 3
 
 
+def _scene_large_splats():
+    # Splats spanning dozens to hundreds of 16x16 tiles, half-transparent (so many pixels blend most of them)
+    # with a few opaque ones in front: the CUDA backward reduces Gaussians of more than 32 intersections with a
+    # warp each (rasterize_cuda.cu, reduce_big_kernel), and tiles behind the opaque ones have unvisited splats.
+    g = random_gaussians(60, sh_degree=1, seed=12, extent=0.5, scale_range=(0.2, 0.6),
+                         opacity_range=(0.1, 0.6), dtype=torch.float64)
+    g.opacity_logits[:4] = 6.0
+    return g, make_camera(240, 176), (0.0, 0.0, 0.0), 1
+
+
 SCENES = {
     "random_sh0": lambda: _scene_random(0, 0),
     "random_sh1": lambda: _scene_random(1, 1),
@@ -156,6 +166,7 @@ SCENES = {
     "dense_multi_batch": _scene_dense,
     "frustum": _scene_frustum,
     "heavy": _scene_heavy,
+    "large_splats": _scene_large_splats,
 }
 DTYPES = [torch.float32, torch.float64]
 
@@ -182,6 +193,11 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", list(SCENES))
 def test_forward_matches_cpu(name: str, dtype: torch.dtype) -> None:
+    if name == "large_splats" and dtype == torch.float32:
+        # Their ellipse boundaries cross most pixels, so some alpha lands within rounding of ALPHA_MIN and
+        # flips between backends (a ~1/255 image difference); test_large_scene_1m_1080p_forward_agrees bounds
+        # such flips by their share of the pixels. The float64 case compares exactly.
+        pytest.skip("float32 threshold flips along long ellipse boundaries (see the comment)")
     g64, cam, bg, deg = SCENES[name]()
     g = g64.to(dtype=dtype)
     cpu = _render(g, cam, bg, deg)
@@ -260,7 +276,7 @@ def _assert_gradients_match_cpu(name: str, dtype: torch.dtype) -> None:
 
 @pytest.mark.parametrize("variant", ["px2", "px4", "atomic"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "size_17x33"])
+@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "size_17x33", "large_splats"])
 def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str, monkeypatch) -> None:
     """Each blend backward behind the benchmarking switch GSW_CUDA_BACKWARD (csrc/cuda/rasterize_cuda.cu) gives
     the CPU's gradients (float64 runs px4 for px2)."""
@@ -269,7 +285,7 @@ def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str
 
 
 @pytest.mark.parametrize("variant", ["px2", "px4"])
-@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy"])
+@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats"])
 def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch) -> None:
     """The blend backward stores one record per intersection and sums them per Gaussian in a fixed order (no float
     atomics): the same inputs give the same gradient bits on every call, also for splats spanning many tiles (which
@@ -283,6 +299,51 @@ def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch)
         again = _grads(g, cam, bg, deg, w)
         for key, ref in first.items():
             assert torch.equal(again[key], ref), key
+
+
+def _visited_records(n_contrib: torch.Tensor) -> int:
+    """Sum over 16x16 tiles of the tile's largest n_contrib: the blend backward's record count."""
+    H, W = n_contrib.shape[-2:]
+    pad = torch.zeros((H + 15) // 16 * 16, (W + 15) // 16 * 16, dtype=torch.int64)
+    pad[:H, :W] = n_contrib.reshape(H, W).cpu()
+    return int(pad.reshape(pad.shape[0] // 16, 16, pad.shape[1] // 16, 16).amax(dim=(1, 3)).sum())
+
+
+def test_backward_records_only_visited_splats(monkeypatch) -> None:
+    """Above 64 MiB of records the blend backward allocates records only for the splats in front of each tile's
+    last blended one (csrc/core/params.h BlendRecords): on a heavy scene at 1080p in float64 (2M intersections,
+    about half behind every pixel's last blended splat) the gradients equal the CPU's, repeat bit for bit, and the
+    backward's extra memory over the atomic variant (no records) is the visited records, not all M."""
+    cam = Camera.from_fov(math.radians(60), 1920, 1080)
+    g = heavy_scene(100_000, cam, seed=0, dtype=torch.float64)
+    # Anisotropic, so that the quaternions' gradients are not rounding noise (see _scene_heavy).
+    g.log_scales = g.log_scales + 0.3 * torch.randn(g.log_scales.shape, generator=torch.Generator().manual_seed(3),
+                                                    dtype=torch.float64)
+    w = _weights(cam, torch.float64)
+    bg = (0.0, 0.0, 0.0)
+    cpu = _grads(g, cam, bg, 3, w)
+    gc = g.to("cuda")
+    out = rasterize(gc, cam, validate=False)
+    M, R = int(out.bins.gauss_ids.numel()), _visited_records(out.n_contrib)
+    assert M * 10 * 8 > 64 << 20 and R < 0.75 * M, (M, R)
+    peaks = {}
+    for variant in ("atomic", "px4"):
+        monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+        grads = _grads(gc, cam, bg, 3, w)
+        torch.cuda.synchronize()
+        peaks[variant] = torch.cuda.max_memory_allocated() - base
+        del grads
+    extra = peaks["px4"] - peaks["atomic"]
+    assert extra <= R * 10 * 8 * 1.05 + (4 << 20), (extra, R, M)
+    first = _grads(gc, cam, bg, 3, w)
+    again = _grads(gc, cam, bg, 3, w)
+    for key, ref in cpu.items():
+        assert torch.equal(again[key], first[key]), key
+        rel = _rel(first[key], ref)
+        assert rel <= GRAD_RTOL, f"{key}: relative error {rel:.2e}"
 
 
 def test_backward_variant_switch_rejects_unknown_names(monkeypatch) -> None:

@@ -109,21 +109,51 @@ struct RasterGradParams {
   T* v_depths = nullptr;       // [N]
 };
 
-// Blend backward, second pass of both backends: Gaussian i's cotangents are the sum of its
-// intersections' records (kBlendGrads values per sorted position, in kBlendGrads order), added
-// in intersection order e = entry_offsets[i] .. entry_offsets[i + 1] - 1 from zero. A fixed order
-// with no atomics: the gradients are the same bits on every run.
-template <typename T>
-GSW_HD void reduce_blend_grads(const TileBins& bins, const T* records, const RasterGradParams<T>& g,
-                               int64_t i) {
-  T acc[kBlendGrads];
-  GSW_UNROLL
-  for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
-  for (int32_t e = bins.entry_offsets[i]; e < bins.entry_offsets[i + 1]; ++e) {
-    const T* r = records + int64_t(kBlendGrads) * bins.entry_slots[e];
-    GSW_UNROLL
-    for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
+// Where the blend backward keeps its per-intersection records. The backward visits only the front
+// of each tile's list: the splats in front of the tile's largest n_contrib (`visited`); the ones
+// behind every pixel's last blended splat get no record, neither memory nor time (on scenes of
+// large opaque splats that is most of the M intersections). Tile t's records are the rows
+// offsets[t] .. offsets[t] + visited[t] - 1 of a [offsets[tiles], kBlendGrads] buffer, in list
+// order (each backend computes visited and its prefix sum before the backward walk).
+struct BlendRecords {
+  const int32_t* visited = nullptr;  // [tiles] largest n_contrib of the tile's pixels
+  const int32_t* offsets = nullptr;  // [tiles + 1] exclusive prefix sum of visited
+};
+
+// The last tile t in [lo, lo + span) (or [lo, tiles) if tile_offsets[lo + span] <= s) with
+// tile_offsets[t] <= s, given tile_offsets[lo] <= s: the (non-empty) tile whose list range holds
+// sorted position s. Branch-free bisection; tile_offsets[tiles] = M > s.
+GSW_HD int32_t tile_of_slot(const int32_t* tile_offsets, int32_t tiles, int32_t lo, int32_t span, int32_t s) {
+  int32_t n = tiles - lo;
+  if (span < n && tile_offsets[lo + span] > s) n = span;
+  while (n > 1) {
+    const int32_t half = n >> 1;
+    lo = tile_offsets[lo + half] <= s ? lo + half : lo;
+    n -= half;
   }
+  return lo;
+}
+
+// The record of sorted position s of a Gaussian's intersection (nullptr: s lies behind its tile's
+// visited front, so no pixel blended it there). `t` is the tile of an earlier intersection of the
+// same Gaussian (-1: none) and becomes s's: a Gaussian's intersections come in increasing tile
+// order (binning emits its footprint row by row), so the search starts after it: the next tile
+// (the same footprint row), else within the next two tile rows, else anywhere after.
+template <typename T>
+GSW_HD const T* blend_record(const TileBins& bins, const BlendRecords& layout, const T* records, int32_t s,
+                             int32_t& t) {
+  const int32_t tiles = bins.tiles_x * bins.tiles_y;
+  const int32_t* to = bins.tile_offsets;
+  const int32_t next = t + 1;
+  t = next + 1 < tiles && to[next + 1] <= s ? tile_of_slot(to, tiles, next + 1, t < 0 ? tiles : 2 * bins.tiles_x, s)
+                                             : next;
+  const int32_t pos = s - to[t];
+  return pos < layout.visited[t] ? records + int64_t(kBlendGrads) * (layout.offsets[t] + pos) : nullptr;
+}
+
+// Gaussian i's blend cotangents, acc in record order (kBlendGrads values).
+template <typename T>
+GSW_HD void store_blend_grads(const RasterGradParams<T>& g, int64_t i, const T* acc) {
   g.v_means2d[2 * i] = acc[0];
   g.v_means2d[2 * i + 1] = acc[1];
   GSW_UNROLL
@@ -132,6 +162,28 @@ GSW_HD void reduce_blend_grads(const TileBins& bins, const T* records, const Ras
   GSW_UNROLL
   for (int k = 0; k < 3; ++k) g.v_colors[3 * i + k] = acc[6 + k];
   g.v_depths[i] = acc[9];
+}
+
+// Blend backward, second pass: Gaussian i's cotangents are the sum of its visited intersections'
+// records (kBlendGrads values each, in kBlendGrads order), added in intersection order e =
+// entry_offsets[i] .. entry_offsets[i + 1] - 1 from zero; an intersection behind its tile's visited
+// front contributes nothing. A fixed order with no atomics: the gradients are the same bits on
+// every run. (The CPU backend reduces every Gaussian so; CUDA those with few intersections, and the
+// others with a warp each in another fixed order, see rasterize_cuda.cu.)
+template <typename T>
+GSW_HD void reduce_blend_grads(const TileBins& bins, const BlendRecords& layout, const T* records,
+                               const RasterGradParams<T>& g, int64_t i) {
+  T acc[kBlendGrads];
+  GSW_UNROLL
+  for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
+  int32_t t = -1;
+  for (int32_t e = bins.entry_offsets[i]; e < bins.entry_offsets[i + 1]; ++e) {
+    const T* r = blend_record(bins, layout, records, bins.entry_slots[e], t);
+    if (r == nullptr) continue;
+    GSW_UNROLL
+    for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
+  }
+  store_blend_grads(g, i, acc);
 }
 
 // Per-Gaussian contribution of the blending weights w_i(p) = alpha_i(p) T_i(p) under a weight

@@ -11,14 +11,15 @@
 //    radix sort (both stable, so equal depths keep the Gaussian index order: the CPU's bins);
 //    `fill_bins` needs the number of intersections M (the dispatcher knows it);
 //  * rasterize_backward reduces each splat's ten cotangents over a warp (shuffles) and over the
-//    tile's warps (shared memory), stores one record per intersection and sums them per Gaussian
-//    in intersection order, as the CPU does (bitwise deterministic, not bitwise equal to the CPU:
-//    the sums within a tile are grouped differently); it takes M * kBlendGrads values of scratch
-//    from torch's allocator;
+//    tile's warps (shared memory), stores one record per visited intersection and sums them per
+//    Gaussian in intersection order, as the CPU does (bitwise deterministic, not bitwise equal to
+//    the CPU: the sums within a tile are grouped differently); its record buffer (torch's
+//    allocator) is sized for all M intersections up to 64 MiB, else, after one host
+//    synchronisation, for the visited ones only;
 //  * contribution adds its per-tile totals to the per-Gaussian outputs with atomics (one per tile,
 //    after summing the warps in shared memory, except the channel sums for C other than 1 or 3:
 //    one per warp): the float sums' order is not fixed (hits and max_weight are exact);
-//  * entry_slots are filled exactly as on the CPU (not used by the CUDA kernels).
+//  * entry_slots are filled exactly as on the CPU (the backward's reduction reads them).
 #pragma once
 
 #include <cstdint>

@@ -35,10 +35,11 @@
 // of ten warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
 // shared-memory slot for the splat. After each batch one thread per splat adds up the warps'
 // slots (in warp order) and stores the tile's totals as the intersection's record (kBlendGrads
-// values at its sorted position; zeros where no pixel blended it, and for the splats behind the
-// tile's last blended one); a second kernel sums each Gaussian's records in intersection order
-// (reduce_blend_grads, core/params.h, the CPU's reduction). No float atomics: the gradients are
-// the same bits on every run, for M * kBlendGrads values of scratch. The alpha of each pixel is
+// values per visited splat, in the tile's rows of the BlendRecords buffer, core/params.h; zeros
+// where no pixel blended it; the splats behind the tile's last blended one get no record); a
+// second kernel sums each Gaussian's records in intersection order (reduce_blend_grads,
+// core/params.h, the CPU's reduction). No float atomics: the gradients are
+// the same bits on every run, for kBlendGrads values of scratch per visited intersection. The alpha of each pixel is
 // the forward's bit for bit (the same gaussian_power / splat_alpha), so exactly the splats the
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
 // as on the CPU. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the tile totals to the
@@ -47,6 +48,8 @@
 #include <cstring>
 #include <stdexcept>
 #include <string>
+
+#include <cub/device/device_scan.cuh>
 
 #include "cuda/common.cuh"
 
@@ -65,6 +68,11 @@ constexpr int kContribWarps = kContribBlock / 32;
 static_assert(kTilePixels % kContribPixels == 0, "a thread's pixels lie in one tile column");
 static_assert(kBlock % 32 == 0 && kContribBlock % 32 == 0, "a tile must hold whole warps");
 constexpr int kVoteEvery = 8;  // splats between two "is the whole warp done?" votes
+// Blend backward records up to this size are allocated for all M intersections without a host
+// synchronisation; larger ones for the visited ones only (see rasterize_backward).
+constexpr size_t kRecordsNoSyncBytes = size_t(64) << 20;
+// Blend backward reduction: Gaussians with more intersections than this are reduced by a warp.
+constexpr int kSerialEntries = 32;
 
 // Shared-memory records, padded and aligned so that a thread reads one with 128-bit loads.
 template <typename T>
@@ -397,7 +405,6 @@ struct BackwardShared {
   // The + 1 puts the ten values a warp stores for one splat into ten different banks.
   T part[kWarps][kBlendGrads][kThreads + 1];
   int32_t hit[kWarps][kThreads];
-  int max_n;
 };
 
 // Steps the thread's pixels back over staged splat k (tile-local index j) and, if any pixel of
@@ -480,10 +487,12 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
 }
 
 // Blend backward with PX vertically adjacent pixels per thread (see the file comment).
-// `records` (unless Atomic): [M, kBlendGrads], every row written.
+// `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
+// layout.offsets[tile] + [0, layout.visited[tile]) are all written.
 template <typename T, int PX, bool Atomic>
 __global__ void __launch_bounds__(kTilePixels / PX)
-    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, T* __restrict__ records) {
+    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
+                    T* __restrict__ records) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
@@ -500,11 +509,8 @@ __global__ void __launch_bounds__(kTilePixels / PX)
   // The block walks the batches from the tile's largest n_contrib down; a warp visits only the
   // splats in front of its own largest.
   const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
-  if (threadIdx.x == 0) sh.max_n = 0;
-  __syncthreads();
-  if ((threadIdx.x & 31) == 0 && warp_n > 0) atomicMax(&sh.max_n, warp_n);
-  __syncthreads();
-  const int max_n = sh.max_n;
+  const int max_n = layout.visited[c.tile];
+  T* const tile_records = Atomic ? nullptr : records + int64_t(kBlendGrads) * layout.offsets[c.tile];
   const int t = static_cast<int>(threadIdx.x);
   for (int hi = max_n; hi > 0; hi -= kThreads) {
     const int lo = hi > kThreads ? hi - kThreads : 0;
@@ -520,22 +526,76 @@ __global__ void __launch_bounds__(kTilePixels / PX)
     __syncthreads();
     for (int k = min(hi, warp_n) - lo - 1; k >= 0; --k) backward_splat(sh, k, lo + k, pxc, px);
     __syncthreads();  // every warp has stored its sums of the batch
-    if (lo + t < hi) flush_splat<T, PX, Atomic>(g, sh, t, records + int64_t(kBlendGrads) * (c.start + lo + t));
-  }
-  if constexpr (!Atomic) {  // the splats behind every pixel's last blended one have no batch
-    for (int64_t i = int64_t(c.start) + max_n + t; i < c.end; i += kThreads) {
-#pragma unroll
-      for (int q = 0; q < kBlendGrads; ++q) records[int64_t(kBlendGrads) * i + q] = T(0);
-    }
+    if (lo + t < hi)
+      flush_splat<T, PX, Atomic>(g, sh, t, Atomic ? nullptr : tile_records + int64_t(kBlendGrads) * (lo + t));
   }
 }
 
-// Second pass: each Gaussian's records summed in intersection order (one thread per Gaussian).
+// Record layout, first pass: each tile's visited count, the largest n_contrib of its pixels (one
+// block per tile, one thread per pixel; visited[tiles] = 0 for the prefix sum's total).
+template <typename T>
+__global__ void __launch_bounds__(kBlock) tile_visited_kernel(const RasterParams<T> p, int32_t* __restrict__ visited) {
+  __shared__ int32_t tile_max;
+  const PixelCtx<1> c = pixel_ctx<1>(p);
+  const int n = c.inside() ? p.n_contrib[c.pix] : 0;
+  if (threadIdx.x == 0) tile_max = 0;
+  __syncthreads();
+  const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n)));
+  if ((threadIdx.x & 31) == 0 && warp_n > 0) atomicMax(&tile_max, warp_n);
+  __syncthreads();
+  if (threadIdx.x == 0) {
+    visited[c.tile] = tile_max;
+    if (c.tile == 0) visited[gridDim.x] = 0;
+  }
+}
+
+// Second pass, Gaussians with at most kSerialEntries intersections: each one's records summed in
+// intersection order by one thread (reduce_blend_grads, as on the CPU); the others are appended to
+// `big` (big[0]: their count, zeroed by the caller) for reduce_big_kernel.
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
-    reduce_blend_grads_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const T* __restrict__ records) {
+    reduce_blend_grads_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
+                              const T* __restrict__ records, int32_t* __restrict__ big) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i < p.N) reduce_blend_grads(p.bins, records, g, i);
+  if (i >= p.N) return;
+  if (p.bins.entry_offsets[i + 1] - p.bins.entry_offsets[i] <= kSerialEntries)
+    reduce_blend_grads(p.bins, layout, records, g, i);
+  else
+    big[1 + atomicAdd(big, 1)] = static_cast<int32_t>(i);
+}
+
+// Second pass, Gaussians with more intersections (a large splat spans thousands of tiles): a warp
+// each (grid-stride over `big`); lane l sums the records of intersections e0 + l, e0 + l + 32, ...
+// in that order, then the warp adds the lanes' sums with one transposed butterfly. The lanes and
+// the butterfly's order depend on nothing but the Gaussian, so the gradients are the same bits on
+// every run (in which order the Gaussians were appended to `big` does not matter).
+template <typename T>
+__global__ void __launch_bounds__(kBlock)
+    reduce_big_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
+                      const T* __restrict__ records, const int32_t* __restrict__ big) {
+  const int lane = static_cast<int>(threadIdx.x & 31);
+  const int64_t warps = int64_t(gridDim.x) * (blockDim.x / 32);
+  const int32_t n_big = big[0];
+  for (int64_t w = int64_t(blockIdx.x) * (blockDim.x / 32) + threadIdx.x / 32; w < n_big; w += warps) {
+    const int32_t i = big[1 + w];
+    T acc[kBlendGrads];
+#pragma unroll
+    for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
+    int32_t t = -1;
+    for (int32_t e = p.bins.entry_offsets[i] + lane; e < p.bins.entry_offsets[i + 1]; e += 32) {
+      const T* r = blend_record(p.bins, layout, records, p.bins.entry_slots[e], t);
+      if (r == nullptr) continue;
+#pragma unroll
+      for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
+    }
+    int index;
+    const T sum = warp_sum_transposed(acc, index);
+    __shared__ T out[kBlock / 32][kBlendGrads];
+    if (index >= 0 && (lane & 1) == 0) out[threadIdx.x / 32][index] = sum;
+    __syncwarp();
+    if (lane == 0) store_blend_grads(g, i, out[threadIdx.x / 32]);
+    __syncwarp();
+  }
 }
 
 template <typename T>
@@ -586,23 +646,55 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) 
     if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   }
   const unsigned grid = static_cast<unsigned>(tiles);
+  // Record layout (BlendRecords): each tile's visited count and their prefix sum.
+  DeviceBuffer layout_buf(sizeof(int32_t) * 2 * (tiles + 1));
+  int32_t* visited = layout_buf.as<int32_t>();
+  int32_t* offsets = visited + tiles + 1;
+  tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited);
+  GSW_KERNEL_CHECK();
+  const BlendRecords layout{visited, offsets};
   if (variant == BackwardVariant::kAtomic) {
-    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, nullptr);
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr);
     GSW_KERNEL_CHECK();
     return;
   }
-  DeviceBuffer records(size_t(p.bins.M) * kBlendGrads * sizeof(T));
+  size_t scan_bytes = 0;
+  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, scan_bytes, visited, offsets, static_cast<int>(tiles + 1), stream));
+  {
+    DeviceBuffer temp(scan_bytes);
+    GSW_CUDA_CHECK(
+        cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, visited, offsets, static_cast<int>(tiles + 1), stream));
+  }
+  // The buffer holds offsets[tiles] <= M records. Up to kRecordsNoSyncBytes it is sized for M
+  // (no host synchronisation); above, the total is read back first so that intersections behind
+  // every pixel's last blended splat take no memory.
+  int64_t rows = p.bins.M;
+  if (size_t(rows) * kBlendGrads * sizeof(T) > kRecordsNoSyncBytes) {
+    int32_t total = 0;
+    GSW_CUDA_CHECK(cudaMemcpyAsync(&total, offsets + tiles, sizeof(int32_t), cudaMemcpyDeviceToHost, stream));
+    GSW_CUDA_CHECK(cudaStreamSynchronize(stream));
+    rows = total;
+  }
+  DeviceBuffer records(size_t(rows) * kBlendGrads * sizeof(T));
   T* rec = records.as<T>();
   bool px2 = variant == BackwardVariant::kPx2;
   if constexpr (sizeof(BackwardShared<T, 2>) > 48 * 1024) px2 = false;  // float64: px2's shared memory would not fit
   if (px2) {
     if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
-      backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, stream>>>(p, g, rec);
+      backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec);
   } else {
-    backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, rec);
+    backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec);
   }
   GSW_KERNEL_CHECK();
-  reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, rec);
+  DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
+  int32_t* big = big_buf.as<int32_t>();
+  GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
+  reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big);
+  GSW_KERNEL_CHECK();
+  int device = 0, sms = 0;
+  GSW_CUDA_CHECK(cudaGetDevice(&device));
+  GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  reduce_big_kernel<T><<<static_cast<unsigned>(8 * sms), kBlock, 0, stream>>>(p, g, layout, rec, big);
   GSW_KERNEL_CHECK();
 }
 

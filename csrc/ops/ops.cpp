@@ -466,8 +466,7 @@ py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const 
       no_cuda();
 #endif
     } else {
-      Tensor scratch = torch::empty({bins.gauss_ids.numel(), kBlendGrads}, means2d.options());
-      cpu::rasterize_backward(p, g, scratch.data_ptr<scalar_t>());
+      cpu::rasterize_backward(p, g);
     }
   });
   return py::make_tuple(v_means2d, v_conics, v_colors, v_opacities, v_depths);
