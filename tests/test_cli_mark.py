@@ -246,3 +246,77 @@ def test_embed_a_bare_ply_without_cameras_samples_views(model_dir, tmp_path, mon
     model = load_inria_model(out)
     assert len(model.cameras) == 2 and all((c.width, c.height) == (64, 64) for c in model.cameras)
     assert json.loads(text)["output"] == str(out)
+
+
+# ------------------------------------------------------------------------------------------------ --readout
+
+
+def _klein(num_bits: int):
+    from gsw.decoder import KleinReadout
+
+    return KleinReadout(load_decoder(num_bits))
+
+
+def test_embed_readout_klein_records_the_wrapper_and_verify_reads_through_it(model_dir, marked, tmp_path,
+                                                                             capsys) -> None:
+    from gsw.decoder.readout import shipped_klein_fingerprint
+    from gsw.registry import open_registry
+
+    out, reg = tmp_path / "k", tmp_path / "marks.sqlite"
+    rc, text = _run(["embed", str(model_dir), "--output", str(out), "--key", KEY, "--bits", "48", "--white",
+                     "--epochs", "1", "--lpips", "none", "--device", "cpu", "--no-progress", "--fpr", "1",
+                     "--readout", "klein", "--label", "kim", "--registry", str(reg), "--json"])
+    assert rc == 0
+    summary = json.loads(text)
+    record = json.loads((out / "watermark.json").read_text())
+    assert record["decoder"]["fingerprint"] == decoder_fingerprint(_klein(48)) != decoder_fingerprint(load_decoder(48))
+    with open_registry(reg, create=False) as r:  # what gsw identify / gsw scan recognise the readout by
+        assert r.get("kim").decoder_sha256 == shipped_klein_fingerprint(48)
+    # verify --model --readout klein is gsw.verify(decoder=KleinReadout(...)) on the stored background and size
+    model = load_inria_model(out)
+    size = (model.cameras[0].height, model.cameras[0].width)
+    klein = verify((model.gaussians, model.cameras), message_from_key(KEY, 48), background=(1.0, 1.0, 1.0),
+                   embed_size=size, decoder=_klein(48))
+    direct = verify((model.gaussians, model.cameras), message_from_key(KEY, 48), background=(1.0, 1.0, 1.0),
+                    embed_size=size)
+    assert klein.p_values != pytest.approx(direct.p_values)  # the readout changes what is read
+    report = _verify_json(["--model", str(out), "--key", KEY, "--readout", "klein"])
+    assert [v["p_value"] for v in report["views"]] == pytest.approx(klein.p_values)
+    assert summary["verification"]["p_value"] == pytest.approx(klein.p_value)  # embed's own check reads it so too
+    # the other readout is refused, naming the flag to use (watermark.json's fingerprint says which it was)
+    capsys.readouterr()
+    assert main(["verify", "--model", str(out), "--key", KEY, "--device", "cpu"]) == 2
+    err = capsys.readouterr().err
+    assert "watermarked through the klein readout" in err and "pass --readout klein" in err
+    assert main(["verify", "--model", str(marked[0]), "--key", KEY, "--readout", "klein", "--device", "cpu"]) == 2
+    assert "pass --readout direct" in capsys.readouterr().err
+
+
+def test_embed_image_extract_and_verify_with_readout_klein_match_the_python_api(tmp_path, capsys) -> None:
+    import gsw
+    from gsw.data.images import read_image
+
+    src, out = tmp_path / "src.png", tmp_path / "out.png"
+    write_image(src, 0.25 + 0.5 * torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(0)))
+    assert main(["embed-image", str(src), "--output", str(out), "--key", KEY, "--steps", "20", "--psnr", "32",
+                 "--readout", "klein", "--device", "cpu", "--no-progress", "--json"]) == 0
+    capsys.readouterr()
+    image = read_image(out)
+    assert main(["extract", str(out), "--readout", "klein", "--json"]) == 0
+    bits = json.loads(capsys.readouterr().out)[0]["bits"]
+    expected = gsw.extract(image, num_bits=32, decoder=_klein(32)).bits[0]
+    assert bits == expected.int().tolist() == message_from_key(KEY, 32).int().tolist()  # every bit, not chance
+    report = _verify_json([str(out), "--key", KEY, "--readout", "klein"])
+    assert report["p_value"] == pytest.approx(gsw.verify([image], f"key:{KEY}", num_bits=32,
+                                                         decoder=_klein(32)).p_value)
+    assert main(["verify", str(out), "--key", KEY, "--readout", "klein", "--device", "cpu"]) == 0  # at 1e-6
+
+
+@pytest.mark.parametrize("command", [["embed", "in", "--output", "out"], ["embed-image", "x.png", "--output", "y.png"],
+                                     ["extract", "x.png"], ["verify", "x.png", "--key", "k"]])
+def test_readout_is_direct_by_default_and_an_unknown_one_is_refused(command, capsys) -> None:
+    assert build_parser().parse_args(command).readout == "direct"
+    assert build_parser().parse_args([*command, "--readout", "klein"]).readout == "klein"
+    with pytest.raises(SystemExit) as exc:
+        main([*command, "--readout", "fancy"])
+    assert exc.value.code == 2 and "invalid choice: 'fancy'" in capsys.readouterr().err

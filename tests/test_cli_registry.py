@@ -230,3 +230,26 @@ def test_embed_image_records_the_mark_and_identify_names_the_recipient(setup, tm
     # the same message for another recipient is refused before any work
     assert main(["embed-image", str(src), "--output", str(tmp_path / "x.png"), *args, "--label", "carol"]) == 2
     assert "already issued" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+
+
+def test_embed_image_readout_klein_records_the_wrapper_and_identify_names_the_recipient(tmp_path, capsys) -> None:
+    from gsw.decoder.readout import shipped_klein_fingerprint
+
+    reg, src, out = tmp_path / "marks.sqlite", tmp_path / "poster.png", tmp_path / "poster_kim.png"
+    with open_registry(reg) as r:
+        r.add("dan", random_message(BITS, seed=8), decoder_sha256=shipped_decoder_sha256(BITS), origin="random")
+    write_image(src, 0.25 + 0.5 * torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(1)))
+    args = ["--bits", str(BITS), "--key", "kim-secret", "--steps", "20", "--psnr", "32", "--readout", "klein",
+            "--device", "cpu", "--no-progress", "--registry", str(reg)]
+    assert main(["embed-image", str(src), "--output", str(out), *args, "--label", "kim"]) == 0
+    with open_registry(reg, create=False) as r:
+        kim = r.get("kim")
+    assert kim.decoder_sha256 == shipped_klein_fingerprint(BITS) != shipped_decoder_sha256(BITS)
+    assert kim.origin == "random"
+    capsys.readouterr()
+    assert main(["identify", str(out), "--registry", str(reg), "--device", "cpu", "--json"]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert found["recipients"] == ["kim"] and found["marks_tested"] == 2  # the klein mark is recognised, not skipped
+    # the same message through the same readout for another recipient is refused before any work
+    assert main(["embed-image", str(src), "--output", str(tmp_path / "x.png"), *args, "--label", "zoe"]) == 2
+    assert "already issued" in capsys.readouterr().err and not (tmp_path / "x.png").exists()

@@ -1,5 +1,6 @@
-"""Shared pieces of the `gsw` commands: option groups (message, device, background), the one place that turns
-``--message`` / ``--key`` / ``--bits`` into a message, safe output files and folders, JSON output.
+"""Shared pieces of the `gsw` commands: option groups (message, device, background, readout), the one place that
+turns ``--message`` / ``--key`` / ``--bits`` into a message, the one place that picks the decoder of ``--readout``,
+safe output files and folders, JSON output.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 from gsw.decoder.zoo import AVAILABLE_BITS
 
 if TYPE_CHECKING:
-    from torch import Tensor
+    from torch import Tensor, nn
 
 #: Message length when neither ``--bits``, a hex message nor a model's ``watermark.json`` says otherwise.
 DEFAULT_BITS = 32
@@ -24,6 +25,8 @@ REGISTRY_HELP = ("registry file (default: $GSW_REGISTRY, else $XDG_DATA_HOME/gsw
                  "i.e. ~/.local/share/gsw/registry.sqlite)")
 #: Backgrounds of ``--white`` / ``--black``.
 BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+#: Choices of ``--readout``: the decoder read as it is, or through :class:`gsw.decoder.KleinReadout`.
+READOUTS = ("direct", "klein")
 
 
 def positive_int(text: str) -> int:
@@ -115,6 +118,43 @@ def add_device_option(parser: argparse.ArgumentParser, default: str = "auto") ->
     parser.add_argument("--device", default=default, metavar="auto|cpu|cuda|cuda:N",
                         help="where to compute (auto: CUDA when gsw was built with it and a GPU is visible, else the "
                              "CPU; default: %(default)s)")
+
+
+def add_readout_option(parser: argparse._ActionsContainer) -> None:
+    """``--readout direct|klein`` (default direct): how the decoder is read; turn it into a decoder with
+    :func:`readout_decoder`."""
+    parser.add_argument("--readout", choices=READOUTS, default="direct",
+                        help="klein: read the decoder through flips that cancel its per-bit bias (fair per bit on "
+                             "unmarked images), at four decoder passes; a mark must be read with the readout it "
+                             "was embedded with (default: %(default)s)")
+
+
+def readout_decoder(readout: str, num_bits: int, decoder: nn.Module | None = None) -> nn.Module | None:
+    """The ``decoder=`` that ``gsw.embed`` / ``gsw.embed_images`` / ``gsw.extract`` / ``gsw.verify`` get for a
+    ``--readout`` choice: the one place the CLI picks its decoder.
+
+    Args:
+        readout: one of :data:`READOUTS`.
+        num_bits: message length (selects the shipped decoder).
+        decoder: a decoder to read instead of the shipped one (any module LL2 subband -> logits); None: the
+            shipped ``num_bits`` decoder.
+
+    Returns:
+        ``direct``: ``decoder`` as given (None: the callee loads the shipped one, as without ``--readout``);
+        ``klein``: :class:`gsw.decoder.KleinReadout` over ``decoder``, else over the shipped decoder.
+
+    Raises:
+        ValueError: an unknown readout.
+        WeightsError: ``klein`` without ``decoder`` and no shipped decoder of ``num_bits``.
+    """
+    if readout not in READOUTS:
+        raise ValueError(f"--readout must be one of {', '.join(READOUTS)}, got {readout!r}")
+    if readout == "direct":
+        return decoder
+    from gsw.decoder.readout import KleinReadout
+    from gsw.decoder.zoo import load_decoder
+
+    return KleinReadout(load_decoder(num_bits) if decoder is None else decoder)
 
 
 def add_background_options(parser: argparse.ArgumentParser, default_help: str, default: str | None = None) -> None:
@@ -261,7 +301,7 @@ def split_views(num_views: int, every: int) -> tuple[list[int], list[int], bool]
 
 def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence[int], held_out: bool,
                          message: Tensor, *, num_bits: int, background: Sequence[float], fpr: float,
-                         device: Any, origin: str = "random") -> dict[str, Any]:
+                         device: Any, origin: str = "random", decoder: nn.Module | None = None) -> dict[str, Any]:
     """Reads a written INRIA model folder back and tests it for ``message`` on the views ``checked`` (the
     calibrated :func:`gsw.mark.detect.verify`, at the common size of ``cameras`` when they share one).
 
@@ -275,6 +315,7 @@ def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence
         fpr: false-positive rate of the decision.
         device: where to render.
         origin: the message's origin (``"random"`` or ``"chosen"``, :func:`gsw.mark.detect.verify`).
+        decoder: the decoder the mark was embedded for (:func:`readout_decoder`); None: the shipped one.
 
     Returns:
         JSON-able ``views, held_out, where`` (a phrase), ``bit_accuracy`` (mean), ``p_value``, ``fpr``, ``detected``.
@@ -286,7 +327,8 @@ def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence
     sizes = {(c.height, c.width) for c in cameras}
     r, g, b = (float(v) for v in background)
     v = verify((model.gaussians.to(device), [cameras[i] for i in checked]), message, num_bits=num_bits,
-               background=(r, g, b), embed_size=next(iter(sizes)) if len(sizes) == 1 else None, origin=origin)
+               decoder=decoder, background=(r, g, b), embed_size=next(iter(sizes)) if len(sizes) == 1 else None,
+               origin=origin)
     where = (f"{len(checked)} held-out view(s) (cameras not used for embedding)" if held_out else
              f"the {len(checked)} embedding view(s) (fewer than --holdout-every cameras: none held out)")
     return dict(views=[cameras[i].name or f"view {i}" for i in checked], held_out=held_out, where=where,

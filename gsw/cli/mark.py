@@ -7,10 +7,10 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from gsw.cli.common import (DEFAULT_BITS, add_background_options, add_bits_option, add_device_option,
-                            add_message_options, add_resize_images_option, background_of, check_output, input_paths,
-                            message_from_args, not_detectable_warning, output_file, output_folder, positive_int,
-                            print_json, read_images, reading)
+from gsw.cli.common import (DEFAULT_BITS, READOUTS, add_background_options, add_bits_option, add_device_option,
+                            add_message_options, add_readout_option, add_resize_images_option, background_of,
+                            check_output, input_paths, message_from_args, not_detectable_warning, output_file,
+                            output_folder, positive_int, print_json, read_images, readout_decoder, reading)
 from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
 from gsw.stats import DETECTION_FPR
 
@@ -24,6 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_bits_option(ext, DEFAULT_BITS, "message length (default: %(default)s)")
     ext.add_argument("--embed-size", metavar="WxH", type=_size,
                      help="embedding resolution: read every image resized to it, as verify does")
+    add_readout_option(ext)
     ext.add_argument("--json", action="store_true")
     ext.set_defaults(func=cmd_extract)
 
@@ -37,6 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           "by gsw or derived from a key: test it against the decoder's calibrated null model instead "
                           "of the exact test for random messages")
     add_background_options(ver, "default: the model's watermark.json, else black")
+    add_readout_option(ver)
     ver.add_argument("--fpr", type=float, default=DETECTION_FPR, help="false-positive rate of the decision")
     add_device_option(ver)
     ver.add_argument("--json", action="store_true")
@@ -69,6 +71,7 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb.add_argument("--message-weight", type=float, default=None,
                      help="weight of the message loss (default: LossWeights.message)")
     add_background_options(emb, "default: black")
+    add_readout_option(emb)
     emb.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
     emb.add_argument("--holdout-every", type=int, default=8, metavar="N",
                      help="embed without every N-th camera and verify the output on those (with fewer than N "
@@ -98,6 +101,7 @@ def _add_embed_image_parser(subparsers: argparse._SubParsersAction) -> None:
                      help="PSNR of the watermark in dB (higher = fainter and less robust; default %(default)s)")
     emi.add_argument("--steps", type=int, default=ImageEmbedConfig.steps,
                      help="optimisation steps (more = more robust, linear time; default %(default)s)")
+    add_readout_option(emi)
     emi.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
     add_device_option(emi)
     emi.add_argument("--no-progress", action="store_true")
@@ -175,7 +179,8 @@ def cmd_embed(args: argparse.Namespace) -> int:
     from gsw.mark.embed import embed
 
     message, num_bits = message_from_args(args, required=False)
-    check_record(args, message, num_bits)
+    decoder = readout_decoder(args.readout, num_bits)
+    check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed")
     config = embed_config(args)
     device = resolve_device(args.device)
@@ -187,7 +192,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
     with output_folder(output, inputs, args.force) as tmp:
         res = embed(g.to(device), None if bare else [cams[i] for i in used], message=message, num_bits=num_bits,
                     images=None if images is None else list(images[used].to(device)), config=config,
-                    progress=not args.no_progress)
+                    decoder=decoder, progress=not args.no_progress)
         if bare:
             cams, checked = res.cameras, list(range(len(res.cameras)))
         save_inria_model(tmp, res.gaussians, cams, iteration=0)
@@ -197,14 +202,15 @@ def cmd_embed(args: argparse.Namespace) -> int:
                      mean_bit_accuracy=sum(res.bit_accuracy) / len(res.bit_accuracy),
                      mean_psnr=sum(res.psnr) / len(res.psnr), timings=res.timings)
         record = watermark_record(num_bits=num_bits, background=config.background, cameras=cams,
-                                  decoder=decoder_fingerprint(load_decoder(num_bits)), config=config, stats=stats,
-                                  message_origin=origin)
+                                  decoder=decoder_fingerprint(load_decoder(num_bits) if decoder is None else decoder),
+                                  config=config, stats=stats, message_origin=origin)
         write_watermark_json(tmp, record)
         size = record["resolution"] and (record["resolution"]["width"], record["resolution"]["height"])
-        recorded = record_issued(args, res.message, gaussians=res.gaussians, size=size, background=config.background,
-                                 origin=origin)
+        recorded = record_issued(args, res.message, decoder, gaussians=res.gaussians, size=size,
+                                 background=config.background, origin=origin)
     check = verify_written_model(output, cams, checked, held_out, res.message, num_bits=num_bits,
-                                 background=config.background, fpr=args.fpr, device=device, origin=origin)
+                                 background=config.background, fpr=args.fpr, device=device, origin=origin,
+                                 decoder=decoder)
     issued, note = issued_summary(recorded, res.message_hex, res.message.int().tolist())
     if args.json:
         print_json(dict(**issued, output=str(output), verification=check, **record))
@@ -250,18 +256,20 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     sources, output = [Path(p) for p in args.images], Path(args.output)
     message, num_bits = message_from_args(args, required=False)
     targets = _image_targets(sources, output)
-    check_record(args, message, num_bits)
+    decoder = readout_decoder(args.readout, num_bits)
+    check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed-image")
     images = read_images(sources)
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
 
     def run():
-        return embed_images(images, message, num_bits=num_bits, config=cfg, batch_size=args.batch,
+        return embed_images(images, message, num_bits=num_bits, config=cfg, decoder=decoder, batch_size=args.batch,
                             progress=not args.no_progress)
 
     def record():  # before the outputs appear: a registry error leaves no unrecorded watermarked image
         sizes = {tuple(r.image.shape[:0:-1]) for r in results}
-        return record_issued(args, results[0].message, size=sizes.pop() if len(sizes) == 1 else None, origin=origin)
+        return record_issued(args, results[0].message, decoder, size=sizes.pop() if len(sizes) == 1 else None,
+                             origin=origin)
 
     inputs = [*sources, *input_paths(args, "registry")]
     with (output_file if len(sources) == 1 else output_folder)(output, inputs, args.force) as tmp:
@@ -304,12 +312,13 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def cmd_extract(args: argparse.Namespace) -> int:
-    """Reads the message bits of images."""
+    """Reads the message bits of images (through ``--readout``)."""
     from gsw.mark.detect import extract
 
-    results = []
+    decoder, results = readout_decoder(args.readout, args.bits), []
     for path, img in zip(args.images, read_images(args.images)):
-        ext = extract(img, num_bits=args.bits, embed_size=args.embed_size and args.embed_size[::-1])
+        ext = extract(img, num_bits=args.bits, decoder=decoder,
+                      embed_size=args.embed_size and args.embed_size[::-1])
         results.append(dict(image=path, bits=ext.bits[0].int().tolist(),
                             hex=ext.hex[0] if args.bits % 4 == 0 else None))
     if args.json:
@@ -331,18 +340,33 @@ def _model_views(folder: str, info, device):
     return (model.gaussians.to(device), cameras), [c.name or f"view {i}" for i, c in enumerate(cameras)]
 
 
-def _warn_if_other_decoder(info, num_bits: int) -> None:
-    """A model embedded with another decoder than the one this gsw ships does not read back: say so."""
+def _check_decoder(info, num_bits: int, readout: str) -> None:
+    """A model embedded through the other ``--readout`` (its ``watermark.json`` fingerprint says which) is refused,
+    naming the flag to use; one embedded with another decoder than the one this gsw ships does not read back: a
+    warning says so.
+
+    Raises:
+        ValueError: ``watermark.json`` records the shipped decoder read through another readout than ``readout``.
+    """
     from gsw.decoder.zoo import load_decoder
     from gsw.eval.grid import decoder_fingerprint
 
-    if info is not None and num_bits == info.num_bits and decoder_fingerprint(load_decoder(num_bits)) != info.decoder:
+    if info is None or num_bits != info.num_bits:
+        return
+    shipped = load_decoder(num_bits)
+    by_print = {decoder_fingerprint(readout_decoder(r, num_bits, shipped)): r for r in READOUTS}
+    recorded = by_print.get(info.decoder)
+    if recorded is None:
         print(f"gsw verify: warning: the model was watermarked with another {num_bits}-bit decoder "
               f"(gsw {info.gsw_version}, {info.path}); detection may fail", file=sys.stderr)
+    elif recorded != readout:
+        raise ValueError(f"the model was watermarked through the {recorded} readout ({info.path}) but this run reads "
+                         f"it through --readout {readout}, which cannot detect it; pass --readout {recorded}")
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    """Tests images or a model for a message; exit status 0 if detected at the FPR, else 1."""
+    """Tests images or a model for a message (through ``--readout``; a model's ``watermark.json`` that records the
+    other readout is refused); exit status 0 if detected at the FPR, else 1."""
     from gsw.cli.metadata import read_watermark_json
     from gsw.device import resolve_device
     from gsw.mark.detect import verify
@@ -353,6 +377,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
         raise ValueError("pass images or --model")
     info = read_watermark_json(args.model) if args.model else None
     message, num_bits = message_from_args(args, required=True, stored_bits=None if info is None else info.num_bits)
+    _check_decoder(info, num_bits, args.readout)
     background = background_of(args, None if info is None else info.background)
     device = resolve_device(args.device)
     if args.model:
@@ -362,11 +387,11 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
         named = load_named_images_or_video(args.images)
         source, names = [img.to(device) for _, img in named], [n for n, _ in named]
-    _warn_if_other_decoder(info, num_bits)
     embed_size = None if info is None or info.resolution is None else (info.resolution[1], info.resolution[0])
     stored_chosen = info is not None and info.message_origin == "chosen"
     origin = "chosen" if args.chosen_message or stored_chosen else "random"
-    v = verify(source, message, num_bits=num_bits, background=background, embed_size=embed_size, origin=origin)
+    v = verify(source, message, num_bits=num_bits, decoder=readout_decoder(args.readout, num_bits),
+               background=background, embed_size=embed_size, origin=origin)
     detected = v.detected(args.fpr)
     if args.json:
         print_json(dict(detected=detected, p_value=v.p_value, fpr=args.fpr, num_bits=num_bits, origin=origin,

@@ -41,7 +41,8 @@ class WatermarkInfo:
         num_bits: message length.
         background: RGB render background of the embedding.
         resolution: ``(width, height)`` of the embedding views, or None when they had several sizes.
-        decoder: fingerprint of the decoder used (:func:`gsw.eval.grid.decoder_fingerprint`).
+        decoder: fingerprint of the decoder used (:func:`gsw.eval.grid.decoder_fingerprint`; with ``--readout klein``
+            that of :class:`gsw.decoder.KleinReadout` over it).
         gsw_version: the gsw version that embedded the watermark.
         message_origin: "random" (drawn by gsw, or from a key) or "chosen" (given by the user): which test
             ``gsw verify --model`` applies; None when the file predates the field (then the command line says).
