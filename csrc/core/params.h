@@ -114,7 +114,9 @@ struct RasterGradParams {
 // behind every pixel's last blended splat get no record, neither memory nor time (on scenes of
 // large opaque splats that is most of the M intersections). Tile t's records are the rows
 // offsets[t] .. offsets[t] + visited[t] - 1 of a [offsets[tiles], kBlendGrads] buffer, in list
-// order (each backend computes visited and its prefix sum before the backward walk).
+// order (CUDA computes visited and its prefix sum before the backward walk). Null pointers: one
+// record per intersection at its sorted position, zeros behind the visited front (the CPU's layout:
+// its lists are mostly visited, and it then needs no search for an intersection's tile).
 struct BlendRecords {
   const int32_t* visited = nullptr;  // [tiles] largest n_contrib of the tile's pixels
   const int32_t* offsets = nullptr;  // [tiles + 1] exclusive prefix sum of visited
@@ -142,6 +144,7 @@ GSW_HD int32_t tile_of_slot(const int32_t* tile_offsets, int32_t tiles, int32_t 
 template <typename T>
 GSW_HD const T* blend_record(const TileBins& bins, const BlendRecords& layout, const T* records, int32_t s,
                              int32_t& t) {
+  if (layout.visited == nullptr) return records + int64_t(kBlendGrads) * s;
   const int32_t tiles = bins.tiles_x * bins.tiles_y;
   const int32_t* to = bins.tile_offsets;
   const int32_t next = t + 1;

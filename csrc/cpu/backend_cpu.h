@@ -33,10 +33,9 @@ void fill_bins(const BinParams<T>& p, TileLists& lists, int32_t* tile_offsets, i
 
 template <typename T>
 void rasterize_forward(const RasterParams<T>& p);
-// p.n_contrib from the forward; the per-intersection records (BlendRecords, core/params.h) are
-// allocated inside.
+// `scratch` holds M * kBlendGrads values (core/constants.h): one record per intersection.
 template <typename T>
-void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g);
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch);
 // `scratch` holds M * (C + 2) values.
 template <typename T>
 void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* scratch);

@@ -485,17 +485,20 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
   }
 }
 
-// Backward blending of one tile: the records of its visited splats [0, max_n) into `out` (tile
-// t's rows of the BlendRecords buffer; `splats`, `count`: reusable per-thread storage).
+// Backward blending of one tile: per-splat cotangent records into scratch[slot] (`splats`,
+// `count`: reusable per-thread storage).
 template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
-                                  std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* out) {
+                                  std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* scratch) {
+  constexpr int S = kBlendGrads;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
+  T* out = scratch + int64_t(S) * v.start;
   BackwardPixels<T> px;
   load_backward_pixels(p, g, v, px, count);
-  // Every record [0, max_n) is written once, by walk_back.
+  // Records of splats no pixel reaches are zero; the others are written once, by walk_back.
+  std::fill(out + int64_t(S) * px.max_n, out + int64_t(S) * (v.end - v.start), T(0));
   if (px.has_depth && px.has_t_final)
     walk_back<true, true>(v, splats, px, out);
   else if (px.has_depth)
@@ -504,16 +507,6 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
     walk_back<false, true>(v, splats, px, out);
   else
     walk_back<false, false>(v, splats, px, out);
-}
-
-// Largest n_contrib of the pixels of a tile: its visited count (BlendRecords, core/params.h).
-template <typename T>
-int32_t tile_visited(const RasterParams<T>& p, int64_t tile) {
-  const TileView v = tile_view(p, tile);
-  int32_t n = 0;
-  for (int y = v.y0; y < v.y1; ++y)
-    for (int x = v.x0; x < v.x1; ++x) n = std::max(n, p.n_contrib[int64_t(y) * p.width + x]);
-  return n;
 }
 
 }  // namespace
@@ -529,22 +522,16 @@ void rasterize_forward(const RasterParams<T>& p) {
 }
 
 template <typename T>
-void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) {
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch) {
   const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
-  // Record layout: each tile's visited count and their prefix sum.
-  std::vector<int32_t> visited(num_tiles), offsets(num_tiles + 1, 0);
-  parallel_items(num_tiles, [&](int64_t t) { visited[t] = tile_visited(p, t); });
-  for (int64_t t = 0; t < num_tiles; ++t) offsets[t + 1] = offsets[t] + visited[t];
-  const BlendRecords layout{visited.data(), offsets.data()};
-  // Uninitialised: walk_back writes every record.
-  const std::unique_ptr<T[]> records(new T[size_t(offsets[num_tiles]) * kBlendGrads]);
   const auto recs = pack_gaussians(p);
   parallel_dynamic(num_tiles, [&](int64_t tile) {
     thread_local std::vector<PackedSplat<T>> splats;
     thread_local std::vector<int32_t> count;
-    backward_tile(p, g, recs.get(), tile, splats, count, records.get() + int64_t(kBlendGrads) * offsets[tile]);
+    backward_tile(p, g, recs.get(), tile, splats, count, scratch);
   });
-  parallel_items(p.N, [&](int64_t i) { reduce_blend_grads(p.bins, layout, records.get(), g, i); });
+  const BlendRecords by_slot{};  // one record per intersection, at its sorted position
+  parallel_items(p.N, [&](int64_t i) { reduce_blend_grads(p.bins, by_slot, scratch, g, i); });
 }
 
 template <typename T>
@@ -596,8 +583,10 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
 
 template void rasterize_forward<float>(const RasterParams<float>&);
 template void rasterize_forward<double>(const RasterParams<double>&);
-template void rasterize_backward<float>(const RasterParams<float>&, const RasterGradParams<float>&);
-template void rasterize_backward<double>(const RasterParams<double>&, const RasterGradParams<double>&);
+template void rasterize_backward<float>(const RasterParams<float>&, const RasterGradParams<float>&,
+                                        float*);
+template void rasterize_backward<double>(const RasterParams<double>&, const RasterGradParams<double>&,
+                                         double*);
 template void contribution<float>(const RasterParams<float>&, const ContributionParams<float>&, float*);
 template void contribution<double>(const RasterParams<double>&, const ContributionParams<double>&,
                                    double*);

@@ -466,7 +466,8 @@ py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const 
       no_cuda();
 #endif
     } else {
-      cpu::rasterize_backward(p, g);
+      Tensor scratch = torch::empty({bins.gauss_ids.numel(), kBlendGrads}, means2d.options());
+      cpu::rasterize_backward(p, g, scratch.data_ptr<scalar_t>());
     }
   });
   return py::make_tuple(v_means2d, v_conics, v_colors, v_opacities, v_depths);
