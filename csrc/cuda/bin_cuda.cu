@@ -59,30 +59,73 @@ __global__ void counts_in_order_kernel(int N, const int32_t* __restrict__ order,
   counts[j] = entry_offsets[g + 1] - entry_offsets[g];
 }
 
-// Thread j emits the intersections of the j-th Gaussian g in depth order, at emit_offsets[j]: its
-// tile ids (row-major over its footprint, the CPU's entry order) as keys and its entry indices e
-// as values; entry_slots[e] temporarily holds g (see slots_kernel).
+// The j-th Gaussian g in depth order emits its intersections at emit_offsets[j]: its tile ids
+// (row-major over its footprint, the CPU's entry order) as keys and its entry indices e as values;
+// entry_slots[e] temporarily holds g (see slots_kernel). Thread j emits them itself, unless its
+// warp is better off emitting the large footprints together: a heavy-tailed warp (one splat of
+// hundreds of tiles among small ones) waits for its longest serial loop, while the whole warp,
+// one footprint after the other and its lanes over each row's tiles, emits a large footprint in
+// about one step per row, with coalesced stores. The warp estimates both (steps: kEmitRowCost per
+// footprint row, one per serial entry, one per row and 32 entries together) and takes the cheaper;
+// the outputs are the same either way.
+constexpr int kEmitSerial = 8;    // footprints of at most this many tiles are always emitted by their thread
+constexpr int kEmitRowCost = 10;  // a footprint row's chords, in steps of one emitted entry
+
 template <typename T>
 __global__ void emit_keys_kernel(BinParams<T> p, const int32_t* __restrict__ order,
                                  const int32_t* __restrict__ emit_offsets,
                                  const int32_t* __restrict__ entry_offsets, uint32_t* __restrict__ keys,
                                  int32_t* __restrict__ vals, int32_t* __restrict__ entry_slots) {
   const int j = blockIdx.x * blockDim.x + threadIdx.x;
-  if (j >= p.N) return;
-  const int g = order[j];
-  const int32_t e0 = entry_offsets[g];
-  if (entry_offsets[g + 1] == e0) return;
-  const TileFootprint<T> f = footprint_of(p, g);
-  int32_t k = emit_offsets[j], e = e0;
-  for (int ty = f.y0; ty < f.y1; ++ty) {
-    int xa, xb;
-    footprint_row(f, ty, xa, xb);
-    for (int tx = xa; tx < xb; ++tx) {
-      keys[k] = static_cast<uint32_t>(ty * p.tiles_x + tx);
-      vals[k] = e;
-      entry_slots[e] = g;
-      ++k;
-      ++e;
+  const int lane = static_cast<int>(threadIdx.x & 31);
+  int g = 0;
+  int32_t e0 = 0, count = 0, k0 = 0;
+  if (j < p.N) {  // no early return: the warp's lanes all take part in the shuffles below
+    g = order[j];
+    e0 = entry_offsets[g];
+    count = entry_offsets[g + 1] - e0;
+    k0 = emit_offsets[j];
+  }
+  TileFootprint<T> f{};
+  if (count > 0) f = footprint_of(p, g);
+  const int rows = count > 0 ? f.y1 - f.y0 : 0;
+  const bool large = count > kEmitSerial;
+  const unsigned serial_cost = static_cast<unsigned>(kEmitRowCost * rows + count);
+  const unsigned shared_cost = large ? static_cast<unsigned>((kEmitRowCost + 1) * rows + count / 32) : 0u;
+  const unsigned together = __reduce_add_sync(kFullMask, shared_cost) +
+                      __reduce_max_sync(kFullMask, large ? 0u : serial_cost);
+  const bool warp_emits = together < __reduce_max_sync(kFullMask, serial_cost);
+  if (count > 0 && !(warp_emits && large)) {
+    int32_t k = k0, e = e0;
+    for (int ty = f.y0; ty < f.y1; ++ty) {
+      int xa, xb;
+      footprint_row(f, ty, xa, xb);
+      for (int tx = xa; tx < xb; ++tx) {
+        keys[k] = static_cast<uint32_t>(ty * p.tiles_x + tx);
+        vals[k] = e;
+        entry_slots[e] = g;
+        ++k;
+        ++e;
+      }
+    }
+  }
+  if (!warp_emits) return;  // the same for the whole warp
+  for (unsigned big = __ballot_sync(kFullMask, large); big != 0; big &= big - 1) {
+    const int src = __ffs(big) - 1;
+    const int gb = __shfl_sync(kFullMask, g, src);
+    const int32_t eb = __shfl_sync(kFullMask, e0, src), kb = __shfl_sync(kFullMask, k0, src);
+    const TileFootprint<T> fb = footprint_of(p, gb);  // every lane, the same values
+    int32_t q0 = 0;  // entries of the rows above
+    for (int ty = fb.y0; ty < fb.y1; ++ty) {
+      int xa, xb;
+      footprint_row(fb, ty, xa, xb);
+      for (int tx = xa + lane; tx < xb; tx += 32) {
+        const int32_t q = q0 + (tx - xa);
+        keys[kb + q] = static_cast<uint32_t>(ty * p.tiles_x + tx);
+        vals[kb + q] = eb + q;
+        entry_slots[eb + q] = gb;
+      }
+      q0 += xb - xa;
     }
   }
 }
