@@ -310,6 +310,14 @@ def test_embed_image_extract_and_verify_with_readout_klein_match_the_python_api(
     assert report["p_value"] == pytest.approx(gsw.verify([image], f"key:{KEY}", num_bits=32,
                                                          decoder=_klein(32)).p_value)
     assert main(["verify", str(out), "--key", KEY, "--readout", "klein", "--device", "cpu"]) == 0  # at 1e-6
+    assert "random message: exact test" in capsys.readouterr().out
+    # A chosen message read through the klein readout has no calibrated null model: the output says which test ran.
+    hex_message = message_to_hex(message_from_key(KEY, 32))
+    report = _verify_json([str(out), "--message", hex_message, "--chosen-message", "--readout", "klein"])
+    assert report["test"] == "fair" and report["origin"] == "chosen"
+    assert _verify_json([str(out), "--message", hex_message, "--chosen-message"])["test"] == "calibrated"
+    main(["verify", str(out), "--message", hex_message, "--chosen-message", "--readout", "klein", "--device", "cpu"])
+    assert "chosen message: fair coin" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("command", [["embed", "in", "--output", "out"], ["embed-image", "x.png", "--output", "y.png"],

@@ -395,13 +395,15 @@ def cmd_verify(args: argparse.Namespace) -> int:
     detected = v.detected(args.fpr)
     if args.json:
         print_json(dict(detected=detected, p_value=v.p_value, fpr=args.fpr, num_bits=num_bits, origin=origin,
-                        background=list(background) if args.model else None,
+                        test=v.test, background=list(background) if args.model else None,
                         views=[dict(name=n, bit_accuracy=a, p_value=p)
                                for n, a, p in zip(names, v.bit_accuracy, v.p_values)]))
     else:
         for n, a, p in zip(names, v.bit_accuracy, v.p_values):
             print(f"{100 * a:6.2f} %  p={p:.2e}  {n}")
-        test = "chosen message: calibrated null model" if origin == "chosen" else "random message: exact test"
+        test = {"exact": "random message: exact test", "calibrated": "chosen message: calibrated null model",
+                "fair": "chosen message: fair coin (this decoder has no null model; bit correlations not counted)"
+                }[v.test]
         print(f"{'DETECTED' if detected else 'not detected'}: combined p-value {v.p_value:.2e} "
               f"(threshold {args.fpr:g}; {test})")
     return 0 if detected else 1

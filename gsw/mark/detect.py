@@ -141,12 +141,17 @@ class Verdict:
             its most confident reading; chosen message: the decoder's calibrated null model, the scale search
             counted in).
         p_value: combined over images, valid for correlated frames (:func:`gsw.mark.evidence.assess`).
+        test: the test behind the p-values: ``"exact"`` (random message), ``"calibrated"`` (chosen message, the
+            decoder's null model) or ``"fair"`` (chosen message, fair coin: a decoder without a null model, e.g.
+            :class:`gsw.decoder.KleinReadout`, whose bits are fair per bit by symmetry but whose bit correlations
+            are not accounted for).
     """
 
     bit_accuracy: list[float]
     matches: list[int]
     p_values: list[float]
     p_value: float
+    test: str = "exact"
 
     def detected(self, fpr: float = DETECTION_FPR) -> bool:
         """Whether the combined p-value is at or below `fpr`."""
@@ -189,4 +194,4 @@ def verify(source: ImageLike | tuple[Gaussians, Sequence[Camera]], message: Mess
 
     ev = assess([img[0] for img in _as_images(images)], bits, num_bits=num_bits, decoder=decoder,
                 embed_size=embed_size, origin=origin)
-    return Verdict(ev.bit_accuracy, ev.matches, ev.p_values, ev.p_value)
+    return Verdict(ev.bit_accuracy, ev.matches, ev.p_values, ev.p_value, ev.null_model)
