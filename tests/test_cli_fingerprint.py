@@ -53,6 +53,31 @@ def test_fingerprint_writes_registers_and_resumes(model_dir, tmp_path, capsys) -
     assert ">= 100 % bits, >= 200 dB" in err
 
 
+def test_fingerprint_readout_klein_records_the_wrapper(model_dir, tmp_path, capsys) -> None:
+    """`--readout klein` fingerprints through KleinReadout: the registry and the output folder record the wrapper's
+    fingerprint (so `gsw identify` / `gsw scan` read the copies through it), and the copy's renders read the
+    recipient's message through it as the job measured."""
+    import gsw
+    from gsw.data import load_inria_model
+    from gsw.decoder import KleinReadout
+    from gsw.decoder.readout import shipped_klein_fingerprint
+    from gsw.decoder.zoo import load_decoder
+
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--readout", "klein", "--json") == 0
+    row = json.loads(capsys.readouterr().out)["recipients"][0]
+    with open_registry(tmp_path / "marks.sqlite") as reg:
+        (mark,) = reg.list()
+    assert mark.decoder_sha256 == shipped_klein_fingerprint(32) != shipped_decoder_sha256(32)
+    copy = load_inria_model(tmp_path / "out" / "alice")
+    renders = [gsw.rasterize(copy.gaussians, cam).image for cam in copy.cameras]
+    read = gsw.extract(renders, num_bits=32, decoder=KleinReadout(load_decoder(32)), embed_size=(32, 32)).bits
+    message = torch.tensor([int(c) for c in bin(int(mark.message_hex, 16))[2:].zfill(32)], dtype=read.dtype)
+    assert float((read == message).float().mean()) == pytest.approx(row["bit_accuracy"], abs=1e-6)
+    # The same folder cannot take copies read through the direct readout.
+    assert _fingerprint(model_dir, tmp_path, "recipient\nbob\n") == 2
+    assert "another decoder" in capsys.readouterr().err
+
+
 def test_bad_early_stop_setting(model_dir, tmp_path, capsys) -> None:
     assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--early-stop", "windw=4") == 2
     assert "early-stop setting 'windw=4'" in capsys.readouterr().err

@@ -16,8 +16,9 @@ import sys
 import time
 from pathlib import Path
 
-from gsw.cli.common import (add_background_options, add_bits_option, add_device_option, add_resize_images_option,
-                            REGISTRY_HELP, positive_int, print_json, reading)
+from gsw.cli.common import (REGISTRY_HELP, add_background_options, add_bits_option, add_device_option,
+                            add_readout_option, add_resize_images_option, positive_int, print_json, readout_decoder,
+                            reading)
 from gsw.fingerprint.batched import POOL_LPIPS
 from gsw.fingerprint.scan import DEFAULT_BATCH_SIZES, DEFAULT_READERS
 from gsw.stats import DETECTION_FPR
@@ -63,6 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
     fp.add_argument("--message-weight", type=float, default=None, help="weight of the message loss")
     add_background_options(fp, "default: black")
+    add_readout_option(fp)
     fp.add_argument("--seed", type=int, default=0, help="view order seed (messages are drawn from os.urandom)")
     add_device_option(fp)
     _add_ray_options(fp)
@@ -130,6 +132,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.input} is a bare model: gsw fingerprint needs its cameras (--cameras cameras.json, "
                          "or an INRIA model folder)")
     report = fingerprint(g, cams, recipients, args.output, args.registry, num_bits=args.bits,
+                         decoder=readout_decoder(args.readout, args.bits),
                          config=embed_config(args, pool_config()), images=None if images is None else list(images),
                          batch_size=args.batch, early_stop=early_stop, task_size=args.task_size, device=device,
                          use_ray=_use_ray(args), address=args.address, gpus_per_task=args.gpus_per_task,
