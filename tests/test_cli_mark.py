@@ -311,13 +311,17 @@ def test_embed_image_extract_and_verify_with_readout_klein_match_the_python_api(
                                                          decoder=_klein(32)).p_value)
     assert main(["verify", str(out), "--key", KEY, "--readout", "klein", "--device", "cpu"]) == 0  # at 1e-6
     assert "random message: exact test" in capsys.readouterr().out
-    # A chosen message read through the klein readout has no calibrated null model: the output says which test ran.
+    # A chosen message has no valid test through the klein readout (no calibrated null model; the fair coin is
+    # anti-conservative for messages aligned with the decoder's lean): refused when verifying and when embedding.
     hex_message = message_to_hex(message_from_key(KEY, 32))
-    report = _verify_json([str(out), "--message", hex_message, "--chosen-message", "--readout", "klein"])
-    assert report["test"] == "fair" and report["origin"] == "chosen"
     assert _verify_json([str(out), "--message", hex_message, "--chosen-message"])["test"] == "calibrated"
-    main(["verify", str(out), "--message", hex_message, "--chosen-message", "--readout", "klein", "--device", "cpu"])
-    assert "chosen message: fair coin" in capsys.readouterr().out
+    assert main(["verify", str(out), "--message", hex_message, "--chosen-message", "--readout", "klein"]) == 2
+    assert "no valid test through --readout klein" in capsys.readouterr().err
+    assert main(["embed-image", str(src), "--output", str(tmp_path / "o2.png"), "--message", hex_message,
+                 "--readout", "klein"]) == 2
+    assert "use --key SECRET or no message" in capsys.readouterr().err and not (tmp_path / "o2.png").exists()
+    # The Python API falls back to the fair coin for a decoder without a null model, and says so.
+    assert gsw.verify([image], hex_message, decoder=_klein(32), origin="chosen").test == "fair"
 
 
 @pytest.mark.parametrize("command", [["embed", "in", "--output", "out"], ["embed-image", "x.png", "--output", "y.png"],

@@ -129,6 +129,25 @@ def add_readout_option(parser: argparse._ActionsContainer) -> None:
                              "was embedded with (default: %(default)s)")
 
 
+def check_readout_origin(readout: str, origin: str) -> None:
+    """A chosen message cannot be issued or verified through ``--readout klein``.
+
+    The readout has no calibrated null model, so a chosen message would be tested against the fair coin, and on
+    held-out unmarked photos that test passes messages aligned with the decoder's lean 3.6 % of the time at the
+    nominal 1 % (``benchmarks/klein_chosen_fp.py``, BENCHMARKS.md). Random messages (``--key``, or none) are tested
+    exactly through any readout.
+
+    Raises:
+        ValueError: ``readout`` is ``klein`` and ``origin`` is ``chosen``.
+    """
+    if readout == "klein" and origin == "chosen":
+        raise ValueError("a chosen message (--message HEX, --chosen-message, or a model embedded with one) has no "
+                         "valid test through --readout klein: the readout has no calibrated null model, and the fair "
+                         "coin passes messages aligned with the decoder's lean 3.6 % of the time at the nominal 1 % on "
+                         "unmarked photos (BENCHMARKS.md); use --key SECRET or no message (random messages are "
+                         "tested exactly), or --readout direct")
+
+
 def readout_decoder(readout: str, num_bits: int, decoder: nn.Module | None = None) -> nn.Module | None:
     """The ``decoder=`` that ``gsw.embed`` / ``gsw.embed_images`` / ``gsw.extract`` / ``gsw.verify`` get for a
     ``--readout`` choice: the one place the CLI picks its decoder.

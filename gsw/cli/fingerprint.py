@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 from gsw.cli.common import (REGISTRY_HELP, add_background_options, add_bits_option, add_device_option,
-                            add_readout_option, add_resize_images_option, positive_int, print_json, readout_decoder,
-                            reading)
+                            add_readout_option, add_resize_images_option, check_readout_origin, positive_int,
+                            print_json, readout_decoder, reading)
 from gsw.fingerprint.batched import POOL_LPIPS
 from gsw.fingerprint.scan import DEFAULT_BATCH_SIZES, DEFAULT_READERS
 from gsw.stats import DETECTION_FPR
@@ -123,6 +123,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
 
     with reading(args.recipients):
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
+    check_readout_origin(args.readout, "chosen" if any(r.message is not None for r in recipients) else "random")
     early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
     device = resolve_device(args.device)
     t0 = time.perf_counter()

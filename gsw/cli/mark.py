@@ -9,8 +9,9 @@ from pathlib import Path
 
 from gsw.cli.common import (DEFAULT_BITS, READOUTS, add_background_options, add_bits_option, add_device_option,
                             add_message_options, add_readout_option, add_resize_images_option, background_of,
-                            check_output, input_paths, message_from_args, not_detectable_warning, output_file,
-                            output_folder, positive_int, print_json, read_images, readout_decoder, reading)
+                            check_output, check_readout_origin, input_paths, message_from_args,
+                            not_detectable_warning, output_file, output_folder, positive_int, print_json, read_images,
+                            readout_decoder, reading)
 from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
 from gsw.stats import DETECTION_FPR
 
@@ -179,6 +180,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
     from gsw.mark.embed import embed
 
     message, num_bits = message_from_args(args, required=False)
+    check_readout_origin(args.readout, "random" if args.message is None else "chosen")
     decoder = readout_decoder(args.readout, num_bits)
     check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed")
@@ -256,6 +258,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     sources, output = [Path(p) for p in args.images], Path(args.output)
     message, num_bits = message_from_args(args, required=False)
     targets = _image_targets(sources, output)
+    check_readout_origin(args.readout, "random" if args.message is None else "chosen")
     decoder = readout_decoder(args.readout, num_bits)
     check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed-image")
@@ -390,6 +393,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     embed_size = None if info is None or info.resolution is None else (info.resolution[1], info.resolution[0])
     stored_chosen = info is not None and info.message_origin == "chosen"
     origin = "chosen" if args.chosen_message or stored_chosen else "random"
+    check_readout_origin(args.readout, origin)
     v = verify(source, message, num_bits=num_bits, decoder=readout_decoder(args.readout, num_bits),
                background=background, embed_size=embed_size, origin=origin)
     detected = v.detected(args.fpr)
