@@ -67,7 +67,9 @@ __global__ void counts_in_order_kernel(int N, const int32_t* __restrict__ order,
 // one footprint after the other and its lanes over each row's tiles, emits a large footprint in
 // about one step per row, with coalesced stores. The warp estimates both (steps: kEmitRowCost per
 // footprint row, one per serial entry, one per row and 32 entries together) and takes the cheaper;
-// the outputs are the same either way.
+// the outputs are the same either way. These weights undercount the serial path's scattered stores:
+// on the heavy family they pick it for most warps, which a warp emitting every footprint of more than
+// kEmitSerial tiles beat by 10-28 % of the forward (BENCHMARKS.md 2g); to be measured and tuned.
 constexpr int kEmitSerial = 8;    // footprints of at most this many tiles are always emitted by their thread
 constexpr int kEmitRowCost = 10;  // a footprint row's chords, in steps of one emitted entry
 

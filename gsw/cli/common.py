@@ -125,8 +125,8 @@ def add_readout_option(parser: argparse._ActionsContainer) -> None:
     :func:`readout_decoder`."""
     parser.add_argument("--readout", choices=READOUTS, default="direct",
                         help="klein: read the decoder through flips that cancel its per-bit bias (fair per bit on "
-                             "unmarked images), at four decoder passes; a mark must be read with the readout it "
-                             "was embedded with (default: %(default)s)")
+                             "unmarked images), at four decoder passes; random messages only (--key or none); a "
+                             "mark must be read with the readout it was embedded with (default: %(default)s)")
 
 
 def check_readout_origin(readout: str, origin: str) -> None:
