@@ -20,6 +20,8 @@ estimate's uncertainty.  Deterministic: same data + same code -> same JSON (deco
 
     PYTHONPATH=. python benchmarks/calibrate_null.py --data ../shared/data       # all three bit lengths
     PYTHONPATH=. python benchmarks/calibrate_null.py --bits 32 --from-cache      # refit only
+    PYTHONPATH=. python benchmarks/calibrate_null.py --readout klein             # through KleinReadout:
+                                                                                 # null_k{bits}_klein.json
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gsw.decoder import KleinReadout
 from gsw.decoder.null import fit_null_model, is_holdout, null_path
 from gsw.decoder.zoo import load_decoder, sha256_file, weights_path
 from gsw.mark.scales import SEARCH_FACTORS, read_images, read_plan
@@ -138,6 +141,8 @@ def main() -> None:
     ap.add_argument("--output", type=Path, default=None, help="folder of the JSON files (default: beside the weights)")
     ap.add_argument("--cache", type=Path, default=ROOT / "build" / "null_calibration")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--readout", choices=("direct", "klein"), default="direct",
+                    help="calibrate the decoder read directly or through gsw.decoder.KleinReadout")
     ap.add_argument("--from-cache", action="store_true",
                     help="refit from the decoded bits in --cache without loading the images")
     args = ap.parse_args()
@@ -150,14 +155,15 @@ def main() -> None:
         t1 = time.perf_counter()
         wfile = weights_path(k)
         sha = sha256_file(wfile)
-        cache = args.cache / f"k{k}_{sha[:12]}_{hashlib.sha256(key_src).hexdigest()[:12]}.json"
+        tag = f"k{k}_{sha[:12]}" + ("" if args.readout == "direct" else f"_{args.readout}")
+        cache = args.cache / f"{tag}_{hashlib.sha256(key_src).hexdigest()[:12]}.json"
         if args.from_cache:
-            found = sorted(args.cache.glob(f"k{k}_{sha[:12]}_*.json"))
+            found = sorted(args.cache.glob(f"{tag}_[0-9a-f]*.json"))
             if len(found) != 1:
-                raise SystemExit(f"--from-cache: expected one cache file k{k}_{sha[:12]}_*.json in {args.cache}, "
+                raise SystemExit(f"--from-cache: expected one cache file {tag}_*.json in {args.cache}, "
                                  f"found {len(found)}")
             cache = found[0]
-        decoder = load_decoder(k)
+        decoder = load_decoder(k) if args.readout == "direct" else KleinReadout(load_decoder(k)).eval()
         if cache.is_file():
             records = json.loads(cache.read_text())
         else:
@@ -166,6 +172,7 @@ def main() -> None:
             cache.write_text(json.dumps(records))
         provenance = {
             "script": "benchmarks/calibrate_null.py", "torch": torch.__version__, "python": platform.python_version(),
+            "readout": args.readout,
             "search_factors": [round(f, 6) for f in SEARCH_FACTORS], "render_sizes": list(RENDER_SIZES),
             "split": "unmarked/{sun80,urban100,manga109}: calibration = not gsw.decoder.null.is_holdout(name); "
                      "bsds500/{train,val}: calibration only; renders: built-in scene seed 0 (8 orbit views, "
@@ -174,7 +181,7 @@ def main() -> None:
         for r in records:  # bsds500 trained the decoder and centred its whitening: a stratum of its own
             r["kind"] = "bsds" if r["name"].startswith("bsds500/") else r["kind"]
         model = fit_null_model(records, k, decoder=decoder, decoder_sha256=sha, provenance=provenance)
-        out = null_path(k, args.output)
+        out = null_path(k, args.output, args.readout)
         model.save(out)
         print(f"k={k}: {len(records)} readings of {model.calibration['images']} images -> {out} "
               f"({time.perf_counter() - t1:.0f} s)", flush=True)

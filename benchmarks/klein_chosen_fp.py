@@ -1,5 +1,6 @@
-"""False positives of CHOSEN messages read through `KleinReadout` (what `gsw verify --chosen-message --readout
-klein` computes: the fair-coin test, since the readout has no calibrated null model), on HOLD-OUT data only.
+"""False positives of CHOSEN messages read through `KleinReadout`, on HOLD-OUT data only: with the fair coin (what
+`gsw verify --chosen-message --readout klein` computed before the readout had a null model) and with the null model
+calibrated through the readout where one ships (``benchmarks/calibrate_null.py --readout klein``).
 
 The direct readout needs a calibrated null model for chosen messages because its bits lean on unmarked content (a
 message that lines up with the lean passes the fair-coin test far too often: BENCHMARKS.md, "Detection statistics").
@@ -37,15 +38,15 @@ from calibrate_null import DATA, ROOT  # noqa: E402
 from detection_null import aligned_messages, as_given, holdout_photos, holdout_renders, rates, readings_of  # noqa: E402
 from gsw._atomic import atomic_write  # noqa: E402
 from gsw.decoder import KleinReadout  # noqa: E402
-from gsw.decoder.null import NullModel, load_null_model  # noqa: E402
+from gsw.decoder.null import NullModel, NullModelError, load_null_model  # noqa: E402
 from gsw.decoder.zoo import load_decoder  # noqa: E402
 from gsw.mark.evidence import score_messages  # noqa: E402
 
 
-def fair_p(readings, msgs: np.ndarray, k: int) -> np.ndarray:
-    """[images x messages] p-values of the chosen-message rule with the fair coin (verify's rule for a decoder
-    without a null model)."""
-    return score_messages(readings, msgs, NullModel.fair(k), origin="chosen").p_values
+def chosen_p(readings, msgs: np.ndarray, model: NullModel) -> np.ndarray:
+    """[images x messages] p-values of the chosen-message rule with ``model`` (the fair coin: verify's rule for a
+    decoder without a null model; or the null model calibrated through the readout)."""
+    return score_messages(readings, msgs, model, origin="chosen").p_values
 
 
 def main() -> None:
@@ -67,23 +68,30 @@ def main() -> None:
     renders = holdout_renders(args.data)
     render_readings = [as_given(r) for r in readings_of(renders, decoder, embed_size=(256, 256))]
     t_read = time.perf_counter() - t0
-    gen = np.random.default_rng(2026)
-    pool = gen.integers(0, 2, (args.messages, k)).astype(np.int8)
     direct_null = load_null_model(k)
+    models = {"fair": NullModel.fair(k)}
+    try:  # the null model calibrated through the readout, where one ships (calibrate_null.py --readout klein)
+        models["calibrated"] = load_null_model(k, readout="klein")
+        models["calibrated"].check_decoder(decoder)
+    except NullModelError as e:
+        print(f"no calibrated null model through the readout: {e}", flush=True)
     out: dict = {"bits": k, "messages": args.messages, "photos": len(photos), "renders": len(renders)}
     groups = {kind: [r for r, kd in zip(photo_readings, kinds) if kd == kind] for kind in sorted(set(kinds))}
     groups["render"] = render_readings
-    for kind, readings in groups.items():
-        row = {"images": len(readings), "random": rates(fair_p(readings, pool, k))}
-        stratum = next(s for s in direct_null.strata if s.name == f"{kind}/down")
-        row["aligned_direct_lean"] = rates(fair_p(readings, aligned_messages(stratum.p1, 100, gen), k))
-        own = np.stack([r.bits[int(r.confidence.argmax())].numpy() for r in readings]).mean(0)
-        row["aligned_own_lean"] = rates(fair_p(readings, aligned_messages(own, 100, gen), k))
-        row["own_majority_p1_max_dev"] = float(np.abs(own - 0.5).max())
-        out[kind] = row
-        print(kind, json.dumps({key: (v if not isinstance(v, dict) else
-                                      {lv: v[lv]["count"] for lv in ("0.01", "0.001", "1e-06") if lv in v})
-                                for key, v in row.items()}), flush=True)
+    for name, model in models.items():
+        gen = np.random.default_rng(2026)  # the same messages for every model
+        pool = gen.integers(0, 2, (args.messages, k)).astype(np.int8)
+        for kind, readings in groups.items():
+            row = {"images": len(readings), "random": rates(chosen_p(readings, pool, model))}
+            stratum = next(s for s in direct_null.strata if s.name == f"{kind}/down")
+            row["aligned_direct_lean"] = rates(chosen_p(readings, aligned_messages(stratum.p1, 100, gen), model))
+            own = np.stack([r.bits[int(r.confidence.argmax())].numpy() for r in readings]).mean(0)
+            row["aligned_own_lean"] = rates(chosen_p(readings, aligned_messages(own, 100, gen), model))
+            row["own_majority_p1_max_dev"] = float(np.abs(own - 0.5).max())
+            out.setdefault(name, {})[kind] = row
+            print(name, kind, json.dumps({key: (v if not isinstance(v, dict) else
+                                                {lv: v[lv]["count"] for lv in ("0.01", "0.001", "1e-06") if lv in v})
+                                          for key, v in row.items()}), flush=True)
     out["machine"] = {"python": platform.python_version(), "torch": torch.__version__, "threads": args.threads,
                       "processor": platform.processor() or platform.machine()}
     out["seconds"] = {"read_photos": t_photos, "read_all": t_read, "total": time.perf_counter() - t0}

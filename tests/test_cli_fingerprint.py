@@ -73,9 +73,11 @@ def test_fingerprint_readout_klein_records_the_wrapper(model_dir, tmp_path, caps
     read = gsw.extract(renders, num_bits=32, decoder=KleinReadout(load_decoder(32)), embed_size=(32, 32)).bits
     message = torch.tensor([int(c) for c in bin(int(mark.message_hex, 16))[2:].zfill(32)], dtype=read.dtype)
     assert float((read == message).float().mean()) == pytest.approx(row["bit_accuracy"], abs=1e-6)
-    # Chosen messages (a recipients file's message column) have no valid test through the readout: refused.
-    assert _fingerprint(model_dir, tmp_path, "recipient,message\ncarol,0123abcd\n", "--readout", "klein") == 2
-    assert "no valid test through --readout klein" in capsys.readouterr().err
+    # Chosen messages (a recipients file's message column) of a length with no null model calibrated through the
+    # readout (48 bits) have no valid test through it: refused.
+    assert _fingerprint(model_dir, tmp_path, "recipient,message\ncarol,0123456789ab\n", "--readout", "klein",
+                        "--bits", "48") == 2
+    assert "no valid test through --readout klein at 48 bits" in capsys.readouterr().err
     # The same folder cannot take copies read through the direct readout.
     assert _fingerprint(model_dir, tmp_path, "recipient\nbob\n") == 2
     assert "another decoder" in capsys.readouterr().err

@@ -311,17 +311,23 @@ def test_embed_image_extract_and_verify_with_readout_klein_match_the_python_api(
                                                          decoder=_klein(32)).p_value)
     assert main(["verify", str(out), "--key", KEY, "--readout", "klein", "--device", "cpu"]) == 0  # at 1e-6
     assert "random message: exact test" in capsys.readouterr().out
-    # A chosen message has no valid test through the klein readout (no calibrated null model; the fair coin is
-    # anti-conservative for messages aligned with the decoder's lean): refused when verifying and when embedding.
+    # A chosen message through the klein readout is tested against the null model calibrated through it
+    # (gsw/decoder/weights/null_k32_klein.json), as the Python API does.
     hex_message = message_to_hex(message_from_key(KEY, 32))
+    report = _verify_json([str(out), "--message", hex_message, "--chosen-message", "--readout", "klein"])
+    expected = gsw.verify([image], hex_message, decoder=_klein(32), origin="chosen")
+    assert report["test"] == expected.test == "calibrated" and report["p_value"] == pytest.approx(expected.p_value)
     assert _verify_json([str(out), "--message", hex_message, "--chosen-message"])["test"] == "calibrated"
-    assert main(["verify", str(out), "--message", hex_message, "--chosen-message", "--readout", "klein"]) == 2
-    assert "no valid test through --readout klein" in capsys.readouterr().err
-    assert main(["embed-image", str(src), "--output", str(tmp_path / "o2.png"), "--message", hex_message,
+    # Where no such model ships (48 bits), a chosen message has no valid test through the readout (the fair coin is
+    # anti-conservative for messages aligned with the decoder's lean): refused when verifying and when embedding;
+    # the Python API falls back to the fair coin and says so.
+    hex48 = message_to_hex(message_from_key(KEY, 48))
+    assert main(["verify", str(out), "--message", hex48, "--chosen-message", "--readout", "klein"]) == 2
+    assert "no valid test through --readout klein at 48 bits" in capsys.readouterr().err
+    assert main(["embed-image", str(src), "--output", str(tmp_path / "o2.png"), "--message", hex48,
                  "--readout", "klein"]) == 2
     assert "use --key SECRET or no message" in capsys.readouterr().err and not (tmp_path / "o2.png").exists()
-    # The Python API falls back to the fair coin for a decoder without a null model, and says so.
-    assert gsw.verify([image], hex_message, decoder=_klein(32), origin="chosen").test == "fair"
+    assert gsw.verify([image], hex48, decoder=_klein(48), origin="chosen").test == "fair"
 
 
 @pytest.mark.parametrize("command", [["embed", "in", "--output", "out"], ["embed-image", "x.png", "--output", "y.png"],

@@ -59,10 +59,15 @@ def test_a_mark_embedded_for_it_is_read_through_it_and_not_directly(decoder):
 
 def test_it_is_another_decoder_for_the_registry_and_the_null_models(decoder):
     from gsw.decoder.null import decoder_fingerprint
+    from gsw.decoder.zoo import load_decoder
     from gsw.mark.evidence import resolve_null_model
 
     klein = KleinReadout(decoder)
     assert decoder_fingerprint(klein) != decoder_fingerprint(decoder)  # marks made through it are told apart
-    # the shipped null model (calibrated on the direct readout) is not used for it
-    assert resolve_null_model(32, klein, None, False)[1] == "fair"
-    assert resolve_null_model(32, decoder, None, False)[1] == "calibrated"
+    # the direct readout's null model is not used for it: it gets the one calibrated through it, where one ships
+    # (32 bits), else the fair coin (48 bits)
+    model, label = resolve_null_model(32, klein, None, False)
+    direct, direct_label = resolve_null_model(32, decoder, None, False)
+    assert label == direct_label == "calibrated" and model is not direct
+    assert model.decoder_fingerprint == decoder_fingerprint(klein) and model.calibration["images"] > 0
+    assert resolve_null_model(48, KleinReadout(load_decoder(48)), None, False)[1] == "fair"

@@ -125,27 +125,35 @@ def add_readout_option(parser: argparse._ActionsContainer) -> None:
     :func:`readout_decoder`."""
     parser.add_argument("--readout", choices=READOUTS, default="direct",
                         help="klein: read the decoder through flips that cancel its per-bit bias (fair per bit on "
-                             "unmarked images), at four decoder passes; random messages only (--key or none); a "
-                             "mark must be read with the readout it was embedded with (default: %(default)s)")
+                             "unmarked images), at four decoder passes; a mark must be read with the readout it was "
+                             "embedded with (default: %(default)s)")
 
 
-def check_readout_origin(readout: str, origin: str) -> None:
-    """A chosen message cannot be issued or verified through ``--readout klein``.
+def check_readout_origin(readout: str, origin: str, num_bits: int) -> None:
+    """A chosen message is issued or verified through ``--readout klein`` only where a null model calibrated
+    through that readout ships for ``num_bits`` (``gsw/decoder/weights/null_k{bits}_klein.json``).
 
-    The readout has no calibrated null model, so a chosen message would be tested against the fair coin, and on
-    held-out unmarked photos that test passes messages aligned with the decoder's lean 3.6 % of the time at the
-    nominal 1 % (``benchmarks/klein_chosen_fp.py``, BENCHMARKS.md). Random messages (``--key``, or none) are tested
-    exactly through any readout.
+    Without one it would be tested against the fair coin, and on held-out unmarked photos that test passes messages
+    aligned with the decoder's lean 3.6 % of the time at the nominal 1 % (``benchmarks/klein_chosen_fp.py``,
+    BENCHMARKS.md). Random messages (``--key``, or none) are tested exactly through any readout.
 
     Raises:
-        ValueError: ``readout`` is ``klein`` and ``origin`` is ``chosen``.
+        ValueError: ``readout`` is ``klein``, ``origin`` is ``chosen`` and no such null model ships.
     """
-    if readout == "klein" and origin == "chosen":
-        raise ValueError("a chosen message (--message HEX, --chosen-message, or a model embedded with one) has no "
-                         "valid test through --readout klein: the readout has no calibrated null model, and the fair "
-                         "coin passes messages aligned with the decoder's lean 3.6 % of the time at the nominal 1 % on "
-                         "unmarked photos (BENCHMARKS.md); use --key SECRET or no message (random messages are "
-                         "tested exactly), or --readout direct")
+    if readout != "klein" or origin != "chosen":
+        return
+    from gsw.decoder.null import NullModelError
+    from gsw.mark.evidence import shipped_null_model
+
+    try:
+        shipped_null_model(num_bits, "klein")
+    except NullModelError:
+        raise ValueError(f"a chosen message (--message HEX, --chosen-message, or a model embedded with one) has no "
+                         f"valid test through --readout klein at {num_bits} bits: no null model calibrated through "
+                         "that readout ships for this length, and the fair coin passes messages aligned with the "
+                         "decoder's lean 3.6 % of the time at the nominal 1 % on unmarked photos (BENCHMARKS.md); use "
+                         "--key SECRET or no message (random messages are tested exactly), or --readout direct"
+                         ) from None
 
 
 def readout_decoder(readout: str, num_bits: int, decoder: nn.Module | None = None) -> nn.Module | None:

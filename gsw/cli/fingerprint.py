@@ -123,7 +123,8 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
 
     with reading(args.recipients):
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
-    check_readout_origin(args.readout, "chosen" if any(r.message is not None for r in recipients) else "random")
+    check_readout_origin(args.readout, "chosen" if any(r.message is not None for r in recipients) else "random",
+                         args.bits)
     early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
     device = resolve_device(args.device)
     t0 = time.perf_counter()

@@ -180,7 +180,7 @@ def cmd_embed(args: argparse.Namespace) -> int:
     from gsw.mark.embed import embed
 
     message, num_bits = message_from_args(args, required=False)
-    check_readout_origin(args.readout, "random" if args.message is None else "chosen")
+    check_readout_origin(args.readout, "random" if args.message is None else "chosen", num_bits)
     decoder = readout_decoder(args.readout, num_bits)
     check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed")
@@ -258,7 +258,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     sources, output = [Path(p) for p in args.images], Path(args.output)
     message, num_bits = message_from_args(args, required=False)
     targets = _image_targets(sources, output)
-    check_readout_origin(args.readout, "random" if args.message is None else "chosen")
+    check_readout_origin(args.readout, "random" if args.message is None else "chosen", num_bits)
     decoder = readout_decoder(args.readout, num_bits)
     check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed-image")
@@ -393,7 +393,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     embed_size = None if info is None or info.resolution is None else (info.resolution[1], info.resolution[0])
     stored_chosen = info is not None and info.message_origin == "chosen"
     origin = "chosen" if args.chosen_message or stored_chosen else "random"
-    check_readout_origin(args.readout, origin)
+    check_readout_origin(args.readout, origin, num_bits)
     v = verify(source, message, num_bits=num_bits, decoder=readout_decoder(args.readout, num_bits),
                background=background, embed_size=embed_size, origin=origin)
     detected = v.detected(args.fpr)

@@ -3,8 +3,9 @@
 A shipped decoder's bits are not fair coins on unmarked content: each bit has its own P(bit = 1), which
 also depends on the kind of content (photos, drawings, renders) and on whether the image was enlarged
 before reading, and bits are correlated.  ``benchmarks/calibrate_null.py`` measures this on calibration
-images and writes ``weights/null_k{bits}.json`` beside the weights: one :class:`Stratum` per
-(content kind, reading direction) with enough images.
+images and writes ``weights/null_k{bits}.json`` beside the weights (``null_k{bits}_klein.json`` for the decoder
+read through :class:`gsw.decoder.KleinReadout`, ``--readout klein``): one :class:`Stratum` per (content kind,
+reading direction) with enough images.
 
 For a claimed message ``m``, bit ``i`` of an unmarked image matches with probability ``q_i = P(1)_i`` if
 ``m_i = 1`` else ``1 - P(1)_i``.  The p-value of ``x`` matching bits (:meth:`NullModel.tail_table`) is
@@ -316,13 +317,14 @@ class NullModel:
         return cls.from_dict(d, str(path))
 
 
-def null_path(num_bits: int, weights_dir: str | Path | None = None) -> Path:
-    """Path of the shipped null model of the ``num_bits`` decoder (beside its weights)."""
-    return Path(weights_dir or WEIGHTS_DIR) / f"null_k{num_bits}.json"
+def null_path(num_bits: int, weights_dir: str | Path | None = None, readout: str = "direct") -> Path:
+    """Path of the shipped null model of the ``num_bits`` decoder (beside its weights), read directly or through
+    ``readout`` (``"klein"``: :class:`gsw.decoder.KleinReadout` over it)."""
+    return Path(weights_dir or WEIGHTS_DIR) / f"null_k{num_bits}{'' if readout == 'direct' else '_' + readout}.json"
 
 
 def load_null_model(num_bits: int, path: str | Path | None = None, *,
-                    weights_dir: str | Path | None = None) -> NullModel:
+                    weights_dir: str | Path | None = None, readout: str = "direct") -> NullModel:
     """Loads a null model and checks that it belongs to a ``num_bits`` decoder.
 
     Args:
@@ -330,13 +332,15 @@ def load_null_model(num_bits: int, path: str | Path | None = None, *,
         path: a null-model JSON file; default: the shipped one, which must also name the sha256 that the
             weights manifest lists for the shipped decoder.
         weights_dir: directory of the shipped files (tests).
+        readout: the shipped model of the decoder read directly (``"direct"``) or through
+            :class:`gsw.decoder.KleinReadout` (``"klein"``); ignored with ``path``.
 
     Raises:
         NullModelError: missing/malformed file, another bit length, or a shipped model whose decoder
             sha256 differs from the manifest's (the decoder was replaced without recalibrating).
     """
     shipped = path is None
-    path = null_path(num_bits, weights_dir) if shipped else Path(path)
+    path = null_path(num_bits, weights_dir, readout) if shipped else Path(path)
     model = NullModel.load(path)
     if model.num_bits != num_bits:
         raise NullModelError(f"{path} is the null model of a {model.num_bits}-bit decoder, {num_bits} bits were asked for")

@@ -228,15 +228,16 @@ def _score_chosen(readings: Sequence[Reading], msgs: np.ndarray, model: NullMode
     return Scores(p_values, np.stack(match_rows), np.stack(chosen_rows), hommel_combined_p_value(p_values, axis=0))
 
 
-_SHIPPED_NULLS: dict[int, NullModel] = {}
+_SHIPPED_NULLS: dict[tuple[int, str], NullModel] = {}
 
 
-def shipped_null_model(num_bits: int) -> NullModel:
-    """The shipped null model of the ``num_bits`` decoder (:func:`gsw.decoder.null.load_null_model`), loaded
-    once per process so that its tail tables (one per message) are computed once."""
-    if num_bits not in _SHIPPED_NULLS:
-        _SHIPPED_NULLS[num_bits] = load_null_model(num_bits)
-    return _SHIPPED_NULLS[num_bits]
+def shipped_null_model(num_bits: int, readout: str = "direct") -> NullModel:
+    """The shipped null model of the ``num_bits`` decoder read directly or through ``readout`` (``"klein"``:
+    :class:`gsw.decoder.KleinReadout`; :func:`gsw.decoder.null.load_null_model`), loaded once per process so
+    that its tail tables (one per message) are computed once."""
+    if (num_bits, readout) not in _SHIPPED_NULLS:
+        _SHIPPED_NULLS[num_bits, readout] = load_null_model(num_bits, readout=readout)
+    return _SHIPPED_NULLS[num_bits, readout]
 
 
 def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel | None,
@@ -245,8 +246,9 @@ def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel 
 
     An explicit ``null`` must belong to ``decoder`` (:meth:`NullModel.check_decoder`, else
     :class:`NullModelError`). Without one: the shipped decoder gets its shipped null model (sha256
-    checked against the weights manifest); a custom decoder gets the shipped model only if its weights
-    are the shipped ones, otherwise the fair coin."""
+    checked against the weights manifest); a custom decoder gets a shipped model whose decoder fingerprint
+    is its own (the shipped weights, or :class:`gsw.decoder.KleinReadout` over them where a model calibrated
+    through it ships), otherwise the fair coin."""
     if null is not None:
         if null.num_bits != num_bits:
             raise NullModelError(f"null model of {null.num_bits} bits given for num_bits={num_bits}")
@@ -258,11 +260,17 @@ def resolve_null_model(num_bits: int, decoder: torch.nn.Module, null: NullModel 
         if shipped_decoder:
             raise
         return NullModel.fair(num_bits), "fair"
-    if shipped_decoder or shipped.decoder_fingerprint == decoder_fingerprint(decoder):
-        if shipped_decoder:
-            shipped.check_decoder(decoder)
+    if shipped_decoder:
+        shipped.check_decoder(decoder)
         return shipped, "calibrated"
-    return NullModel.fair(num_bits), "fair"
+    fingerprint = decoder_fingerprint(decoder)
+    if shipped.decoder_fingerprint == fingerprint:
+        return shipped, "calibrated"
+    try:
+        klein = shipped_null_model(num_bits, "klein")
+    except NullModelError:
+        return NullModel.fair(num_bits), "fair"
+    return (klein, "calibrated") if klein.decoder_fingerprint == fingerprint else (NullModel.fair(num_bits), "fair")
 
 
 @torch.no_grad()
