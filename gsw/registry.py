@@ -43,14 +43,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
 if TYPE_CHECKING:  # pragma: no cover
-    from torch import Tensor
+    from torch import Tensor, nn
 
     from gsw.gaussians import Gaussians
     from gsw.mark.message import MessageLike
 
 __all__ = ["SCHEMA_VERSION", "BUSY_TIMEOUT_S", "Mark", "Registry", "RegistryError", "UnknownMarkError",
            "default_registry_path", "open_registry", "hash_gaussians", "hash_model_file",
-           "record_mark", "shipped_decoder_sha256"]
+           "record_mark", "shipped_decoder_sha256", "mark_decoder_sha256"]
 
 #: Version of the table layout, stored as ``PRAGMA user_version`` (2: the ``origin`` column).
 SCHEMA_VERSION = 2
@@ -171,6 +171,19 @@ def shipped_decoder_sha256(num_bits: int) -> str:
     if num_bits not in AVAILABLE_BITS:
         raise WeightsError(f"no shipped decoder for {num_bits} bits (available: {AVAILABLE_BITS})")
     return sha256_file(weights_path(num_bits))
+
+
+def mark_decoder_sha256(num_bits: int, decoder: nn.Module | None) -> str:
+    """What a registry records as the decoder of a mark embedded through ``decoder``: the shipped weight file's
+    sha256 for None (:func:`shipped_decoder_sha256`), else the decoder's weights fingerprint
+    (:func:`gsw.decoder.null.decoder_fingerprint`); for ``KleinReadout(load_decoder(k))`` that is
+    :func:`gsw.decoder.readout.shipped_klein_fingerprint`, by which ``gsw identify`` / ``gsw scan`` recognise its
+    marks."""
+    if decoder is None:
+        return shipped_decoder_sha256(num_bits)
+    from gsw.decoder.null import decoder_fingerprint
+
+    return decoder_fingerprint(decoder)
 
 
 def _check_label(label: str) -> str:

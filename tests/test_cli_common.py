@@ -85,7 +85,7 @@ def test_output_folder_replaces_only_on_success(tmp_path) -> None:
 def test_readout_decoder_wraps_the_shipped_or_a_custom_decoder() -> None:
     import gsw
     from gsw.cli.common import READOUTS, add_readout_option, readout_decoder
-    from gsw.cli.registry import issued_decoder_sha256
+    from gsw.registry import mark_decoder_sha256
     from gsw.decoder import KleinReadout
     from gsw.decoder.readout import shipped_klein_fingerprint
     from gsw.registry import shipped_decoder_sha256
@@ -94,17 +94,17 @@ def test_readout_decoder_wraps_the_shipped_or_a_custom_decoder() -> None:
     add_readout_option(parser)
     assert parser.parse_args([]).readout == "direct" and READOUTS == ("direct", "klein")
     assert readout_decoder("direct", 32) is None  # the callee loads the shipped decoder, as without --readout
-    assert issued_decoder_sha256(None, 32) == shipped_decoder_sha256(32)
+    assert mark_decoder_sha256(32, None) == shipped_decoder_sha256(32)
     shipped = readout_decoder("klein", 48)
     assert isinstance(shipped, KleinReadout) and shipped.num_bits == 48
-    assert issued_decoder_sha256(shipped, 48) == shipped_klein_fingerprint(48)  # what identify / scan recognise
+    assert mark_decoder_sha256(48, shipped) == shipped_klein_fingerprint(48)  # what identify / scan recognise
     # any decoder module is wrapped, not only a shipped one
     custom = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.AdaptiveAvgPool2d(1), torch.nn.Flatten(),
                                  torch.nn.Linear(4, 32))
     assert readout_decoder("direct", 32, custom) is custom
     klein = readout_decoder("klein", 32, custom)
     assert isinstance(klein, KleinReadout) and klein.inner is custom
-    assert issued_decoder_sha256(klein, 32) not in (shipped_klein_fingerprint(32), shipped_decoder_sha256(32))
+    assert mark_decoder_sha256(32, klein) not in (shipped_klein_fingerprint(32), shipped_decoder_sha256(32))
     image = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(0))
     assert gsw.extract(image, num_bits=32, decoder=klein).bits.shape == (1, 32)
     with pytest.raises(ValueError, match="--readout must be one of direct, klein"):

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from torch import nn
 
 __all__ = ["register", "cmd_keys_list", "cmd_keys_show", "cmd_identify", "add_record_options", "check_record",
-           "record_issued", "issued_summary", "issued_decoder_sha256"]
+           "record_issued", "issued_summary"]
 
 
 def _open(args: argparse.Namespace):
@@ -62,39 +62,16 @@ def add_record_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--registry", metavar="FILE", help=REGISTRY_HELP + "; needs --label")
 
 
-def issued_decoder_sha256(decoder: nn.Module | None, num_bits: int) -> str:
-    """What the registry records as the decoder of a mark embedded through ``decoder``
-    (:func:`gsw.cli.common.readout_decoder`).
-
-    Args:
-        decoder: the embedding's decoder; None: the shipped ``num_bits`` decoder.
-        num_bits: message length.
-
-    Returns:
-        The shipped decoder file's sha256 (:func:`gsw.registry.shipped_decoder_sha256`) for None, else the
-        decoder's weights fingerprint (:func:`gsw.decoder.null.decoder_fingerprint`): for
-        ``KleinReadout(load_decoder(k))`` that is :func:`gsw.decoder.readout.shipped_klein_fingerprint`, by which
-        ``gsw identify`` / ``gsw scan`` recognise its marks.
-    """
-    if decoder is None:
-        from gsw.registry import shipped_decoder_sha256
-
-        return shipped_decoder_sha256(num_bits)
-    from gsw.decoder.null import decoder_fingerprint
-
-    return decoder_fingerprint(decoder)
-
-
 def check_record(args: argparse.Namespace, message, num_bits: int, decoder: nn.Module | None = None) -> None:
     """Before embedding (a long job): ``--registry`` needs ``--label``; the registry opens (it is created
     if missing) and holds neither the label nor, for a given message, that message read by ``decoder``
-    (:func:`issued_decoder_sha256`; None: the shipped one).
+    (:func:`gsw.registry.mark_decoder_sha256`; None: the shipped one).
 
     Raises:
         ValueError, RegistryError: with what is wrong; nothing is embedded then.
     """
     from gsw.mark.message import message_to_hex
-    from gsw.registry import UnknownMarkError, _check_label, open_registry
+    from gsw.registry import UnknownMarkError, _check_label, mark_decoder_sha256, open_registry
 
     if args.label is None:
         if args.registry is not None:
@@ -109,7 +86,7 @@ def check_record(args: argparse.Namespace, message, num_bits: int, decoder: nn.M
         else:
             raise ValueError(f"label {label!r} is already registered in {reg.path}; choose another")
         if message is not None:
-            text, sha = message_to_hex(message), issued_decoder_sha256(decoder, num_bits)
+            text, sha = message_to_hex(message), mark_decoder_sha256(num_bits, decoder)
             if any(m.message_hex == text and m.decoder_sha256 == sha for m in reg.list(num_bits=num_bits)):
                 raise ValueError(f"this message is already issued in {reg.path} (two recipients would be "
                                  "indistinguishable); use another --message/--key, or none")
@@ -117,16 +94,16 @@ def check_record(args: argparse.Namespace, message, num_bits: int, decoder: nn.M
 
 def record_issued(args: argparse.Namespace, message, decoder: nn.Module | None = None, **fields: Any):
     """Records the issued mark when ``--label`` was given (:func:`gsw.registry.record_mark`, under
-    :func:`issued_decoder_sha256` of ``decoder``, the embedding's; ``fields``: its ``gaussians``, ``size``,
+    :func:`gsw.registry.mark_decoder_sha256` of ``decoder``, the embedding's; ``fields``: its ``gaussians``, ``size``,
     ``background``, ``origin``). Returns ``(mark, registry path)`` or None."""
     from gsw.mark.detect import message_num_bits
-    from gsw.registry import default_registry_path, record_mark
+    from gsw.registry import default_registry_path, mark_decoder_sha256, record_mark
 
     if args.label is None:
         return None
     num_bits = message_num_bits(message)
     mark = record_mark(args.registry, args.label, message, num_bits=num_bits,
-                       decoder_sha256=issued_decoder_sha256(decoder, num_bits), **fields)
+                       decoder_sha256=mark_decoder_sha256(num_bits, decoder), **fields)
     return mark, args.registry or str(default_registry_path())
 
 

@@ -246,7 +246,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         gsw.fingerprint.run.BatchFailure: batches that failed on Ray after their retries (the rest is written).
     """
     from gsw.device import resolve_device
-    from gsw.fingerprint.shared import decoder_sha256, scene_hash
+    from gsw.fingerprint.shared import scene_hash
+    from gsw.registry import mark_decoder_sha256
     from gsw.fingerprint.store import JobFolder
     from gsw.registry import Registry, open_registry
 
@@ -257,7 +258,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     cfg = config or pool_config()
     people = _recipients(recipients)
     dev = resolve_device(device if device is not None else "auto")
-    dec_sha = decoder_sha256(num_bits, decoder)
+    dec_sha = mark_decoder_sha256(num_bits, decoder)
     folder = JobFolder(output_dir, scene_hash=scene_hash(model, cameras, num_bits, cfg, images),
                        decoder_sha256=dec_sha, num_bits=num_bits)
     reg = registry if isinstance(registry, Registry) else open_registry(registry)

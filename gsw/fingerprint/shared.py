@@ -19,11 +19,12 @@ import torch
 from torch import Tensor
 
 from gsw.camera import Camera
-from gsw.gaussians import Gaussians
 from gsw.fingerprint.batched import References, check_pool_config, pool_config
+from gsw.gaussians import Gaussians
 from gsw.mark.embed import EmbedConfig, prepare_embedding
+from gsw.registry import mark_decoder_sha256
 
-__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "decoder_sha256", "warm_worker", "worker_scene"]
+__all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "warm_worker", "worker_scene"]
 
 
 def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, config: EmbedConfig,
@@ -45,18 +46,6 @@ def scene_hash(gaussians: Gaussians, cameras: Sequence[Camera], num_bits: int, c
             h.update(repr(tuple(im.shape)).encode())
             h.update(im.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
     return f"scene-sha256:{h.hexdigest()}"
-
-
-def decoder_sha256(num_bits: int, decoder: torch.nn.Module | None) -> str:
-    """What the registry records as the decoder: the shipped weight file's sha256, or a custom decoder's
-    weights' sha256 (:func:`gsw.decoder.null.decoder_fingerprint`)."""
-    if decoder is None:
-        from gsw.registry import shipped_decoder_sha256
-
-        return shipped_decoder_sha256(num_bits)
-    from gsw.decoder.null import decoder_fingerprint
-
-    return decoder_fingerprint(decoder)
 
 
 @dataclass
@@ -119,7 +108,7 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
                  split=setup.split.num_split if setup.split else 0, setup_timings=setup.timings)
     return SharedScene(gaussians.detach().to("cpu"), setup.model.to("cpu"), list(cameras), cfg, num_bits,
                        None if decoder is None else decoder.to("cpu"),
-                       scene_hash(gaussians, cameras, num_bits, cfg, images), decoder_sha256(num_bits, decoder), stats,
+                       scene_hash(gaussians, cameras, num_bits, cfg, images), mark_decoder_sha256(num_bits, decoder), stats,
                        token or uuid.uuid4().hex)
 
 
