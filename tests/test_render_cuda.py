@@ -148,6 +148,15 @@ def _scene_large_splats():
     return g, make_camera(240, 176), (0.0, 0.0, 0.0), 1
 
 
+def _scene_thin_rows():
+    # Small splats, flat along y and tilted, at random sub-pixel heights, faint to opaque: their row masks
+    # (csrc/core/math.h splat_row_mask; the CUDA kernels' row culling) end inside tiles at every offset.
+    g = random_gaussians(400, sh_degree=0, seed=31, extent=0.6, scale_range=(0.01, 0.05),
+                         opacity_range=(0.02, 0.99), dtype=torch.float64)
+    g.log_scales[:, 1] -= 1.5
+    return g, make_camera(64, 48), (0.0, 0.0, 0.0), 0
+
+
 SCENES = {
     "random_sh0": lambda: _scene_random(0, 0),
     "random_sh1": lambda: _scene_random(1, 1),
@@ -167,6 +176,7 @@ SCENES = {
     "frustum": _scene_frustum,
     "heavy": _scene_heavy,
     "large_splats": _scene_large_splats,
+    "thin_rows": _scene_thin_rows,
 }
 DTYPES = [torch.float32, torch.float64]
 

@@ -713,6 +713,31 @@ GSW_HD bool splat_extent(const Sym2<T>& conic, T skip_power, T& ex, T& ey) {
   return true;
 }
 
+// Indices [out_lo, out_hi) - lo of the pixels lo .. hi - 1 whose centres (i + 0.5) lie in [c - e, c + e]
+// (a tile-local range; NaN c or e: empty).
+template <typename T>
+GSW_HD void pixel_span(T c, T e, int lo, int hi, int& out_lo, int& out_hi) {
+  const T l = ceil(c - e - T(0.5)), h = floor(c + e - T(0.5)) + T(1);
+  const T lc = l < T(hi) ? l : T(hi), hc = h < T(hi) ? h : T(hi);
+  out_lo = static_cast<int>(T(lo) < lc ? lc : T(lo)) - lo;
+  out_hi = static_cast<int>(T(lo) < hc ? hc : T(lo)) - lo;
+}
+
+// Rows of the tile whose first pixel row is y0 in which a splat can be blended, as a bit mask (bit r:
+// row y0 + r): the rows whose pixel centres lie within the y extent of its skip ellipse (splat_extent)
+// widened by `margin` pixels. 0 when it is skipped everywhere; every row when its extent or centre is
+// not a number. A conservative cull: the rows left out are those where splat_alpha is 0.
+template <typename T>
+GSW_HD uint32_t splat_row_mask(const Sym2<T>& conic, T opacity, T my, int y0, T margin) {
+  constexpr uint32_t kAll = (uint32_t(1) << TILE_SIZE) - 1u;
+  T ex, ey;
+  if (!splat_extent(conic, splat_skip_power(opacity), ex, ey)) return opacity == opacity ? 0u : kAll;
+  if (!(ey >= T(0)) || !(my == my)) return kAll;
+  int lo, hi;
+  pixel_span(my, ey + margin, y0, y0 + TILE_SIZE, lo, hi);
+  return ((uint32_t(1) << hi) - 1u) & ~((uint32_t(1) << lo) - 1u);
+}
+
 // Cotangents of one splat's per-pixel alpha w.r.t. its 2-D parameters.
 template <typename T>
 struct SplatGrad {

@@ -75,15 +75,6 @@ GSW_CPU_INLINE TileView tile_view(const RasterParams<T>& p, int64_t tile) {
   return v;
 }
 
-// Tile-local range of pixel indices whose centres (i + 0.5) lie in [c - e, c + e].
-template <typename T>
-GSW_CPU_INLINE void pixel_range(T c, T e, int lo, int hi, int& out_lo, int& out_hi) {
-  const T a = std::max(T(lo), std::min(T(hi), ceil(c - e - T(0.5))));
-  const T b = std::max(T(lo), std::min(T(hi), floor(c + e - T(0.5)) + T(1)));
-  out_lo = static_cast<int>(a) - lo;
-  out_hi = static_cast<int>(b) - lo;
-}
-
 // Copies the tile's splats front to back from their records, with the tile-local box each one
 // can touch.
 template <typename T>
@@ -100,8 +91,8 @@ GSW_CPU_INLINE void gather_splats(const RasterParams<T>& p, const PackedSplat<T>
     PackedSplat<T>& s = out[k - v.start];
     s = recs[p.bins.gauss_ids[k]];
     if (s.ex >= T(0)) {
-      pixel_range(s.mx, s.ex, v.x0, v.x1, s.bx0, s.bx1);
-      pixel_range(s.my, s.ey, v.y0, v.y1, s.by0, s.by1);
+      pixel_span(s.mx, s.ex, v.x0, v.x1, s.bx0, s.bx1);
+      pixel_span(s.my, s.ey, v.y0, v.y1, s.by0, s.by1);
     } else {
       s.bx0 = s.bx1 = s.by0 = s.by1 = 0;
     }

@@ -59,45 +59,67 @@ __global__ void counts_in_order_kernel(int N, const int32_t* __restrict__ order,
   counts[j] = entry_offsets[g + 1] - entry_offsets[g];
 }
 
-// The j-th Gaussian g in depth order emits its intersections at emit_offsets[j]: its tile ids
+// Where each Gaussian's entries go in depth order, by Gaussian: emit_at[order[j]] = emit_offsets[j].
+__global__ void emit_at_kernel(int N, const int32_t* __restrict__ order, const int32_t* __restrict__ emit_offsets,
+                               int32_t* __restrict__ emit_at) {
+  const int j = blockIdx.x * blockDim.x + threadIdx.x;
+  if (j >= N) return;
+  emit_at[order[j]] = emit_offsets[j];
+}
+
+// Gaussian g emits its intersections at emit_at[g] (their place in depth order): its tile ids
 // (row-major over its footprint, the CPU's entry order) as keys and its entry indices e as values;
-// entry_slots[e] temporarily holds g (see slots_kernel). Thread j emits them itself, unless its
-// warp is better off emitting the large footprints together: a heavy-tailed warp (one splat of
-// hundreds of tiles among small ones) waits for its longest serial loop, while the whole warp,
-// one footprint after the other and its lanes over each row's tiles, emits a large footprint in
-// about one step per row, with coalesced stores. The warp estimates both (steps: kEmitRowCost per
-// footprint row, one per serial entry, one per row and 32 entries together) and takes the cheaper;
-// the outputs are the same either way. These weights undercount the serial path's scattered stores:
-// on the heavy family they pick it for most warps, which a warp emitting every footprint of more than
-// kEmitSerial tiles beat by 10-28 % of the forward (BENCHMARKS.md 2g); to be measured and tuned.
-constexpr int kEmitSerial = 8;    // footprints of at most this many tiles are always emitted by their thread
-constexpr int kEmitRowCost = 10;  // a footprint row's chords, in steps of one emitted entry
+// entry_slots[e] temporarily holds g (see slots_kernel). Thread g reads Gaussian g's parameters
+// (coalesced; in depth order they would be gathers). A warp of small footprints (at most
+// kEmitSerial tiles each) lets each thread emit its own. Otherwise the warp shares the work: it
+// walks its 32 Gaussians' footprint rows together, 32 rows at a time (lane l: the row's chord,
+// footprint_row), and then those rows' entries 32 at a time, lane l the l-th entry: every lane busy
+// whatever the footprints' sizes (one splat of hundreds of tiles among small ones, or all large),
+// and the stores of one footprint coalesced. The outputs are the same either way.
+constexpr int kEmitSerial = 8;
+
+// Warp-inclusive prefix sum.
+__device__ __forceinline__ int warp_inclusive_sum(int v, int lane) {
+#pragma unroll
+  for (int o = 1; o < 32; o <<= 1) {
+    const int u = __shfl_up_sync(kFullMask, v, o);
+    if (lane >= o) v += u;
+  }
+  return v;
+}
+
+// Number of the 32 non-decreasing values ends[0..31] that are <= v (ends[31] > v): the index of the
+// first one above v.
+__device__ __forceinline__ int first_above(const int32_t* ends, int v) {
+  int i = 0;
+#pragma unroll
+  for (int step = 16; step > 0; step >>= 1)
+    if (ends[i + step - 1] <= v) i += step;
+  return i;
+}
 
 template <typename T>
-__global__ void emit_keys_kernel(BinParams<T> p, const int32_t* __restrict__ order,
-                                 const int32_t* __restrict__ emit_offsets,
-                                 const int32_t* __restrict__ entry_offsets, uint32_t* __restrict__ keys,
-                                 int32_t* __restrict__ vals, int32_t* __restrict__ entry_slots) {
-  const int j = blockIdx.x * blockDim.x + threadIdx.x;
-  const int lane = static_cast<int>(threadIdx.x & 31);
-  int g = 0;
+__global__ void __launch_bounds__(kThreads)
+    emit_keys_kernel(BinParams<T> p, const int32_t* __restrict__ emit_at, const int32_t* __restrict__ entry_offsets,
+                     uint32_t* __restrict__ keys, int32_t* __restrict__ vals, int32_t* __restrict__ entry_slots) {
+  // Per thread: its Gaussian's footprint, first entry, first output, and the warp's running totals
+  // of entries before it and of footprint rows up to it; per row of the current 32: the warp's
+  // running total of entries, its Gaussian (thread) and tile row, and its first tile column.
+  __shared__ TileFootprint<T> s_foot[kThreads];
+  __shared__ int32_t s_e0[kThreads], s_k0[kThreads], s_q0[kThreads], s_rows_end[kThreads];
+  __shared__ int32_t s_row_end[kThreads], s_row_lane[kThreads], s_row_ty[kThreads], s_row_xa[kThreads];
+  const int g = blockIdx.x * blockDim.x + threadIdx.x;
+  const int lane = static_cast<int>(threadIdx.x & 31), warp0 = static_cast<int>(threadIdx.x & ~31u);
   int32_t e0 = 0, count = 0, k0 = 0;
-  if (j < p.N) {  // no early return: the warp's lanes all take part in the shuffles below
-    g = order[j];
+  if (g < p.N) {  // no early return: the warp's lanes all take part in the shuffles below
     e0 = entry_offsets[g];
     count = entry_offsets[g + 1] - e0;
-    k0 = emit_offsets[j];
+    k0 = emit_at[g];
   }
   TileFootprint<T> f{};
   if (count > 0) f = footprint_of(p, g);
-  const int rows = count > 0 ? f.y1 - f.y0 : 0;
-  const bool large = count > kEmitSerial;
-  const unsigned serial_cost = static_cast<unsigned>(kEmitRowCost * rows + count);
-  const unsigned shared_cost = large ? static_cast<unsigned>((kEmitRowCost + 1) * rows + count / 32) : 0u;
-  const unsigned together = __reduce_add_sync(kFullMask, shared_cost) +
-                      __reduce_max_sync(kFullMask, large ? 0u : serial_cost);
-  const bool warp_emits = together < __reduce_max_sync(kFullMask, serial_cost);
-  if (count > 0 && !(warp_emits && large)) {
+  if (__reduce_max_sync(kFullMask, static_cast<unsigned>(count)) <= unsigned(kEmitSerial)) {
+    if (count == 0) return;
     int32_t k = k0, e = e0;
     for (int ty = f.y0; ty < f.y1; ++ty) {
       int xa, xb;
@@ -110,25 +132,45 @@ __global__ void emit_keys_kernel(BinParams<T> p, const int32_t* __restrict__ ord
         ++e;
       }
     }
+    return;
   }
-  if (!warp_emits) return;  // the same for the whole warp
-  for (unsigned big = __ballot_sync(kFullMask, large); big != 0; big &= big - 1) {
-    const int src = __ffs(big) - 1;
-    const int gb = __shfl_sync(kFullMask, g, src);
-    const int32_t eb = __shfl_sync(kFullMask, e0, src), kb = __shfl_sync(kFullMask, k0, src);
-    const TileFootprint<T> fb = footprint_of(p, gb);  // every lane, the same values
-    int32_t q0 = 0;  // entries of the rows above
-    for (int ty = fb.y0; ty < fb.y1; ++ty) {
-      int xa, xb;
-      footprint_row(fb, ty, xa, xb);
-      for (int tx = xa + lane; tx < xb; tx += 32) {
-        const int32_t q = q0 + (tx - xa);
-        keys[kb + q] = static_cast<uint32_t>(ty * p.tiles_x + tx);
-        vals[kb + q] = eb + q;
-        entry_slots[eb + q] = gb;
-      }
-      q0 += xb - xa;
+  const int rows_end = warp_inclusive_sum(count > 0 ? f.y1 - f.y0 : 0, lane);
+  const int total_rows = __shfl_sync(kFullMask, rows_end, 31);
+  s_foot[threadIdx.x] = f;
+  s_e0[threadIdx.x] = e0;
+  s_k0[threadIdx.x] = k0;
+  s_q0[threadIdx.x] = warp_inclusive_sum(count, lane) - count;
+  s_rows_end[threadIdx.x] = rows_end;
+  __syncwarp();
+  int32_t emitted = 0;  // the warp's entries of the previous rows
+  for (int r0 = 0; r0 < total_rows; r0 += 32) {
+    const int r = r0 + lane;
+    int src = 0, ty = 0, xa = 0, xb = 0;
+    if (r < total_rows) {
+      src = first_above(s_rows_end + warp0, r);
+      const TileFootprint<T> fs = s_foot[warp0 + src];
+      ty = fs.y1 - (s_rows_end[warp0 + src] - r);
+      footprint_row(fs, ty, xa, xb);
     }
+    const int row_end = warp_inclusive_sum(xb - xa, lane);
+    const int n_entries = __shfl_sync(kFullMask, row_end, 31);
+    __syncwarp();  // the previous rows' entries are all emitted
+    s_row_end[threadIdx.x] = row_end;
+    s_row_lane[threadIdx.x] = warp0 + src;
+    s_row_ty[threadIdx.x] = ty;
+    s_row_xa[threadIdx.x] = xa;
+    __syncwarp();
+    for (int q = lane; q < n_entries; q += 32) {
+      const int row = first_above(s_row_end + warp0, q);
+      const int q_row = row == 0 ? 0 : s_row_end[warp0 + row - 1];
+      const int sl = s_row_lane[warp0 + row];
+      const int32_t local = emitted + q - s_q0[sl];  // entry index within its Gaussian's list
+      const int32_t k = s_k0[sl] + local, e = s_e0[sl] + local;
+      keys[k] = static_cast<uint32_t>(s_row_ty[warp0 + row] * p.tiles_x + s_row_xa[warp0 + row] + (q - q_row));
+      vals[k] = e;
+      entry_slots[e] = sl - warp0 + (g - lane);
+    }
+    emitted += n_entries;
   }
 }
 
@@ -207,10 +249,11 @@ void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
   GSW_KERNEL_CHECK();
   const int sel = radix_sort_pairs(dk, dk + N, id, id + N, N, 0, int(8 * sizeof(DepthKey)), stream);
   const int32_t* order = sel ? id + N : id;
-  // 2. Where each Gaussian's entries go in depth order: exclusive scan of its counts.
+  // 2. Where each Gaussian's entries go in depth order: exclusive scan of its counts, then by Gaussian.
   DeviceBuffer counts_buf(sizeof(int32_t) * 2 * N);
   int32_t* counts = counts_buf.as<int32_t>();
   int32_t* emit_offsets = counts + N;
+  int32_t* emit_at = counts;  // once the scan has read the counts
   counts_in_order_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, entry_offsets, counts);
   GSW_KERNEL_CHECK();
   size_t scan_bytes = 0;
@@ -219,12 +262,14 @@ void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
     DeviceBuffer temp(scan_bytes);
     GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, counts, emit_offsets, N, stream));
   }
+  emit_at_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, emit_offsets, emit_at);
+  GSW_KERNEL_CHECK();
   // 3. (tile, entry) pairs in depth order, then a stable sort by tile.
   DeviceBuffer keys(sizeof(uint32_t) * 2 * M), vals_alt(sizeof(int32_t) * M);
   uint32_t* k0 = keys.as<uint32_t>();
   int32_t* v1 = vals_alt.as<int32_t>();
-  emit_keys_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(p, order, emit_offsets, entry_offsets,
-                                                                         k0, gauss_ids, entry_slots);
+  emit_keys_kernel<T><<<blocks_for(N, kThreads), kThreads, 0, stream>>>(p, emit_at, entry_offsets, k0, gauss_ids,
+                                                                         entry_slots);
   GSW_KERNEL_CHECK();
   const int tile_sel = radix_sort_pairs(k0, k0 + M, gauss_ids, v1, M, 0, std::max(1, bits_for(num_tiles - 1)), stream);
   const uint32_t* sorted_keys = tile_sel ? k0 + M : k0;

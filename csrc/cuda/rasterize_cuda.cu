@@ -3,11 +3,12 @@
 // kContribPixels pixels and the backward one per kBackwardPixels pixels (see below).
 //
 // Forward and contribution share one front-to-back traversal (traverse_tile): the tile's splats
-// are staged in shared memory in batches of one splat per thread, every thread walks the batch in
-// order with the CPU backend's per-pixel decisions (splat_alpha, blend_terminates from
-// core/math.h) for each of its pixels, a warp leaves a batch as soon as all its pixels have
-// terminated and the block stops at the first batch where all of them have. The traversal hands
-// the blending weights w (0 where not blended) of the thread's pixels for each splat to a visitor;
+// are staged in shared memory in batches of one splat per thread, every warp walks the batch's
+// splats that reach its rows (row culling, below) in order with the CPU backend's per-pixel
+// decisions (splat_alpha, blend_terminates from core/math.h) for each of its pixels, a warp leaves
+// a batch as soon as all its pixels have terminated and the block stops at the first batch where
+// all of them have. The traversal hands the blending weights w (0 where not blended) of the
+// thread's pixels for each splat to a visitor;
 // the forward accumulates colour/depth.
 //
 // The contribution's cost is its per-splat reduction over the warp (the weighted w per channel,
@@ -28,11 +29,11 @@
 // T_i = T_{i+1} / (1 - alpha_i) as the CPU backend does. Its cost, like the contribution's, is
 // the per-splat reduction of the ten cotangents (blend_backward_step, core/math.h: the same
 // per-pixel step as the CPU backend's), so it has the same layout:
-// each thread owns kBackwardPixels vertically adjacent pixels of one column (a warp covers
-// 32 / TILE_SIZE * kBackwardPixels whole rows), reads the splat from shared memory once for them
-// and sums their ten cotangents in registers; a warp that blended the splat in none of its pixels
-// skips it (one vote); otherwise a transposed butterfly (warp_sum_transposed: 12 shuffles instead
-// of ten warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
+// each thread owns kBackwardPixels vertically adjacent pixels of one column (a warp covers 32 /
+// TILE_SIZE * kBackwardPixels whole rows), reads the splat from shared memory once for them and
+// sums their ten cotangents in registers; a warp that blended the splat in none of its pixels skips
+// it (one vote); otherwise a transposed butterfly (warp_sum_transposed: 12 shuffles instead of ten
+// warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
 // shared-memory slot for the splat. After each batch one thread per splat adds up the warps'
 // slots (in warp order) and stores the tile's totals as the intersection's record (kBlendGrads
 // values per visited splat, in the tile's rows of the BlendRecords buffer, core/params.h; zeros
@@ -104,11 +105,31 @@ __device__ __forceinline__ T alpha_at(const SplatGeo<T>& s, T pxc, T pyc) {
   return splat_alpha(s.opacity, gaussian_power(Sym2<T>{s.ca, s.cb, s.cc}, s.mx, s.my, pxc, pyc));
 }
 
+// Row culling (forward and contribution): a warp's threads hold kWarpRows(PX) whole rows of the tile,
+// and a warp skips the staged splats whose row mask (splat_row_mask, core/math.h) misses them: one
+// ballot finds the warp's splats among 32 staged ones, so the skipped ones cost no alpha evaluations.
+// The mask's y extent is widened by BIN_MARGIN pixels for the fast-math square root and division that
+// compute it on the device; the rows left out are rows where every alpha is 0, so no result changes.
+template <int PX>
+constexpr int kWarpRows = 32 / TILE_SIZE * PX;
+static_assert(32 % TILE_SIZE == 0 && TILE_SIZE <= 32, "a warp holds whole tile rows");
+
+template <int PX>
+__device__ __forceinline__ uint32_t warp_row_bits() {
+  return ((1u << kWarpRows<PX>) - 1u) << (kWarpRows<PX> * static_cast<int>(threadIdx.x >> 5));
+}
+
+template <typename T>
+__device__ __forceinline__ uint32_t row_mask(const SplatGeo<T>& s, int tile_y0) {
+  return splat_row_mask(Sym2<T>{s.ca, s.cb, s.cc}, s.opacity, s.my, tile_y0, T(BIN_MARGIN));
+}
+
 // The PX pixels of this thread: (px, py + i) for i < PX. Thread t of the tile's block has column
 // t % TILE_SIZE and first row PX * (t / TILE_SIZE).
 template <int PX>
 struct PixelCtx {
   int tile;
+  int tile_y0;         // the tile's first pixel row
   int px, py;
   int rows;            // (px, py + i) is inside the image for i < rows
   int64_t pix;         // index of (px, py); (px, py + i) is pix + i * width
@@ -122,6 +143,7 @@ __device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p) {
   c.tile = blockIdx.x;
   const int tx = c.tile % p.bins.tiles_x, ty = c.tile / p.bins.tiles_x;
   const int t = static_cast<int>(threadIdx.x);
+  c.tile_y0 = ty * TILE_SIZE;
   c.px = tx * TILE_SIZE + t % TILE_SIZE;
   c.py = ty * TILE_SIZE + t / TILE_SIZE * PX;
   c.rows = c.px < p.width ? max(0, min(PX, p.height - c.py)) : 0;
@@ -144,6 +166,9 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
                                               Visitor& vis, T (&tr)[PX], int32_t (&last)[PX]) {
   constexpr int kSplats = kTilePixels / PX;  // per batch: one per thread
   __shared__ SplatGeo<T> s_geo[kSplats];
+  __shared__ uint32_t s_rows[kSplats];  // row_mask of each staged splat
+  const uint32_t warp_rows = warp_row_bits<PX>();
+  const int lane = static_cast<int>(threadIdx.x & 31);
   const T pxc = T(c.px) + T(0.5);
   T pyc[PX];
 #pragma unroll
@@ -159,34 +184,46 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
     const int32_t idx = b + static_cast<int32_t>(threadIdx.x);
     if (idx < c.end) {
       const int32_t g = p.bins.gauss_ids[idx];
-      s_geo[threadIdx.x] = load_geo(p, g);
+      const SplatGeo<T> s = load_geo(p, g);
+      s_geo[threadIdx.x] = s;
+      s_rows[threadIdx.x] = row_mask(s, c.tile_y0);
       vis.load(threadIdx.x, g);
     }
     __syncthreads();
     const int n = min(kSplats, c.end - b);
-    // A warp leaves the batch once all its pixels are done (checked every kVoteEvery splats;
-    // done pixels blend nothing, so when it is checked changes no result).
-    for (int k = 0; k < n; ++k) {
-      if ((k % kVoteEvery) == 0 && !__any_sync(kFullMask, live != 0)) break;
-      const SplatGeo<T> s = s_geo[k];
-      T w[PX];
+    // The warp's splats in order, 32 staged ones per ballot (row culling, above). A warp leaves the
+    // batch once all its pixels are done (checked every kVoteEvery splats it visits; done pixels
+    // blend nothing, so when it is checked changes no result).
+    int visits = 0;
+    bool warp_done = false;
+    for (int k32 = 0; k32 < n && !warp_done; k32 += 32) {
+      unsigned todo = __ballot_sync(kFullMask, k32 + lane < n && (s_rows[k32 + lane] & warp_rows) != 0u);
+      for (; todo != 0u; todo &= todo - 1u) {
+        if ((visits++ % kVoteEvery) == 0 && !__any_sync(kFullMask, live != 0)) {
+          warp_done = true;
+          break;
+        }
+        const int k = k32 + __ffs(todo) - 1;
+        const SplatGeo<T> s = s_geo[k];
+        T w[PX];
 #pragma unroll
-      for (int i = 0; i < PX; ++i) {
-        // alpha of done pixels too: no branch per pixel, and the compiler can share the terms of
-        // the pixels' common column.
-        const T alpha = alpha_at(s, pxc, pyc[i]);
-        w[i] = T(0);
-        if ((live >> i & 1u) && alpha > T(0)) {
-          if (blend_terminates(tr[i], alpha)) {
-            live &= ~(1u << i);  // this splat is not blended (INRIA)
-          } else {
-            w[i] = alpha * tr[i];
-            tr[i] *= T(1) - alpha;
-            last[i] = b - c.start + k + 1;
+        for (int i = 0; i < PX; ++i) {
+          // alpha of done pixels too: no branch per pixel, and the compiler can share the terms of
+          // the pixels' common column.
+          const T alpha = alpha_at(s, pxc, pyc[i]);
+          w[i] = T(0);
+          if ((live >> i & 1u) && alpha > T(0)) {
+            if (blend_terminates(tr[i], alpha)) {
+              live &= ~(1u << i);  // this splat is not blended (INRIA)
+            } else {
+              w[i] = alpha * tr[i];
+              tr[i] *= T(1) - alpha;
+              last[i] = b - c.start + k + 1;
+            }
           }
         }
+        vis.blend(k, w);
       }
-      vis.blend(k, w);
     }
     vis.end_batch(n);
   }
