@@ -59,17 +59,16 @@ __global__ void __launch_bounds__(kThreads) project_forward_kernel(const Project
   if (i >= p.N) return;
   const int n = sh_values(p);
   const T* sh_i = p.sh + int64_t(n) * i;
-  if (!p.nonfinite) {
-    project_gaussian(p, i, DEG, sh_i);
-    return;
-  }
-  // Validation: flag, never synchronise (the binning reads the flags back). The active
-  // coefficients pass through registers once, for the colour and for the check.
+  // The active coefficients pass through registers, with 128-bit loads in float32: faster than the
+  // colour's scalar reads of global memory (a lane's 48 coefficients span 192 bytes), even though
+  // culled Gaussians load them too (BENCHMARKS.md 2h); the validation checks the same registers.
   constexpr int KA = DEG >= 0 ? 3 * (DEG + 1) * (DEG + 1) : 3;
   const bool vec = VecIO<T>::kOk && n % 4 == 0 && reinterpret_cast<uintptr_t>(p.sh) % 16 == 0;
   T shl[KA];
   load_coeffs<T, KA>(sh_i, shl, vec);
   project_gaussian(p, i, DEG, shl);
+  if (!p.nonfinite) return;
+  // Validation: flag, never synchronise (the binning reads the flags back).
   const bool sh_ok = all_finite(shl, KA) && all_finite(sh_i + KA, n - KA);
   const int32_t bad = nonfinite_geometry(p, i) | (sh_ok ? 0 : kNonFiniteSh);
   if (bad) atomicOr(p.nonfinite, bad);
