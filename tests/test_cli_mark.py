@@ -228,6 +228,18 @@ def test_embed_robustness_flags_reach_the_config() -> None:
     assert default.background == (1.0, 1.0, 1.0)
 
 
+def test_embed_render_scales_reach_the_config_and_are_checked(capsys) -> None:
+    args = build_parser().parse_args(["embed", "in", "--output", "out", "--render-scales", "0.5", "1"])
+    assert embed_config(args).render_scales == (0.5, 1.0)
+    default = embed_config(build_parser().parse_args(["embed", "in", "--output", "out"]))
+    assert default.render_scales == (1.0, 1.0)
+    with pytest.raises(ValueError, match="LOW <= HIGH"):
+        embed_config(build_parser().parse_args(["embed", "in", "--output", "out", "--render-scales", "1", "0.5"]))
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["embed", "in", "--output", "out", "--render-scales", "0", "1"])
+    assert "must be a positive number" in capsys.readouterr().err
+
+
 def test_embed_a_bare_ply_without_cameras_samples_views(model_dir, tmp_path, monkeypatch) -> None:
     import dataclasses
 

@@ -37,6 +37,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = float(text)
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
 def print_json(data: Any) -> None:
     """Writes ``data`` to stdout as indented JSON (the only output of a command run with ``--json``)."""
     json.dump(data, sys.stdout, indent=2)

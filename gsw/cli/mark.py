@@ -10,8 +10,8 @@ from pathlib import Path
 from gsw.cli.common import (DEFAULT_BITS, READOUTS, add_background_options, add_bits_option, add_device_option,
                             add_message_options, add_readout_option, add_resize_images_option, background_of,
                             check_output, check_readout_origin, input_paths, message_from_args,
-                            not_detectable_warning, output_file, output_folder, positive_int, print_json, read_images,
-                            readout_decoder, reading)
+                            not_detectable_warning, output_file, output_folder, positive_float, positive_int,
+                            print_json, read_images, readout_decoder, reading)
 from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
 from gsw.stats import DETECTION_FPR
 
@@ -64,6 +64,10 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
     emb.add_argument("--psnr-target", type=float, default=None, metavar="DB",
                      help="steer the message weight so the fine-tune's renders hold this PSNR against the "
                           "original's (e.g. 37; costs robustness; default: a fixed weight)")
+    emb.add_argument("--render-scales", type=positive_float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                     help="render each step's view at a size factor drawn log-uniformly from [LOW, HIGH] so that "
+                          "the mark also reads at other sizes (e.g. 0.5 1; with --epochs 32 for a PLY without "
+                          "cameras, BENCHMARKS.md 9g; default: the recipe's, 1 1)")
     emb.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
     emb.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
     emb.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
@@ -139,7 +143,11 @@ def embed_config(args: argparse.Namespace, base=None):
     weights = lpips_weights(lpips_net)
     if args.message_weight is not None:
         weights = dataclasses.replace(weights, message=args.message_weight)
-    return dataclasses.replace(base, epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask or base.mask,
+    scales = getattr(args, "render_scales", None)  # `gsw fingerprint` has no such option
+    if scales is not None and scales[0] > scales[1]:
+        raise ValueError(f"--render-scales LOW HIGH needs LOW <= HIGH, got {scales[0]:g} {scales[1]:g}")
+    return dataclasses.replace(base, epochs=args.epochs,
+                               render_scales=tuple(scales) if scales is not None else base.render_scales, fgd=not args.no_fgd, mask=args.mask or base.mask,
                                lpips_net=lpips_net, attacks=args.attacks,
                                model_attacks=args.model_attack_prob, psnr_target=args.psnr_target, seed=args.seed,
                                weights=weights,
