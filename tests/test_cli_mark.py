@@ -340,6 +340,10 @@ def test_embed_image_extract_and_verify_with_readout_klein_match_the_python_api(
                  "--readout", "klein"]) == 2
     assert "use --key SECRET or no message" in capsys.readouterr().err and not (tmp_path / "o2.png").exists()
     assert gsw.verify([image], hex48, decoder=_klein(48), origin="chosen").test == "fair"
+    # 64 bits has one (null_k64_klein.json): accepted, and the calibrated test runs.
+    hex64 = message_to_hex(message_from_key(KEY, 64))
+    report = _verify_json([str(out), "--message", hex64, "--chosen-message", "--readout", "klein", "--bits", "64"])
+    assert report["test"] == "calibrated"
 
 
 @pytest.mark.parametrize("command", [["embed", "in", "--output", "out"], ["embed-image", "x.png", "--output", "y.png"],

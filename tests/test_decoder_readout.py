@@ -65,9 +65,13 @@ def test_it_is_another_decoder_for_the_registry_and_the_null_models(decoder):
     klein = KleinReadout(decoder)
     assert decoder_fingerprint(klein) != decoder_fingerprint(decoder)  # marks made through it are told apart
     # the direct readout's null model is not used for it: it gets the one calibrated through it, where one ships
-    # (32 bits), else the fair coin (48 bits)
+    # (32 and 64 bits), else the fair coin (48 bits)
     model, label = resolve_null_model(32, klein, None, False)
     direct, direct_label = resolve_null_model(32, decoder, None, False)
     assert label == direct_label == "calibrated" and model is not direct
     assert model.decoder_fingerprint == decoder_fingerprint(klein) and model.calibration["images"] > 0
+    klein64 = KleinReadout(load_decoder(64))
+    model64, label64 = resolve_null_model(64, klein64, None, False)
+    assert label64 == "calibrated" and model64.decoder_fingerprint == decoder_fingerprint(klein64)
+    assert model64.num_bits == 64 and model64.calibration["images"] > 0
     assert resolve_null_model(48, KleinReadout(load_decoder(48)), None, False)[1] == "fair"
