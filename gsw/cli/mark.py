@@ -146,8 +146,8 @@ def embed_config(args: argparse.Namespace, base=None):
     scales = getattr(args, "render_scales", None)  # `gsw fingerprint` has no such option
     if scales is not None and scales[0] > scales[1]:
         raise ValueError(f"--render-scales LOW HIGH needs LOW <= HIGH, got {scales[0]:g} {scales[1]:g}")
-    return dataclasses.replace(base, epochs=args.epochs,
-                               render_scales=tuple(scales) if scales is not None else base.render_scales, fgd=not args.no_fgd, mask=args.mask or base.mask,
+    return dataclasses.replace(base, epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask or base.mask,
+                               render_scales=base.render_scales if scales is None else tuple(scales),
                                lpips_net=lpips_net, attacks=args.attacks,
                                model_attacks=args.model_attack_prob, psnr_target=args.psnr_target, seed=args.seed,
                                weights=weights,

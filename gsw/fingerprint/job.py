@@ -247,9 +247,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     """
     from gsw.device import resolve_device
     from gsw.fingerprint.shared import scene_hash
-    from gsw.registry import mark_decoder_sha256
     from gsw.fingerprint.store import JobFolder
-    from gsw.registry import Registry, open_registry
+    from gsw.registry import Registry, mark_decoder_sha256, open_registry
 
     start = time.perf_counter()
     if batch_size < 1 or (task_size is not None and task_size < 1):

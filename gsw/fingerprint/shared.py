@@ -108,8 +108,8 @@ def prepare_scene(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bits: 
                  split=setup.split.num_split if setup.split else 0, setup_timings=setup.timings)
     return SharedScene(gaussians.detach().to("cpu"), setup.model.to("cpu"), list(cameras), cfg, num_bits,
                        None if decoder is None else decoder.to("cpu"),
-                       scene_hash(gaussians, cameras, num_bits, cfg, images), mark_decoder_sha256(num_bits, decoder), stats,
-                       token or uuid.uuid4().hex)
+                       scene_hash(gaussians, cameras, num_bits, cfg, images), mark_decoder_sha256(num_bits, decoder),
+                       stats, token or uuid.uuid4().hex)
 
 
 @dataclass
