@@ -5,8 +5,12 @@
 #   bash benchmarks/gpu_kernels.sh suite     # the whole test suite with this CUDA build
 #   bash benchmarks/gpu_kernels.sh bench OUT TAG  # bench_cuda.py: atomic vs deterministic blend backward, gsplat side by side
 #   bash benchmarks/gpu_kernels.sh kernels OUT [TAG]  # kernel_times.py: each CUDA kernel's share of a forward / forward+backward
-#   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over csrc/ (e.g. the last
-#                                              # commit's), built into /tmp/gsw_base (not editable)
+#   bash benchmarks/gpu_kernels.sh memory OUT [TAG]   # memory_peak.py: what is live at the peak of a forward+backward
+#   bash benchmarks/gpu_kernels.sh ncu OUT [CASE]  # Nsight Compute: the blend forward and contribution kernels of CASE
+#   bash benchmarks/gpu_kernels.sh lego OUT TAG  # lego trained here for 60 s (build/gpu/lego carried), gsplat side by side
+#   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over it (e.g. the last
+#                                              # commit's csrc/ and gsw/: `git archive HEAD csrc gsw | tar -x -C DIR`),
+#                                              # built into /tmp/gsw_base (not editable)
 #   BASE=1 bash benchmarks/gpu_kernels.sh kernels|bench ...  # run on that baseline build (python -S: the editable
 #                                              # build's import hook does not load)
 # Carry .whl (kornia, kornia_rs, scikit_build_core, pybind11, pathspec, gsplat wheels) in the setup call and
@@ -37,7 +41,7 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
     ;;
   base)
     rm -rf /tmp/base && mkdir /tmp/base && cp -r benchmarks csrc gsw CMakeLists.txt pyproject.toml README.md /tmp/base/ &&
-      cp -r "${2:?DIR}"/. /tmp/base/csrc/ || exit 1
+      cp -r "${2:?DIR}"/. /tmp/base/ || exit 1
     (cd /tmp/base && GSW_WITH_CUDA=ON python3 -m pip install -q --no-build-isolation --no-deps --target /tmp/gsw_base .) || exit 1
     BASE=1 bash "$0" info
     ;;
@@ -55,6 +59,41 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
               frustum:3000000:1920x1080 heavy:3000000:1920x1080 frustum:1000000:3840x2160 heavy:1000000:3840x2160 \
               ply:9080:1920x1080 ply:9080:3840x2160 \
       --commit "$(git rev-parse --short HEAD 2>/dev/null)+$TAG" --out "$OUT/cuda_$TAG.json" --md "$OUT/cuda_$TAG.md" 2>&1 | tail -60
+    ;;
+  lego)  # a lego model trained on this machine for 60 s (once per machine), against gsplat at 1x and 2x render size
+    P=$(find build/train_lego -name point_cloud.ply 2>/dev/null | sort | tail -1)
+    if [ -z "$P" ]; then
+      python3 benchmarks/train_lego.py --device cuda --preset inria --time-budget-s 60 --data build/gpu/lego \
+        --no-progress --tag "train_lego_cuda_$3" > /tmp/train_lego.log 2>&1 || { tail -20 /tmp/train_lego.log; exit 1; }
+      cp "benchmarks/results/train_lego_cuda_$3.json" "$2/" 2>/dev/null
+      P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
+    fi
+    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 \
+      --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -12
+    ;;
+  ncu)  # Nsight Compute on the blend forward and the contribution kernel of one case (the second forward, the first
+        # contribution after a warm-up forward), clocks left alone
+    CASE=${3:-frustum:1000000:3840x2160}
+    ncu --clock-control none -k regex:'forward_kernel|contribution_kernel' --launch-skip 1 --launch-count 2 \
+      --section SpeedOfLight --section Occupancy --section LaunchStats --section WarpStateStats \
+      --section SchedulerStats --section MemoryWorkloadAnalysis --section ComputeWorkloadAnalysis \
+      "${PY[@]}" -c "
+import sys, torch, gsw
+sys.path.insert(0, 'benchmarks')
+from bench_cuda import make_scene
+f, n, s = '$CASE'.split(':'); w, h = map(int, s.split('x'))
+g, cam = make_scene(f, int(n), w, h, 'build/gpu/ply/sh3_fixture/point_cloud.ply')
+wt = torch.rand(3, h, w, device='cuda')
+with torch.no_grad():
+    gsw.rasterize(g, cam, validate=False); gsw.rasterize(g, cam, validate=False)
+gsw.contribution(g, cam, wt); gsw.contribution(g, cam, wt)
+torch.cuda.synchronize()
+" > "$2/ncu_${CASE//:/_}.txt" 2>&1; grep -E "Duration|Throughput|Warp Cycles Per Issued|Achieved Occupancy|Registers Per|Stall|Issued Warp|No Eligible|One or More" "$2/ncu_${CASE//:/_}.txt" | head -60
+    ;;
+  memory)  # what is live at the peak of one forward+backward, gsw and gsplat
+    "${PY[@]}" benchmarks/memory_peak.py --ply build/gpu/ply/sh3_fixture/point_cloud.ply --out "$2/memory_peak_${3:-new}.json" \
+      --cases frustum:100000:800x800 frustum:1000000:1920x1080 frustum:1000000:3840x2160 ply:9080:1920x1080 \
+              ply:9080:3840x2160 heavy:1000000:1920x1080 2>&1 | grep -v Warning | cut -c1-160
     ;;
   kernels)
     "${PY[@]}" benchmarks/kernel_times.py --ply build/gpu/ply/sh3_fixture/point_cloud.ply --json "$2/kernel_times_${3:-new}.json" \

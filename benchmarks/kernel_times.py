@@ -1,8 +1,9 @@
 """Per-kernel GPU time of gsw's forward and forward+backward (torch.profiler), to see where a render's time goes.
 
 For each case (family:N:WxH, the scenes of bench_cuda.py) it runs `--reps` forwards (`validate=False`, no grad) and
-`--reps` forward+backwards (loss = sum(image * fixed weights)) under the profiler after `--warmup` untimed runs and
-prints every CUDA kernel's (and memcpy/memset's) mean time per iteration, largest first, with its share.
+`--reps` forward+backwards (loss = sum(image * fixed weights); gradients reset before each, so none is accumulated)
+and `--reps` contributions (`gsw.contribution` with 3 weight channels) under the profiler after `--warmup` untimed
+runs and prints every CUDA kernel's (and memcpy/memset's) mean time per iteration, largest first, with its share.
 
     python benchmarks/kernel_times.py --cases heavy:1000000:1920x1080 frustum:3000000:1920x1080 --json out.json
 """
@@ -65,12 +66,18 @@ def main() -> None:
         params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
 
         def fwdbwd():
+            for p in params:
+                p.grad = None
             gg = gsw.Gaussians(*params)
             (gsw.rasterize(gg, cam, validate=False).image * weights).sum().backward()
 
-        row = dict(case=case, forward=profile(fwd, args.reps, args.warmup), fwdbwd=profile(fwdbwd, args.reps, args.warmup))
+        def contrib():
+            gsw.contribution(g, cam, weights)
+
+        row = dict(case=case, forward=profile(fwd, args.reps, args.warmup), fwdbwd=profile(fwdbwd, args.reps, args.warmup),
+                   contribution=profile(contrib, args.reps, args.warmup))
         out.append(row)
-        for phase in ("forward", "fwdbwd"):
+        for phase in ("forward", "fwdbwd", "contribution"):
             total = sum(t for _, t in row[phase])
             print(f"{case} {phase}: {total:.3f} ms of kernels")
             for name, t in row[phase][:14]:

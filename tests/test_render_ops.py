@@ -46,7 +46,7 @@ def test_ops_pass_opcheck() -> None:
                                                     torch.rand_like(depth)), test_utils=OPCHECKS)
     # the restored bins are the binning's
     fresh = _ops.bins(m2d, conics, opac, radii, depths, cam.width, cam.height)
-    restored = _ops.restore_bins(m2d, cam.width, cam.height, *bin_tensors)
+    restored = _ops.restore_bins(cam.width, cam.height, *bin_tensors)
     for name in _ops.BIN_FIELDS:
         assert torch.equal(getattr(restored, name), getattr(fresh, name)), name
     assert restored.num_intersections == fresh.num_intersections > 0
@@ -154,3 +154,32 @@ def test_traced_calls_go_through_the_op() -> None:
         assert _ops._traced(tuple(fake))
         radii = _ops.call(_ops.project, *fake)[0]
     assert radii.shape == (7,) and type(radii) is not torch.Tensor  # a fake tensor from the op's fake kernel
+
+
+def test_calls_inside_a_functorch_transform_are_traced() -> None:
+    g, cam = _scene(n=7)
+    real = tuple(_detach(t) for t in _project_args(g, cam))
+    seen = []
+
+    def probe(x):
+        seen.append(_ops._traced((x, *real[1:])))
+        return x
+
+    torch.func.vmap(probe)(real[0][None])
+    assert seen == [True]
+
+
+def test_restored_bins_reject_tensors_of_another_binning() -> None:
+    g, cam = _scene(n=30)
+    pargs = _project_args(g, cam)
+    radii, m2d, conics, depths, _, opac, _ = _ops.project(*pargs)
+    b = _ops.bins(m2d, conics, opac, radii, depths, cam.width, cam.height)
+    t = [b.tile_offsets, b.gauss_ids, b.entry_offsets, b.entry_slots]
+    with pytest.raises(RuntimeError, match="tile_offsets"):  # another image size
+        _ops.restore_bins(cam.width + 16, cam.height, *t)
+    with pytest.raises(RuntimeError, match="entry_slots"):  # lengths disagree
+        _ops.restore_bins(cam.width, cam.height, t[0], t[1], t[2], t[3][:-1])
+    with pytest.raises(RuntimeError, match="gauss_ids"):
+        _ops.restore_bins(cam.width, cam.height, t[0], t[1].long(), t[2], t[3])
+    with pytest.raises(RuntimeError, match="width/height"):
+        _ops.restore_bins(0, cam.height, *t)

@@ -355,6 +355,26 @@ Bins bin_gaussians(const Tensor& means2d, const Tensor& conics, const Tensor& op
   return b;
 }
 
+// A binning made earlier, from its tensors (e.g. those a render saved for its backward): checks
+// that they are one consistent binning for the image size, copies nothing.
+Bins bins_from_tensors(const Tensor& tile_offsets, const Tensor& gauss_ids, const Tensor& entry_offsets,
+                       const Tensor& entry_slots, int width, int height) {
+  GSW_CHECK_ARG(width > 0 && height > 0, "width/height", "must be positive");
+  Bins b;
+  b.tiles_x = tiles_along(width);
+  b.tiles_y = tiles_along(height);
+  check_int_tensor(tile_offsets, "tile_offsets", tile_offsets, int64_t(b.tiles_x) * b.tiles_y + 1);
+  check_int_tensor(gauss_ids, "gauss_ids", tile_offsets, -1);
+  check_int_tensor(entry_offsets, "entry_offsets", tile_offsets, -1);
+  GSW_CHECK_ARG(entry_offsets.numel() >= 1, "entry_offsets", "must hold N + 1 >= 1 elements");
+  check_int_tensor(entry_slots, "entry_slots", tile_offsets, gauss_ids.numel());
+  b.tile_offsets = tile_offsets;
+  b.gauss_ids = gauss_ids;
+  b.entry_offsets = entry_offsets;
+  b.entry_slots = entry_slots;
+  return b;
+}
+
 // ------------------------------------------------------------------ blending
 
 struct SplatArgs {
@@ -514,6 +534,9 @@ py::tuple contribution(const Tensor& means2d, const Tensor& conics, const Tensor
 void register_ops(py::module_& m) {
   py::class_<Bins>(m, "TileBins",
                    "Tile binning of projected Gaussians: per tile, its Gaussians front to back.")
+      .def(py::init(&bins_from_tensors), py::arg("tile_offsets"), py::arg("gauss_ids"), py::arg("entry_offsets"),
+           py::arg("entry_slots"), py::arg("width"), py::arg("height"),
+           "A binning from the tensors of an earlier one (no copy; shapes, dtypes and devices checked)")
       .def_readonly("tiles_x", &Bins::tiles_x)
       .def_readonly("tiles_y", &Bins::tiles_y)
       .def_readonly("tile_offsets", &Bins::tile_offsets, "[tiles_y * tiles_x + 1] int32")

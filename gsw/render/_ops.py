@@ -48,7 +48,9 @@ def bins(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, dept
 
 
 def _c(t: Tensor) -> Tensor:
-    return t.detach().contiguous()
+    # No detach(): the ops run with gradients off (inside autograd functions and backward passes, or as custom-op
+    # implementations) and read their inputs' data only.
+    return t.contiguous()
 
 
 # ----------------------------------------------------------------------------------------------- projection
@@ -109,14 +111,15 @@ def _project_setup(ctx, inputs, output) -> None:
 
 def _project_backward(ctx, _v_radii, v_means2d, v_conics, v_depths, v_colors, v_opacities, _v_flags):
     means, quats, log_scales, opacity_logits, sh, viewmat, radii, conics, colors, opacities = ctx.saved_tensors
-    z = torch.zeros_like
     a = ctx.args
+    cotangents = [v_means2d, v_conics, v_depths, v_colors, v_opacities]
+    if any(v is None for v in cotangents):  # outputs that got no gradient: zeros of their shapes
+        n = means.shape[0]
+        shapes = ((n, 2), (n, 3), (n,), (n, 3), (n,))
+        cotangents = [means.new_zeros(s) if v is None else v for v, s in zip(cotangents, shapes)]
     grads = call(
         project_backward, means, quats, log_scales, opacity_logits, sh, a["sh_degree"], viewmat, a["fx"], a["fy"],
-        a["cx"], a["cy"], a["width"], a["height"], radii, conics, colors, opacities,
-        *(g if g is not None else z(like) for g, like in ((v_means2d, means[:, :2]), (v_conics, conics),
-                                                         (v_depths, opacities), (v_colors, colors),
-                                                         (v_opacities, opacities))))
+        a["cx"], a["cy"], a["width"], a["height"], radii, conics, colors, opacities, *cotangents)
     return (*grads, None, None, None, None, None, None, None, None, None)
 
 
@@ -133,20 +136,12 @@ def _raise_if_flagged(b: Any) -> None:
 BIN_FIELDS = ("tile_offsets", "gauss_ids", "entry_offsets", "entry_slots")
 
 
-def restore_bins(means2d: Tensor, width: int, height: int, tile_offsets: Tensor, gauss_ids: Tensor,
-                 entry_offsets: Tensor, entry_slots: Tensor) -> Any:
-    """A ``_C.TileBins`` holding the given bin tensors (outputs of ``gsw::rasterize``), without binning again.
-
-    The binding has no constructor from tensors: an empty binning for the image size is made (no intersections,
-    no host synchronisation) and its tensors are pointed at the given ones (``Tensor.set_`` on the tensors the
-    binding exposes, which share their implementation with the C++ struct).
-    """
-    b = _C.bin_gaussians(means2d.new_zeros((0, 2)), means2d.new_zeros((0, 3)), means2d.new_zeros((0,)),
-                         torch.zeros(0, dtype=torch.int32, device=means2d.device), means2d.new_zeros((0,)),
-                         int(width), int(height))
-    for name, t in zip(BIN_FIELDS, (tile_offsets, gauss_ids, entry_offsets, entry_slots)):
-        getattr(b, name).set_(t.contiguous())
-    return b
+def restore_bins(width: int, height: int, tile_offsets: Tensor, gauss_ids: Tensor, entry_offsets: Tensor,
+                 entry_slots: Tensor) -> Any:
+    """A ``_C.TileBins`` over the given bin tensors (outputs of ``gsw::rasterize``), without binning again (no
+    copy, no host synchronisation; the binding checks that they form one binning for the image size)."""
+    return _C.TileBins(tile_offsets.contiguous(), gauss_ids.contiguous(), entry_offsets.contiguous(),
+                       entry_slots.contiguous(), int(width), int(height))
 
 
 def _rasterize_impl(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
@@ -183,7 +178,7 @@ def _rasterize_backward_impl(means2d: Tensor, conics: Tensor, colors: Tensor, op
                              v_image: Tensor, v_alpha: Tensor | None, v_depth: Tensor | None
                              ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """VJP of ``gsw::rasterize`` on its bins: (v_means2d, v_conics, v_colors, v_opacities, v_depths)."""
-    b = restore_bins(means2d, width, height, tile_offsets, gauss_ids, entry_offsets, entry_slots)
+    b = restore_bins(width, height, tile_offsets, gauss_ids, entry_offsets, entry_slots)
     return tuple(_C.rasterize_backward(
         _c(means2d), _c(conics), _c(colors), _c(opacities), _c(depths), _c(background), bins=b, width=width,
         height=height, final_T=_c(final_T), n_contrib=_c(n_contrib), v_image=_c(v_image),
@@ -275,11 +270,12 @@ _EAGER = {
 
 def _traced(args: tuple) -> bool:
     """Whether a call must go through the custom op: under ``torch.compile``, a dispatch mode (fake tensors, AOT
-    autograd's tracing) or a functorch transform, or with tensor subclasses."""
-    if torch.compiler.is_compiling() or torch._C._len_torch_dispatch_stack() > 0:
+    autograd's tracing) or a functorch transform (vmap, grad, ...), or with tensor subclasses."""
+    if (torch.compiler.is_compiling() or torch._C._len_torch_dispatch_stack() > 0
+            or torch._C._functorch.peek_interpreter_stack() is not None):
         return True
-    return any(isinstance(a, Tensor) and (type(a) is not Tensor and not isinstance(a, torch.nn.Parameter)
-                                          or torch._C._functorch.is_functorch_wrapped_tensor(a)) for a in args)
+    return any(type(a) is not Tensor and isinstance(a, Tensor) and not isinstance(a, torch.nn.Parameter)
+               for a in args)
 
 
 def call(op, *args):

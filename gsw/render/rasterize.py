@@ -182,7 +182,7 @@ class RenderOutput:
     @cached_property
     def bins(self) -> TileBins:
         """The render's tile binning (a ``TileBins`` over :attr:`bin_tensors`; `nonfinite` is 0)."""
-        return _ops.restore_bins(self.projection.means2d, self.width, self.height, *self.bin_tensors)
+        return _ops.restore_bins(self.width, self.height, *self.bin_tensors)
 
     @property
     def radii(self) -> Tensor:
@@ -323,7 +323,8 @@ def contribution(gaussians: Gaussians, camera: Camera, weights: Tensor) -> Contr
     if weights.dim() != 3 or tuple(weights.shape[1:]) != (camera.height, camera.width):
         raise ValueError(f"weights must have shape [C, {camera.height}, {camera.width}], "
                          f"got {list(weights.shape)}")
-    zeros = torch.zeros_like(gaussians.means)
+    # Colours play no part in the contribution: the means stand in for the colour override ([N, 3], nothing
+    # allocated or filled for it).
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales,
-                   gaussians.opacity_logits, zeros, camera, -1)
+                   gaussians.opacity_logits, gaussians.means, camera, -1)
     return contribution_from_projection(proj, weights.to(gaussians.means.device), camera.width, camera.height)

@@ -1,0 +1,125 @@
+"""What is allocated at the peak of one forward+backward: gsw against gsplat 1.5.3 (`packed=False`), per tensor.
+
+For each case, one forward+backward of each renderer (the `fwdbwd` of `bench_cuda.py`: loss = sum(image * fixed
+weights), gradients reset before) runs under `torch.cuda.memory._record_memory_history`. The allocation events of
+that run are replayed (allocated at `alloc`, released at `free_requested`: the caching allocator's logical size,
+what `torch.cuda.max_memory_allocated` counts); at the largest total, the live allocations made during the run are
+listed with the Python line that made them (innermost frame in gsw, gsplat or this script; C++ allocations carry
+the line of the op call that made them) and their sizes. Memory allocated before the run (inputs, parameters,
+weights) is not counted, as in `bench_cuda.py`'s peak.
+
+    python benchmarks/memory_peak.py --cases frustum:1000000:1920x1080 ply:9080:3840x2160 --ply PLY --out OUT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import sys
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_cuda import env_info, make_scene  # noqa: E402
+
+import gsw  # noqa: E402
+from gsw.gaussians import Gaussians  # noqa: E402
+
+_OURS = ("/gsw/", "/gsplat/", "memory_peak.py")
+
+
+def _site(frames: list[dict]) -> str:
+    """The innermost frame in gsw, gsplat or this script, as 'file:line function'."""
+    for f in frames:
+        name = f.get("filename", "")
+        if any(k in name for k in _OURS) and "/torch/" not in name:
+            short = name.split("/gsw/")[-1] if "/gsw/" in name else name.split("/")[-1]
+            return f"{short}:{f.get('line')} {f.get('name')}"
+    return "(no gsw/gsplat frame)"
+
+
+def peak_breakdown(fn) -> dict:
+    """Runs fn once under the allocator's history; returns the peak (MiB, over what was live before) and the live
+    allocations at it, grouped by allocation site."""
+    torch.cuda.synchronize()
+    torch.cuda.memory._record_memory_history(max_entries=1_000_000, stacks="python")
+    try:
+        fn()
+        torch.cuda.synchronize()
+        snap = torch.cuda.memory._snapshot()
+    finally:
+        torch.cuda.memory._record_memory_history(enabled=None)
+    trace = snap["device_traces"][torch.cuda.current_device()]
+    live: dict[int, tuple[int, str]] = {}
+    total = best = 0
+    best_live: dict[int, tuple[int, str]] = {}
+    for ev in trace:
+        if ev["action"] == "alloc":
+            live[ev["addr"]] = (ev["size"], _site(ev.get("frames", [])))
+            total += ev["size"]
+            if total > best:
+                best, best_live = total, dict(live)
+        elif ev["action"] == "free_requested" and ev["addr"] in live:
+            total -= live.pop(ev["addr"])[0]
+    groups: dict[str, list[int]] = collections.defaultdict(list)
+    for size, site in best_live.values():
+        groups[site].append(size)
+    rows = sorted(({"site": s, "mib": sum(v) / 2**20, "tensors": len(v),
+                    "sizes_mib": sorted((round(x / 2**20, 2) for x in v), reverse=True)[:8]}
+                   for s, v in groups.items()), key=lambda r: -r["mib"])
+    return {"peak_mib": best / 2**20, "live_at_peak": rows}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", nargs="+", default=["frustum:1000000:1920x1080"])
+    ap.add_argument("--ply", default=None)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    import gsplat
+
+    result = {"env": env_info(os.environ.get("GSW_COMMIT", "?")), "cases": []}
+    for case in args.cases:
+        family, n, size = case.split(":")
+        w, h = (int(v) for v in size.split("x"))
+        g, cam = make_scene(family, int(n), w, h, args.ply)
+        w_img = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
+        params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits,
+                                                                 g.sh)]
+        g_train = Gaussians(*params)
+
+        def gsw_fwdbwd():
+            (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
+
+        scales = g.log_scales.exp().contiguous()
+        opac = torch.sigmoid(g.opacity_logits).contiguous()
+        gp = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, scales, opac, g.sh)]
+        viewmats = cam.viewmat.float().cuda()[None]
+        Ks = cam.K.float().cuda()[None]
+        w_hwc = w_img.permute(1, 2, 0)[None].contiguous()
+
+        def gsplat_fwdbwd():
+            img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
+            (img * w_hwc).sum().backward()
+
+        row: dict = {"case": case}
+        for name, fn, ps in (("gsw", gsw_fwdbwd, params), ("gsplat_unpacked", gsplat_fwdbwd, gp)):
+            for _ in range(2):  # warm-up (gsplat's JIT, the caching allocator)
+                fn()
+                for p in ps:
+                    p.grad = None
+            row[name] = peak_breakdown(fn)
+            for p in ps:
+                p.grad = None
+            print(f"{case} {name}: peak {row[name]['peak_mib']:.1f} MiB", flush=True)
+            for r in row[name]["live_at_peak"][:10]:
+                print(f"    {r['mib']:8.1f} MiB  {r['tensors']:3d} x  {r['site']}  {r['sizes_mib'][:4]}", flush=True)
+        result["cases"].append(row)
+    with open(args.out, "w") as f:
+        json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
