@@ -22,7 +22,10 @@ tensors to the image:
 gsplat runs with `packed=True` (its default) and `packed=False`; each gsw time is compared with the faster
 mode of that measurement. gsplat gets pre-activated scales/opacities (its API takes them; the activation is
 not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak memory is
-`torch.cuda.max_memory_allocated()` during one run minus what was allocated before it.
+`torch.cuda.max_memory_allocated()` during one run minus what was allocated before it; a forward+backward keeps
+the rendered image alone, for both renderers (gsw's alpha, depth and bins, gsplat's alphas and meta are dropped
+before the backward). gsw's blend backward holds at most its records budget at once (`GSW_BLEND_RECORDS_MIB`,
+csrc/core/params.h: by default max(8 MiB, 12 bytes per pixel)); set it to 0 in the environment for no limit.
 
 `--breakdown` also times each gsw op alone, with the ellipse tile assignment (csrc/core/tiles.h) and with every
 tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
@@ -158,8 +161,10 @@ def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.T
             p.grad = None
 
     def fwdbwd(validate: bool = False):
-        out = gsw.rasterize(g_train, cam, validate=validate)
-        (out.image * w_img).sum().backward()
+        # The image alone is kept, as gsplat's is below (its alphas and meta are not): the other outputs are freed
+        # before the backward, except what the backward itself saved.
+        image = gsw.rasterize(g_train, cam, validate=validate).image
+        (image * w_img).sum().backward()
         return params[0].grad
 
     def contrib():

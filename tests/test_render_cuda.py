@@ -323,7 +323,9 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
     """Above 64 MiB of records the blend backward allocates records only for the splats in front of each tile's
     last blended one (csrc/core/params.h BlendRecords): on a heavy scene at 1080p in float64 (2M intersections,
     about half behind every pixel's last blended splat) the gradients equal the CPU's, repeat bit for bit, and the
-    backward's extra memory over the atomic variant (no records) is the visited records, not all M."""
+    backward's extra memory over the atomic variant (no records) is the visited records, not all M. (Without a
+    records budget, GSW_BLEND_RECORDS_MIB=0; with one, the records come in chunks: the test after this one.)"""
+    monkeypatch.setenv("GSW_BLEND_RECORDS_MIB", "0")
     cam = Camera.from_fov(math.radians(60), 1920, 1080)
     g = heavy_scene(100_000, cam, seed=0, dtype=torch.float64)
     # Anisotropic, so that the quaternions' gradients are not rounding noise (see _scene_heavy).
@@ -348,12 +350,53 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
         del grads
     extra = peaks["px4"] - peaks["atomic"]
     assert extra <= R * 10 * 8 * 1.05 + (4 << 20), (extra, R, M)
+    # With a budget of 8 MiB the records come in chunks of at most that much.
+    monkeypatch.setenv("GSW_BLEND_RECORDS_MIB", "8")
+    torch.cuda.synchronize()
+    torch.cuda.reset_peak_memory_stats()
+    base = torch.cuda.memory_allocated()
+    chunked = _grads(gc, cam, bg, 3, w)
+    torch.cuda.synchronize()
+    assert torch.cuda.max_memory_allocated() - base - peaks["atomic"] <= (8 << 20) + (4 << 20), R * 80
+    monkeypatch.setenv("GSW_BLEND_RECORDS_MIB", "0")
     first = _grads(gc, cam, bg, 3, w)
     again = _grads(gc, cam, bg, 3, w)
     for key, ref in cpu.items():
         assert torch.equal(again[key], first[key]), key
         rel = _rel(first[key], ref)
         assert rel <= GRAD_RTOL, f"{key}: relative error {rel:.2e}"
+        assert _rel(chunked[key], ref) <= GRAD_RTOL, key
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "frustum"])
+def test_chunked_backward_matches_one_pass(name: str, dtype: torch.dtype, monkeypatch) -> None:
+    """Records over the budget (GSW_BLEND_RECORDS_MIB) are made and reduced a chunk of tiles at a time
+    (csrc/core/params.h BlendRecords): Gaussians with at most 32 intersections (summed by one thread in intersection
+    order) get the one-pass gradients bit for bit, the others (a warp's sums per chunk) to rounding; the chunked
+    gradients repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats)."""
+    g64, cam, bg, deg = SCENES[name]()
+    g = g64.to(dtype=dtype, device="cuda")
+    w = _weights(cam, dtype)
+    monkeypatch.setenv("GSW_BLEND_RECORDS_MIB", "0")
+    one_pass = _grads(g, cam, bg, deg, w)
+    out = rasterize(g, cam, sh_degree=deg)
+    entries = (out.bins.entry_offsets[1:] - out.bins.entry_offsets[:-1]).cpu()
+    serial = entries <= 32
+    m = int(out.bins.gauss_ids.numel())
+    row_mib = 10 * torch.finfo(dtype).bits / 8 / 2**20
+    cpu = _grads(g64.to(dtype=dtype), cam, bg, deg, w)
+    for rows in (1, 200, m // 3):
+        assert rows < m
+        monkeypatch.setenv("GSW_BLEND_RECORDS_MIB", repr(rows * row_mib))
+        chunked = _grads(g, cam, bg, deg, w)
+        again = _grads(g, cam, bg, deg, w)
+        for key, ref in one_pass.items():
+            assert torch.equal(again[key], chunked[key]), (key, rows)
+            if key != "background":
+                assert torch.equal(chunked[key].cpu()[serial], ref.cpu()[serial]), (key, rows)
+            assert _rel(chunked[key], ref) <= (1e-5 if dtype == torch.float32 else 1e-12), (key, rows)
+            assert _rel(chunked[key], cpu[key]) <= GRAD_RTOL, (key, rows)
 
 
 def test_backward_variant_switch_rejects_unknown_names(monkeypatch) -> None:

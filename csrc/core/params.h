@@ -117,9 +117,32 @@ struct RasterGradParams {
 // order (CUDA computes visited and its prefix sum before the backward walk). Null pointers: one
 // record per intersection at its sorted position, zeros behind the visited front (the CPU's layout:
 // its lists are mostly visited, and it then needs no search for an intersection's tile).
+//
+// A backward whose records would exceed its budget (blend_records_budget) runs in chunks of whole
+// tiles: a buffer holds one chunk's records, from row `row0` of the full layout on, and each chunk's
+// records are added to the gradients (SlotSpan) before the next chunk reuses the buffer.
 struct BlendRecords {
   const int32_t* visited = nullptr;  // [tiles] largest n_contrib of the tile's pixels
   const int32_t* offsets = nullptr;  // [tiles + 1] exclusive prefix sum of visited
+  int64_t row0 = 0;                  // the first row (of the full layout) the records buffer holds
+};
+
+// Largest number of blend backward records held at once for a P-pixel image (each kBlendGrads
+// values of value_bytes): max(8 MiB, 12 bytes per pixel), i.e. no more than the image cotangent
+// [3, H, W] the backward holds anyway, or 8 MiB on small images. `mib` overrides it when >= 0 (the
+// GSW_BLEND_RECORDS_MIB setting; 0: no limit, returned as -1). At least one row.
+inline int64_t blend_records_budget(int64_t P, int value_bytes, double mib = -1.0) {
+  if (mib == 0.0) return -1;
+  const double bytes = mib > 0.0 ? mib * 1048576.0 : (12.0 * double(P) > 8388608.0 ? 12.0 * double(P) : 8388608.0);
+  const int64_t rows = static_cast<int64_t>(bytes / (double(kBlendGrads) * value_bytes));
+  return rows > 0 ? rows : 1;
+}
+
+// The intersections (sorted positions [lo, hi)) whose records a reduction adds up; `accumulate`: onto
+// the gradients already stored (a chunk after the first), else from zero.
+struct SlotSpan {
+  int32_t lo = 0, hi = INT32_MAX;
+  bool accumulate = false;
 };
 
 // The last tile t in [lo, lo + span) (or [lo, tiles) if tile_offsets[lo + span] <= s) with
@@ -144,14 +167,14 @@ GSW_HD int32_t tile_of_slot(const int32_t* tile_offsets, int32_t tiles, int32_t 
 template <typename T>
 GSW_HD const T* blend_record(const TileBins& bins, const BlendRecords& layout, const T* records, int32_t s,
                              int32_t& t) {
-  if (layout.visited == nullptr) return records + int64_t(kBlendGrads) * s;
+  if (layout.visited == nullptr) return records + int64_t(kBlendGrads) * (s - layout.row0);
   const int32_t tiles = bins.tiles_x * bins.tiles_y;
   const int32_t* to = bins.tile_offsets;
   const int32_t next = t + 1;
   t = next + 1 < tiles && to[next + 1] <= s ? tile_of_slot(to, tiles, next + 1, t < 0 ? tiles : 2 * bins.tiles_x, s)
                                              : next;
   const int32_t pos = s - to[t];
-  return pos < layout.visited[t] ? records + int64_t(kBlendGrads) * (layout.offsets[t] + pos) : nullptr;
+  return pos < layout.visited[t] ? records + int64_t(kBlendGrads) * (layout.offsets[t] + pos - layout.row0) : nullptr;
 }
 
 // Gaussian i's blend cotangents, acc in record order (kBlendGrads values).
@@ -167,21 +190,51 @@ GSW_HD void store_blend_grads(const RasterGradParams<T>& g, int64_t i, const T* 
   g.v_depths[i] = acc[9];
 }
 
+// Gaussian i's stored blend cotangents, in record order (kBlendGrads values).
+template <typename T>
+GSW_HD void load_blend_grads(const RasterGradParams<T>& g, int64_t i, T* acc) {
+  acc[0] = g.v_means2d[2 * i];
+  acc[1] = g.v_means2d[2 * i + 1];
+  GSW_UNROLL
+  for (int k = 0; k < 3; ++k) acc[2 + k] = g.v_conics[3 * i + k];
+  acc[5] = g.v_opacities[i];
+  GSW_UNROLL
+  for (int k = 0; k < 3; ++k) acc[6 + k] = g.v_colors[3 * i + k];
+  acc[9] = g.v_depths[i];
+}
+
+// Whether Gaussian i has an intersection in `span` (its sorted positions grow with e: binning emits
+// a footprint's tiles in row-major order).
+GSW_HD bool has_slots_in(const TileBins& bins, int64_t i, const SlotSpan& span) {
+  const int32_t e0 = bins.entry_offsets[i], e1 = bins.entry_offsets[i + 1];
+  return e0 < e1 && bins.entry_slots[e1 - 1] >= span.lo && bins.entry_slots[e0] < span.hi;
+}
+
 // Blend backward, second pass: Gaussian i's cotangents are the sum of its visited intersections'
 // records (kBlendGrads values each, in kBlendGrads order), added in intersection order e =
 // entry_offsets[i] .. entry_offsets[i + 1] - 1 from zero; an intersection behind its tile's visited
 // front contributes nothing. A fixed order with no atomics: the gradients are the same bits on
 // every run. (The CPU backend reduces every Gaussian so; CUDA those with few intersections, and the
-// others with a warp each in another fixed order, see rasterize_cuda.cu.)
+// others with a warp each in another fixed order, see rasterize_cuda.cu.) A chunked backward adds
+// each chunk's intersections (`span`) in the same order onto the stored sums, which gives the same
+// bits as one pass; Gaussians with none in the span are left as they are.
 template <typename T>
 GSW_HD void reduce_blend_grads(const TileBins& bins, const BlendRecords& layout, const T* records,
-                               const RasterGradParams<T>& g, int64_t i) {
+                               const RasterGradParams<T>& g, int64_t i, const SlotSpan& span = SlotSpan{}) {
   T acc[kBlendGrads];
-  GSW_UNROLL
-  for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
+  if (span.accumulate) {
+    if (!has_slots_in(bins, i, span)) return;
+    load_blend_grads(g, i, acc);
+  } else {
+    GSW_UNROLL
+    for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
+  }
   int32_t t = -1;
   for (int32_t e = bins.entry_offsets[i]; e < bins.entry_offsets[i + 1]; ++e) {
-    const T* r = blend_record(bins, layout, records, bins.entry_slots[e], t);
+    const int32_t s = bins.entry_slots[e];
+    if (s < span.lo) continue;
+    if (s >= span.hi) break;
+    const T* r = blend_record(bins, layout, records, s, t);
     if (r == nullptr) continue;
     GSW_UNROLL
     for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];

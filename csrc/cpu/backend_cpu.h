@@ -33,9 +33,10 @@ void fill_bins(const BinParams<T>& p, TileLists& lists, int32_t* tile_offsets, i
 
 template <typename T>
 void rasterize_forward(const RasterParams<T>& p);
-// `scratch` holds M * kBlendGrads values (core/constants.h): one record per intersection.
+// One record of kBlendGrads values (core/constants.h) per intersection, at most `budget_rows` of them
+// at once (whole tiles per chunk; < 0: no limit; see BlendRecords in core/params.h).
 template <typename T>
-void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch);
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, int64_t budget_rows);
 // `scratch` holds M * (C + 2) values.
 template <typename T>
 void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* scratch);

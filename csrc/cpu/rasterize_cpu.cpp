@@ -476,16 +476,17 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
   }
 }
 
-// Backward blending of one tile: per-splat cotangent records into scratch[slot] (`splats`,
+// Backward blending of one tile: per-splat cotangent records into scratch[slot - row0] (`splats`,
 // `count`: reusable per-thread storage).
 template <typename T>
 GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradParams<T>& g,
                                   const PackedSplat<T>* recs, int64_t tile,
-                                  std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* scratch) {
+                                  std::vector<PackedSplat<T>>& splats, std::vector<int32_t>& count, T* scratch,
+                                  int64_t row0) {
   constexpr int S = kBlendGrads;
   const TileView v = tile_view(p, tile);
   gather_splats(p, recs, v, splats);
-  T* out = scratch + int64_t(S) * v.start;
+  T* out = scratch + int64_t(S) * (v.start - row0);
   BackwardPixels<T> px;
   load_backward_pixels(p, g, v, px, count);
   // Records of splats no pixel reaches are zero; the others are written once, by walk_back.
@@ -513,16 +514,42 @@ void rasterize_forward(const RasterParams<T>& p) {
 }
 
 template <typename T>
-void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, T* scratch) {
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, int64_t budget_rows) {
   const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
+  const int32_t* to = p.bins.tile_offsets;
+  // Chunks [t0, t1) of whole tiles with at most budget_rows intersections (a larger tile alone).
+  std::vector<std::pair<int64_t, int64_t>> chunks;
+  int64_t max_rows = 0;
+  for (int64_t t0 = 0; t0 < num_tiles;) {
+    int64_t t1 = t0 + 1;
+    while (t1 < num_tiles && (budget_rows < 0 || to[t1 + 1] - to[t0] <= budget_rows)) ++t1;
+    chunks.emplace_back(t0, t1);
+    max_rows = std::max<int64_t>(max_rows, to[t1] - to[t0]);
+    t0 = t1;
+  }
   const auto recs = pack_gaussians(p);
-  parallel_dynamic(num_tiles, [&](int64_t tile) {
-    thread_local std::vector<PackedSplat<T>> splats;
-    thread_local std::vector<int32_t> count;
-    backward_tile(p, g, recs.get(), tile, splats, count, scratch);
-  });
-  const BlendRecords by_slot{};  // one record per intersection, at its sorted position
-  parallel_items(p.N, [&](int64_t i) { reduce_blend_grads(p.bins, by_slot, scratch, g, i); });
+  std::unique_ptr<T[]> scratch(new T[size_t(max_rows) * kBlendGrads]);
+  const bool chunked = chunks.size() > 1;
+  if (chunked) {  // each chunk adds to the gradients
+    const size_t n = size_t(p.N);
+    std::fill(g.v_means2d, g.v_means2d + 2 * n, T(0));
+    std::fill(g.v_conics, g.v_conics + 3 * n, T(0));
+    std::fill(g.v_colors, g.v_colors + 3 * n, T(0));
+    std::fill(g.v_opacities, g.v_opacities + n, T(0));
+    std::fill(g.v_depths, g.v_depths + n, T(0));
+  }
+  for (const auto& [t0, t1] : chunks) {
+    const int64_t row0 = to[t0];
+    parallel_dynamic(t1 - t0, [&](int64_t k) {
+      thread_local std::vector<PackedSplat<T>> splats;
+      thread_local std::vector<int32_t> count;
+      backward_tile(p, g, recs.get(), t0 + k, splats, count, scratch.get(), row0);
+    });
+    // one record per intersection, at its sorted position
+    const BlendRecords by_slot{nullptr, nullptr, row0};
+    const SlotSpan span = chunked ? SlotSpan{to[t0], to[t1], true} : SlotSpan{};
+    parallel_items(p.N, [&](int64_t i) { reduce_blend_grads(p.bins, by_slot, scratch.get(), g, i, span); });
+  }
 }
 
 template <typename T>
@@ -574,10 +601,8 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& c, T* s
 
 template void rasterize_forward<float>(const RasterParams<float>&);
 template void rasterize_forward<double>(const RasterParams<double>&);
-template void rasterize_backward<float>(const RasterParams<float>&, const RasterGradParams<float>&,
-                                        float*);
-template void rasterize_backward<double>(const RasterParams<double>&, const RasterGradParams<double>&,
-                                         double*);
+template void rasterize_backward<float>(const RasterParams<float>&, const RasterGradParams<float>&, int64_t);
+template void rasterize_backward<double>(const RasterParams<double>&, const RasterGradParams<double>&, int64_t);
 template void contribution<float>(const RasterParams<float>&, const ContributionParams<float>&, float*);
 template void contribution<double>(const RasterParams<double>&, const ContributionParams<double>&,
                                    double*);

@@ -14,8 +14,9 @@
 //    tile's warps (shared memory), stores one record per visited intersection and sums them per
 //    Gaussian in intersection order, as the CPU does (bitwise deterministic, not bitwise equal to
 //    the CPU: the sums within a tile are grouped differently); its record buffer (torch's
-//    allocator) is sized for all M intersections up to 64 MiB, else, after one host
-//    synchronisation, for the visited ones only;
+//    allocator) is sized for all M intersections when they fit the budget (no synchronisation),
+//    else, after one host synchronisation, for the visited ones, in chunks of whole tiles when
+//    those exceed it (core/params.h BlendRecords);
 //  * contribution adds its per-tile totals to the per-Gaussian outputs with atomics (one per tile,
 //    after summing the warps in shared memory, except the channel sums for C other than 1 or 3:
 //    one per warp): the float sums' order is not fixed (hits and max_weight are exact);
@@ -44,9 +45,9 @@ void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
 
 template <typename T>
 void rasterize_forward(const RasterParams<T>& p);
-// Outputs of `g` need no initialisation.
+// Outputs of `g` need no initialisation. At most `budget_rows` records at once (< 0: no limit).
 template <typename T>
-void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g);
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, int64_t budget_rows);
 template <typename T>
 void contribution(const RasterParams<T>& p, const ContributionParams<T>& c);
 

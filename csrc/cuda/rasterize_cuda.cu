@@ -45,10 +45,13 @@
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
 // as on the CPU. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the tile totals to the
 // gradients with one atomic per value instead: no scratch, not bitwise deterministic.
+#include <algorithm>
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include <cub/device/device_scan.cuh>
 
@@ -69,8 +72,9 @@ constexpr int kContribWarps = kContribBlock / 32;
 static_assert(kTilePixels % kContribPixels == 0, "a thread's pixels lie in one tile column");
 static_assert(kBlock % 32 == 0 && kContribBlock % 32 == 0, "a tile must hold whole warps");
 constexpr int kVoteEvery = 8;  // splats between two "is the whole warp done?" votes
-// Blend backward records up to this size are allocated for all M intersections without a host
-// synchronisation; larger ones for the visited ones only (see rasterize_backward).
+// Without a records budget (GSW_BLEND_RECORDS_MIB=0), records up to this size are allocated for
+// all M intersections without a host synchronisation; larger ones for the visited ones only (see
+// rasterize_backward).
 constexpr size_t kRecordsNoSyncBytes = size_t(64) << 20;
 // Blend backward reduction: Gaussians with more intersections than this are reduced by a warp.
 constexpr int kSerialEntries = 32;
@@ -138,9 +142,9 @@ struct PixelCtx {
 };
 
 template <int PX, typename T>
-__device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p) {
+__device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p, int tile) {
   PixelCtx<PX> c;
-  c.tile = blockIdx.x;
+  c.tile = tile;
   const int tx = c.tile % p.bins.tiles_x, ty = c.tile / p.bins.tiles_x;
   const int t = static_cast<int>(threadIdx.x);
   c.tile_y0 = ty * TILE_SIZE;
@@ -255,7 +259,7 @@ struct ForwardVisitor {
 template <typename T>
 __global__ void __launch_bounds__(kBlock) forward_kernel(const RasterParams<T> p) {
   __shared__ SplatColor<T> s_col[kBatch];
-  const PixelCtx<1> c = pixel_ctx<1>(p);
+  const PixelCtx<1> c = pixel_ctx<1>(p, blockIdx.x);
   ForwardVisitor<T> vis{p, s_col};
   T tr[1];
   int32_t last[1];
@@ -374,7 +378,7 @@ template <typename T, int CT>
 __global__ void __launch_bounds__(kContribBlock)
     contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp) {
   __shared__ ContributionShared<T, CT> sh;
-  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p);
+  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, blockIdx.x);
   const int64_t P = int64_t(p.width) * p.height;
   ContributionVisitor<T, CT> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
@@ -523,18 +527,18 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
   }
 }
 
-// Blend backward with PX vertically adjacent pixels per thread (see the file comment).
-// `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
-// layout.offsets[tile] + [0, layout.visited[tile]) are all written.
+// Blend backward with PX vertically adjacent pixels per thread (see the file comment), block b on
+// tile tile0 + b. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's
+// rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
 template <typename T, int PX, bool Atomic>
 __global__ void __launch_bounds__(kTilePixels / PX)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                    T* __restrict__ records) {
+                    T* __restrict__ records, int tile0) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
   __shared__ Shared sh;
-  const PixelCtx<PX> c = pixel_ctx<PX>(p);
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, tile0 + static_cast<int>(blockIdx.x));
   const T pxc = T(c.px) + T(0.5);
   BackPixel<T> px[PX];
   int n_max = 0;
@@ -547,7 +551,7 @@ __global__ void __launch_bounds__(kTilePixels / PX)
   // splats in front of its own largest.
   const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
   const int max_n = layout.visited[c.tile];
-  T* const tile_records = Atomic ? nullptr : records + int64_t(kBlendGrads) * layout.offsets[c.tile];
+  T* const tile_records = Atomic ? nullptr : records + int64_t(kBlendGrads) * (layout.offsets[c.tile] - layout.row0);
   const int t = static_cast<int>(threadIdx.x);
   for (int hi = max_n; hi > 0; hi -= kThreads) {
     const int lo = hi > kThreads ? hi - kThreads : 0;
@@ -573,7 +577,7 @@ __global__ void __launch_bounds__(kTilePixels / PX)
 template <typename T>
 __global__ void __launch_bounds__(kBlock) tile_visited_kernel(const RasterParams<T> p, int32_t* __restrict__ visited) {
   __shared__ int32_t tile_max;
-  const PixelCtx<1> c = pixel_ctx<1>(p);
+  const PixelCtx<1> c = pixel_ctx<1>(p, blockIdx.x);
   const int n = c.inside() ? p.n_contrib[c.pix] : 0;
   if (threadIdx.x == 0) tile_max = 0;
   __syncthreads();
@@ -586,18 +590,27 @@ __global__ void __launch_bounds__(kBlock) tile_visited_kernel(const RasterParams
   }
 }
 
-// Second pass, Gaussians with at most kSerialEntries intersections: each one's records summed in
-// intersection order by one thread (reduce_blend_grads, as on the CPU); the others are appended to
-// `big` (big[0]: their count, zeroed by the caller) for reduce_big_kernel.
+// The intersections of tiles [t0, t1) (a chunk of a chunked backward, added onto the stored sums)
+// or, for the whole image in one pass, all of them from zero.
+__device__ __forceinline__ SlotSpan chunk_span(const TileBins& bins, int t0, int t1) {
+  if (t0 == 0 && t1 == bins.tiles_x * bins.tiles_y) return SlotSpan{};
+  return SlotSpan{bins.tile_offsets[t0], bins.tile_offsets[t1], true};
+}
+
+// Second pass, Gaussians with at most kSerialEntries intersections: each one's records of tiles
+// [t0, t1) summed in intersection order by one thread (reduce_blend_grads, as on the CPU); the
+// others with intersections there are appended to `big` (big[0]: their count, zeroed by the
+// caller) for reduce_big_kernel.
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
     reduce_blend_grads_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                              const T* __restrict__ records, int32_t* __restrict__ big) {
+                              const T* __restrict__ records, int32_t* __restrict__ big, int t0, int t1) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= p.N) return;
+  const SlotSpan span = chunk_span(p.bins, t0, t1);
   if (p.bins.entry_offsets[i + 1] - p.bins.entry_offsets[i] <= kSerialEntries)
-    reduce_blend_grads(p.bins, layout, records, g, i);
-  else
+    reduce_blend_grads(p.bins, layout, records, g, i, span);
+  else if (!span.accumulate || has_slots_in(p.bins, i, span))
     big[1 + atomicAdd(big, 1)] = static_cast<int32_t>(i);
 }
 
@@ -606,13 +619,16 @@ __global__ void __launch_bounds__(kBlock)
 // in that order, then the warp adds the lanes' sums with one transposed butterfly. The lanes and
 // the butterfly's order depend on nothing but the Gaussian, so the gradients are the same bits on
 // every run (in which order the Gaussians were appended to `big` does not matter).
+// In a chunked backward each chunk's sum of a Gaussian's records (of tiles [t0, t1)) is added to
+// its stored sums: a fixed order again.
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
     reduce_big_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                      const T* __restrict__ records, const int32_t* __restrict__ big) {
+                      const T* __restrict__ records, const int32_t* __restrict__ big, int t0, int t1) {
   const int lane = static_cast<int>(threadIdx.x & 31);
   const int64_t warps = int64_t(gridDim.x) * (blockDim.x / 32);
   const int32_t n_big = big[0];
+  const SlotSpan span = chunk_span(p.bins, t0, t1);
   for (int64_t w = int64_t(blockIdx.x) * (blockDim.x / 32) + threadIdx.x / 32; w < n_big; w += warps) {
     const int32_t i = big[1 + w];
     T acc[kBlendGrads];
@@ -620,7 +636,9 @@ __global__ void __launch_bounds__(kBlock)
     for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
     int32_t t = -1;
     for (int32_t e = p.bins.entry_offsets[i] + lane; e < p.bins.entry_offsets[i + 1]; e += 32) {
-      const T* r = blend_record(p.bins, layout, records, p.bins.entry_slots[e], t);
+      const int32_t s = p.bins.entry_slots[e];
+      if (s < span.lo || s >= span.hi) continue;
+      const T* r = blend_record(p.bins, layout, records, s, t);
       if (r == nullptr) continue;
 #pragma unroll
       for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
@@ -630,7 +648,16 @@ __global__ void __launch_bounds__(kBlock)
     __shared__ T out[kBlock / 32][kBlendGrads];
     if (index >= 0 && (lane & 1) == 0) out[threadIdx.x / 32][index] = sum;
     __syncwarp();
-    if (lane == 0) store_blend_grads(g, i, out[threadIdx.x / 32]);
+    if (lane == 0) {
+      T* o = out[threadIdx.x / 32];
+      if (span.accumulate) {
+        T stored[kBlendGrads];
+        load_blend_grads(g, i, stored);
+#pragma unroll
+        for (int k = 0; k < kBlendGrads; ++k) o[k] = stored[k] + o[k];
+      }
+      store_blend_grads(g, i, o);
+    }
     __syncwarp();
   }
 }
@@ -669,17 +696,20 @@ void rasterize_forward(const RasterParams<T>& p) {
 }
 
 template <typename T>
-void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) {
+void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, int64_t budget_rows) {
   cudaStream_t stream = current_stream();
   const int64_t tiles = num_tiles(p);
   const BackwardVariant variant = backward_variant();
-  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0 || variant == BackwardVariant::kAtomic) {
+  auto zero_grads = [&] {
     const size_t n = size_t(p.N) * sizeof(T);
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_means2d, 0, 2 * n, stream));
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_conics, 0, 3 * n, stream));
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_colors, 0, 3 * n, stream));
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_opacities, 0, n, stream));
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_depths, 0, n, stream));
+  };
+  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0 || variant == BackwardVariant::kAtomic) {
+    zero_grads();
     if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   }
   const unsigned grid = static_cast<unsigned>(tiles);
@@ -689,9 +719,9 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) 
   int32_t* offsets = visited + tiles + 1;
   tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited);
   GSW_KERNEL_CHECK();
-  const BlendRecords layout{visited, offsets};
+  BlendRecords layout{visited, offsets};
   if (variant == BackwardVariant::kAtomic) {
-    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr);
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, 0);
     GSW_KERNEL_CHECK();
     return;
   }
@@ -702,37 +732,56 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g) 
     GSW_CUDA_CHECK(
         cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, visited, offsets, static_cast<int>(tiles + 1), stream));
   }
-  // The buffer holds offsets[tiles] <= M records. Up to kRecordsNoSyncBytes it is sized for M
-  // (no host synchronisation); above, the total is read back first so that intersections behind
-  // every pixel's last blended splat take no memory.
+  // Chunks [t0, t1) of whole tiles and the rows the record buffer needs. Records of all M
+  // intersections that fit the budget are one chunk, allocated without a host synchronisation;
+  // otherwise the layout is read back first: the visited ones only, in chunks of at most
+  // budget_rows records (a tile with more is a chunk of its own).
+  std::vector<std::pair<int, int>> chunks{{0, static_cast<int>(tiles)}};
   int64_t rows = p.bins.M;
-  if (size_t(rows) * kBlendGrads * sizeof(T) > kRecordsNoSyncBytes) {
-    int32_t total = 0;
-    GSW_CUDA_CHECK(cudaMemcpyAsync(&total, offsets + tiles, sizeof(int32_t), cudaMemcpyDeviceToHost, stream));
+  std::vector<int32_t> host;  // the layout's offsets, when read back
+  if (budget_rows >= 0 ? rows > budget_rows : size_t(rows) * kBlendGrads * sizeof(T) > kRecordsNoSyncBytes) {
+    host.resize(size_t(tiles) + 1);
+    GSW_CUDA_CHECK(cudaMemcpyAsync(host.data(), offsets, sizeof(int32_t) * (tiles + 1), cudaMemcpyDeviceToHost, stream));
     GSW_CUDA_CHECK(cudaStreamSynchronize(stream));
-    rows = total;
+    rows = host[tiles];
+    if (budget_rows >= 0 && rows > budget_rows) {
+      chunks.clear();
+      rows = 0;
+      for (int64_t t0 = 0; t0 < tiles;) {
+        int64_t t1 = t0 + 1;
+        while (t1 < tiles && host[t1 + 1] - host[t0] <= budget_rows) ++t1;
+        chunks.emplace_back(static_cast<int>(t0), static_cast<int>(t1));
+        rows = std::max<int64_t>(rows, host[t1] - host[t0]);
+        t0 = t1;
+      }
+      zero_grads();  // each chunk adds to the gradients
+    }
   }
   DeviceBuffer records(size_t(rows) * kBlendGrads * sizeof(T));
   T* rec = records.as<T>();
   bool px2 = variant == BackwardVariant::kPx2;
   if constexpr (sizeof(BackwardShared<T, 2>) > 48 * 1024) px2 = false;  // float64: px2's shared memory would not fit
-  if (px2) {
-    if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
-      backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec);
-  } else {
-    backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec);
-  }
-  GSW_KERNEL_CHECK();
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
-  GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
-  reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big);
-  GSW_KERNEL_CHECK();
   int device = 0, sms = 0;
   GSW_CUDA_CHECK(cudaGetDevice(&device));
   GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
-  reduce_big_kernel<T><<<static_cast<unsigned>(8 * sms), kBlock, 0, stream>>>(p, g, layout, rec, big);
-  GSW_KERNEL_CHECK();
+  for (const auto& [t0, t1] : chunks) {
+    layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
+    const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
+    if (px2) {
+      if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
+        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, t0);
+    } else {
+      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, t0);
+    }
+    GSW_KERNEL_CHECK();
+    GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
+    reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
+    GSW_KERNEL_CHECK();
+    reduce_big_kernel<T><<<static_cast<unsigned>(8 * sms), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
+    GSW_KERNEL_CHECK();
+  }
 }
 
 template <typename T>
@@ -755,10 +804,8 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& cp) {
 
 template void rasterize_forward<float>(const RasterParams<float>&);
 template void rasterize_forward<double>(const RasterParams<double>&);
-template void rasterize_backward<float>(const RasterParams<float>&,
-                                        const RasterGradParams<float>&);
-template void rasterize_backward<double>(const RasterParams<double>&,
-                                         const RasterGradParams<double>&);
+template void rasterize_backward<float>(const RasterParams<float>&, const RasterGradParams<float>&, int64_t);
+template void rasterize_backward<double>(const RasterParams<double>&, const RasterGradParams<double>&, int64_t);
 template void contribution<float>(const RasterParams<float>&, const ContributionParams<float>&);
 template void contribution<double>(const RasterParams<double>&,
                                    const ContributionParams<double>&);

@@ -3,6 +3,7 @@
 #include "ops/ops.h"
 
 #include <cmath>
+#include <cstdlib>
 #include <string>
 #include <tuple>
 #include <utility>
@@ -448,6 +449,18 @@ py::tuple rasterize_forward(const Tensor& means2d, const Tensor& conics, const T
   return py::make_tuple(image, alpha, depth, final_T, n_contrib);
 }
 
+// The blend backward's record budget (core/params.h blend_records_budget) for this image, or the
+// GSW_BLEND_RECORDS_MIB setting (read at every call; 0: no limit).
+int64_t records_budget_rows(int64_t pixels, int value_bytes) {
+  const char* e = std::getenv("GSW_BLEND_RECORDS_MIB");
+  if (e == nullptr || *e == '\0') return blend_records_budget(pixels, value_bytes);
+  char* end = nullptr;
+  const double mib = std::strtod(e, &end);
+  TORCH_CHECK(end != e && *end == '\0' && mib >= 0.0 && std::isfinite(mib),
+              "gsw: GSW_BLEND_RECORDS_MIB must be a number of MiB >= 0 (0: no limit), not '", e, "'");
+  return blend_records_budget(pixels, value_bytes, mib);
+}
+
 py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const Tensor& colors,
                              const Tensor& opacities, const Tensor& depths,
                              const Tensor& background, const Bins& bins, int width, int height,
@@ -478,16 +491,16 @@ py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const 
     g.v_colors = v_colors.data_ptr<scalar_t>();
     g.v_opacities = v_opacities.data_ptr<scalar_t>();
     g.v_depths = v_depths.data_ptr<scalar_t>();
+    const int64_t budget = records_budget_rows(int64_t(width) * height, sizeof(scalar_t));
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
       const c10::cuda::CUDAGuard guard(means2d.device());
-      cuda::rasterize_backward(p, g);
+      cuda::rasterize_backward(p, g, budget);
 #else
       no_cuda();
 #endif
     } else {
-      Tensor scratch = torch::empty({bins.gauss_ids.numel(), kBlendGrads}, means2d.options());
-      cpu::rasterize_backward(p, g, scratch.data_ptr<scalar_t>());
+      cpu::rasterize_backward(p, g, budget);
     }
   });
   return py::make_tuple(v_means2d, v_conics, v_colors, v_opacities, v_depths);
