@@ -92,6 +92,7 @@ torch.cuda.synchronize()
     ;;
   memory)  # what is live at the peak of one forward+backward, gsw and gsplat
     "${PY[@]}" benchmarks/memory_peak.py --ply build/gpu/ply/sh3_fixture/point_cloud.ply --out "$2/memory_peak_${3:-new}.json" \
+      --commit "$(git rev-parse --short HEAD 2>/dev/null)+${3:-new}" \
       --cases frustum:100000:800x800 frustum:1000000:1920x1080 frustum:1000000:3840x2160 ply:9080:1920x1080 \
               ply:9080:3840x2160 heavy:1000000:1920x1080 2>&1 | grep -v Warning | cut -c1-160
     ;;

@@ -77,10 +77,12 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=["frustum:1000000:1920x1080"])
     ap.add_argument("--ply", default=None)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--commit", default="", help="the gsw commit measured, for the record")
     args = ap.parse_args()
     import gsplat
 
-    result = {"env": env_info(os.environ.get("GSW_COMMIT", "?")), "cases": []}
+    result = {"env": env_info(args.commit), "budget_mib_setting": os.environ.get("GSW_BLEND_RECORDS_MIB", ""),
+              "cases": []}
     for case in args.cases:
         family, n, size = case.split(":")
         w, h = (int(v) for v in size.split("x"))

@@ -57,5 +57,8 @@ constexpr double SH_COLOR_OFFSET = 0.5;
 // Layout, not a threshold: a splat's blend cotangents as one record (CPU scratch rows, CUDA warp
 // sums), in this order: mean2d x, y; conic a, b, c; opacity; colour r, g, b; depth.
 constexpr int kBlendGrads = 10;
+// Default budget of the blend backward's records held at once (MiB; core/params.h
+// blend_records_budget): a cap against running out of memory on very large renders.
+constexpr double kRecordsBudgetMiB = 256.0;
 
 }  // namespace gsw

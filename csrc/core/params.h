@@ -127,13 +127,13 @@ struct BlendRecords {
   int64_t row0 = 0;                  // the first row (of the full layout) the records buffer holds
 };
 
-// Largest number of blend backward records held at once for a P-pixel image (each kBlendGrads
-// values of value_bytes): max(8 MiB, 12 bytes per pixel), i.e. no more than the image cotangent
-// [3, H, W] the backward holds anyway, or 8 MiB on small images. `mib` overrides it when >= 0 (the
-// GSW_BLEND_RECORDS_MIB setting; 0: no limit, returned as -1). At least one row.
-inline int64_t blend_records_budget(int64_t P, int value_bytes, double mib = -1.0) {
+// Largest number of blend backward records (kBlendGrads values of value_bytes each) held at once:
+// kRecordsBudgetMiB (core/constants.h) by default (chunks cost time: each adds kernel launches and
+// a pass over the Gaussians), or `mib` when >= 0 (the GSW_BLEND_RECORDS_MIB setting; 0: no limit,
+// returned as -1). At least one row.
+inline int64_t blend_records_budget(int value_bytes, double mib = -1.0) {
   if (mib == 0.0) return -1;
-  const double bytes = mib > 0.0 ? mib * 1048576.0 : (12.0 * double(P) > 8388608.0 ? 12.0 * double(P) : 8388608.0);
+  const double bytes = (mib > 0.0 ? mib : kRecordsBudgetMiB) * 1048576.0;
   const int64_t rows = static_cast<int64_t>(bytes / (double(kBlendGrads) * value_bytes));
   return rows > 0 ? rows : 1;
 }

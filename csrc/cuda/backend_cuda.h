@@ -14,9 +14,9 @@
 //    tile's warps (shared memory), stores one record per visited intersection and sums them per
 //    Gaussian in intersection order, as the CPU does (bitwise deterministic, not bitwise equal to
 //    the CPU: the sums within a tile are grouped differently); its record buffer (torch's
-//    allocator) is sized for all M intersections when they fit the budget (no synchronisation),
-//    else, after one host synchronisation, for the visited ones, in chunks of whole tiles when
-//    those exceed it (core/params.h BlendRecords);
+//    allocator) is sized for all M intersections up to 64 MiB (no synchronisation), else, after
+//    one host synchronisation, for the visited ones, in chunks of whole tiles when those exceed the
+//    records budget (core/params.h BlendRecords);
 //  * contribution adds its per-tile totals to the per-Gaussian outputs with atomics (one per tile,
 //    after summing the warps in shared memory, except the channel sums for C other than 1 or 3:
 //    one per warp): the float sums' order is not fixed (hits and max_weight are exact);

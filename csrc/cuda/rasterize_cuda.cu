@@ -72,9 +72,8 @@ constexpr int kContribWarps = kContribBlock / 32;
 static_assert(kTilePixels % kContribPixels == 0, "a thread's pixels lie in one tile column");
 static_assert(kBlock % 32 == 0 && kContribBlock % 32 == 0, "a tile must hold whole warps");
 constexpr int kVoteEvery = 8;  // splats between two "is the whole warp done?" votes
-// Without a records budget (GSW_BLEND_RECORDS_MIB=0), records up to this size are allocated for
-// all M intersections without a host synchronisation; larger ones for the visited ones only (see
-// rasterize_backward).
+// Blend backward records up to this size (and the budget) are allocated for all M intersections
+// without a host synchronisation; larger ones for the visited ones only (see rasterize_backward).
 constexpr size_t kRecordsNoSyncBytes = size_t(64) << 20;
 // Blend backward reduction: Gaussians with more intersections than this are reduced by a warp.
 constexpr int kSerialEntries = 32;
@@ -733,13 +732,13 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
         cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, visited, offsets, static_cast<int>(tiles + 1), stream));
   }
   // Chunks [t0, t1) of whole tiles and the rows the record buffer needs. Records of all M
-  // intersections that fit the budget are one chunk, allocated without a host synchronisation;
-  // otherwise the layout is read back first: the visited ones only, in chunks of at most
-  // budget_rows records (a tile with more is a chunk of its own).
+  // intersections up to kRecordsNoSyncBytes and the budget are one chunk, allocated without a host
+  // synchronisation; otherwise the layout is read back first: the visited ones only, in chunks of
+  // at most budget_rows records (a tile with more is a chunk of its own).
   std::vector<std::pair<int, int>> chunks{{0, static_cast<int>(tiles)}};
   int64_t rows = p.bins.M;
   std::vector<int32_t> host;  // the layout's offsets, when read back
-  if (budget_rows >= 0 ? rows > budget_rows : size_t(rows) * kBlendGrads * sizeof(T) > kRecordsNoSyncBytes) {
+  if (size_t(rows) * kBlendGrads * sizeof(T) > kRecordsNoSyncBytes || (budget_rows >= 0 && rows > budget_rows)) {
     host.resize(size_t(tiles) + 1);
     GSW_CUDA_CHECK(cudaMemcpyAsync(host.data(), offsets, sizeof(int32_t) * (tiles + 1), cudaMemcpyDeviceToHost, stream));
     GSW_CUDA_CHECK(cudaStreamSynchronize(stream));

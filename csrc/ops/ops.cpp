@@ -449,16 +449,16 @@ py::tuple rasterize_forward(const Tensor& means2d, const Tensor& conics, const T
   return py::make_tuple(image, alpha, depth, final_T, n_contrib);
 }
 
-// The blend backward's record budget (core/params.h blend_records_budget) for this image, or the
+// The blend backward's record budget (core/params.h blend_records_budget): the default, or the
 // GSW_BLEND_RECORDS_MIB setting (read at every call; 0: no limit).
-int64_t records_budget_rows(int64_t pixels, int value_bytes) {
+int64_t records_budget_rows(int value_bytes) {
   const char* e = std::getenv("GSW_BLEND_RECORDS_MIB");
-  if (e == nullptr || *e == '\0') return blend_records_budget(pixels, value_bytes);
+  if (e == nullptr || *e == '\0') return blend_records_budget(value_bytes);
   char* end = nullptr;
   const double mib = std::strtod(e, &end);
   TORCH_CHECK(end != e && *end == '\0' && mib >= 0.0 && std::isfinite(mib),
               "gsw: GSW_BLEND_RECORDS_MIB must be a number of MiB >= 0 (0: no limit), not '", e, "'");
-  return blend_records_budget(pixels, value_bytes, mib);
+  return blend_records_budget(value_bytes, mib);
 }
 
 py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const Tensor& colors,
@@ -491,7 +491,7 @@ py::tuple rasterize_backward(const Tensor& means2d, const Tensor& conics, const 
     g.v_colors = v_colors.data_ptr<scalar_t>();
     g.v_opacities = v_opacities.data_ptr<scalar_t>();
     g.v_depths = v_depths.data_ptr<scalar_t>();
-    const int64_t budget = records_budget_rows(int64_t(width) * height, sizeof(scalar_t));
+    const int64_t budget = records_budget_rows(sizeof(scalar_t));
     if (means2d.is_cuda()) {
 #ifdef GSW_WITH_CUDA
       const c10::cuda::CUDAGuard guard(means2d.device());
