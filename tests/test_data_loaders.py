@@ -442,3 +442,22 @@ def test_inria_cameras_json_errors_name_the_camera_and_field(tmp_path):
     (tmp_path / "cameras.json").write_text(json.dumps(entries))
     with pytest.raises(DatasetError, match=r"cameras.json: camera 2: field 'width' must be an integer, got 128.9"):
         load_inria_model(tmp_path)
+
+
+def test_webp_frames_are_found_without_their_extension(tmp_path):
+    """NeRF-synthetic frames named without an extension may be WebP files (a compressed copy of a dataset)."""
+    pytest.importorskip("PIL.WebPImagePlugin")
+    from PIL import features
+
+    if not features.check("webp"):
+        pytest.skip("Pillow without WebP")
+    frames = _nerf_scene(tmp_path, 3)
+    for k in range(3):
+        png = tmp_path / "train" / f"r_{k}.png"
+        write_image(tmp_path / "train" / f"r_{k}.webp", read_image(png))
+        png.unlink()
+    ds = load_nerf_synthetic(tmp_path, holdout_every=0)
+    assert len(ds) == len(frames) == 3
+    with pytest.raises(DatasetError, match=r"also tried \.png/\.jpg/\.jpeg/\.webp"):
+        (tmp_path / "train" / "r_2.webp").unlink()
+        load_nerf_synthetic(tmp_path, holdout_every=0)

@@ -136,7 +136,7 @@ def _find_images(root: Path, names: Sequence[str], context: str) -> list[Path]:
     if missing:
         shown = ", ".join(missing[:10]) + (f", ... ({len(missing) - 10} more)" if len(missing) > 10 else "")
         raise DatasetError(f"{context}: {len(missing)} image{'s' if len(missing) > 1 else ''} not found: {shown} "
-                           "(also tried .png/.jpg/.jpeg)")
+                           f"(also tried {'/'.join(s for s in IMAGE_SUFFIXES if s.islower())})")
     return [p for p in found if p is not None]
 
 
