@@ -302,6 +302,13 @@ def test_embed_readout_klein_records_the_wrapper_and_verify_reads_through_it(mod
     assert "watermarked through the klein readout" in err and "pass --readout klein" in err
     assert main(["verify", "--model", str(marked[0]), "--key", KEY, "--readout", "klein", "--device", "cpu"]) == 2
     assert "pass --readout direct" in capsys.readouterr().err
+    # a watermark.json written before 2026-11-28 (the legacy short fingerprint) still names its readout
+    from gsw.eval.grid.store import legacy_decoder_fingerprint
+
+    record["decoder"]["fingerprint"] = legacy_decoder_fingerprint(_klein(48))
+    (out / "watermark.json").write_text(json.dumps(record))
+    assert main(["verify", "--model", str(out), "--key", KEY, "--device", "cpu"]) == 2
+    assert "pass --readout klein" in capsys.readouterr().err
 
 
 def test_embed_image_extract_and_verify_with_readout_klein_match_the_python_api(tmp_path, capsys) -> None:

@@ -299,6 +299,28 @@ def test_rerun_skips_finished_cells_and_recomputes_corrupt_ones(tiny_grid, tiny_
     assert not [p for p in out.rglob(".*")]  # no temporary files left
 
 
+def test_cells_recorded_with_the_legacy_decoder_fingerprint_are_reused(tiny_grid, tiny_scene, tmp_path,
+                                                                     embed_calls) -> None:
+    """The short fingerprint is the decoder sha256's prefix (gsw.decoder.null); a cell written before it was (its
+    own hash) still counts as made with that decoder."""
+    from gsw.decoder.null import decoder_fingerprint as decoder_sha256
+    from gsw.decoder.zoo import load_decoder
+    from gsw.eval.grid.store import legacy_decoder_fingerprint
+
+    d = load_decoder(32)
+    assert decoder_fingerprint(d) == decoder_sha256(d)[:16] != legacy_decoder_fingerprint(d)
+    out = tmp_path / "g"
+    shutil.copytree(tiny_grid[0], out)
+    cell = out / "cells" / "waterf-3dgs_32b_seed0.json"
+    data = json.loads(cell.read_text())
+    assert data["decoder"] == decoder_fingerprint(d)
+    data["decoder"] = legacy_decoder_fingerprint(d)
+    cell.write_text(json.dumps(data))
+    spec = dataclasses.replace(GridSpec(**TINY), methods=("waterf-3dgs",), seeds=(0,))
+    again = run_grid(spec, tiny_scene, out, progress=False)
+    assert embed_calls == [] and again.computed == 0
+
+
 def test_rerun_recomputes_cells_of_another_decoder_or_changed_defaults(tiny_grid, tiny_scene, tmp_path,
                                                                       embed_calls, monkeypatch) -> None:
     calls = embed_calls

@@ -361,11 +361,15 @@ def _check_decoder(info, num_bits: int, readout: str) -> None:
     """
     from gsw.decoder.zoo import load_decoder
     from gsw.eval.grid import decoder_fingerprint
+    from gsw.eval.grid.store import legacy_decoder_fingerprint
 
     if info is None or num_bits != info.num_bits:
         return
     shipped = load_decoder(num_bits)
-    by_print = {decoder_fingerprint(readout_decoder(r, num_bits, shipped)): r for r in READOUTS}
+    by_print = {}
+    for r in READOUTS:
+        d = readout_decoder(r, num_bits, shipped)
+        by_print.update({decoder_fingerprint(d): r, legacy_decoder_fingerprint(d): r})  # and as written before 2026-11-28
     recorded = by_print.get(info.decoder)
     if recorded is None:
         print(f"gsw verify: warning: the model was watermarked with another {num_bits}-bit decoder "

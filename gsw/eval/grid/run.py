@@ -19,7 +19,7 @@ from gsw.camera import Camera
 from gsw.eval.grid.scene import GridScene
 from gsw.eval.grid.spec import FORMAT, Cell, GridSpec
 from gsw.eval.grid.store import _claim, _default_decoder, _digest, _grid_record, _load_cell, _write_json, \
-    decoder_fingerprint
+    decoder_fingerprint, legacy_decoder_fingerprint
 from gsw.eval.grid.summary import GridSummary, aggregate, cell_metrics, detection_rates
 from gsw.eval.report import evaluate_watermark
 from gsw.gaussians import Gaussians
@@ -173,7 +173,7 @@ def run_grid(spec: GridSpec, scene: GridScene, output: str | Path, *, resume: bo
 
     write_image(out / "original.png", _first_view(scene.gaussians, scene))
     decoders = {bits: decoder_for(bits) for bits in spec.bits}
-    fingerprints = {bits: decoder_fingerprint(d) for bits, d in decoders.items()}
+    fingerprints = {bits: (decoder_fingerprint(d), legacy_decoder_fingerprint(d)) for bits, d in decoders.items()}
     original_storage: dict[str, int] | None = None
     cells, computed = [], 0
     with Progress(len(spec.cells()), "grid", enabled=progress) as bar:
@@ -183,7 +183,7 @@ def run_grid(spec: GridSpec, scene: GridScene, output: str | Path, *, resume: bo
             data = _load_cell(path, cell, digest, config, fingerprints[cell.bits]) if resume else None
             if data is None:
                 original_storage = original_storage or _storage(scene.gaussians)
-                data = {"grid": digest, "decoder": fingerprints[cell.bits],
+                data = {"grid": digest, "decoder": fingerprints[cell.bits][0],
                         **run_cell(spec, scene, cell, decoder=decoders[cell.bits], original_storage=original_storage,
                                    image_path=path.with_suffix(".png"))}
                 _write_json(path, data)

@@ -11,10 +11,11 @@ from typing import Any, Mapping
 import torch
 
 from gsw._atomic import atomic_write
+from gsw.decoder.null import decoder_fingerprint as decoder_sha256
 from gsw.eval.grid.scene import GridScene
 from gsw.eval.grid.spec import FORMAT, Cell, GridMismatchError, GridSpec
 
-__all__ = ["decoder_fingerprint"]
+__all__ = ["decoder_fingerprint", "legacy_decoder_fingerprint"]
 
 
 def _grid_record(spec: GridSpec, scene: GridScene) -> dict[str, Any]:
@@ -56,7 +57,14 @@ _CELL_KEYS = ("format", "grid", "method", "bits", "seed", "config", "message", "
 
 
 def decoder_fingerprint(decoder: torch.nn.Module) -> str:
-    """Short sha256 of a decoder's parameters and buffers (names, dtypes, shapes, values)."""
+    """Short fingerprint of a decoder's weights, as grid cells and ``watermark.json`` record it: the first 16 hex
+    digits of :func:`gsw.decoder.null.decoder_fingerprint` (the sha256 that null models and registries record)."""
+    return decoder_sha256(decoder)[:16]
+
+
+def legacy_decoder_fingerprint(decoder: torch.nn.Module) -> str:
+    """The short fingerprint gsw recorded before 2026-11-28 (a hash of its own over the state dict, not a prefix of
+    the sha256). Only read: to recognise the decoder of an older ``watermark.json`` or grid cell."""
     h = hashlib.sha256()
     for name, t in sorted(decoder.state_dict().items()):
         t = t.detach().cpu().contiguous()
@@ -66,9 +74,10 @@ def decoder_fingerprint(decoder: torch.nn.Module) -> str:
 
 
 def _load_cell(path: Path, cell: Cell, digest: str, config: dict[str, Any],
-               decoder: str) -> dict[str, Any] | None:
+               decoder: tuple[str, ...]) -> dict[str, Any] | None:
     """A finished cell of this grid, or None (missing, corrupt, or from other settings, another resolved
-    EmbedConfig (e.g. changed library defaults) or another decoder: recompute)."""
+    EmbedConfig (e.g. changed library defaults) or another decoder: recompute). ``decoder``: the fingerprints the
+    cell's decoder may be recorded under (:func:`decoder_fingerprint`, :func:`legacy_decoder_fingerprint`)."""
     if not path.exists():
         return None
     try:
@@ -83,7 +92,7 @@ def _load_cell(path: Path, cell: Cell, digest: str, config: dict[str, Any],
         warnings.warn(f"{path} was computed with other settings; recomputing the cell", RuntimeWarning,
                       stacklevel=3)
         return None
-    if data.get("decoder") != decoder:
+    if data.get("decoder") not in decoder:
         warnings.warn(f"{path} was computed with another decoder; recomputing the cell", RuntimeWarning,
                       stacklevel=3)
         return None
