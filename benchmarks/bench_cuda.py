@@ -187,18 +187,25 @@ def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.T
     return r, image
 
 
+def gsplat_inputs(g: Gaussians, cam: Camera, w_img: torch.Tensor):
+    """gsplat's inputs for a scene: activated scales and opacities (its API takes them; not timed), leaf copies of
+    (means, quats, scales, opacities, sh) for its backward, viewmats [1, 4, 4], Ks [1, 3, 3] and the loss weights
+    as [1, H, W, 3]."""
+    scales = g.log_scales.exp().contiguous()
+    opac = torch.sigmoid(g.opacity_logits).contiguous()
+    gp = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, scales, opac, g.sh)]
+    viewmats = cam.viewmat.float().to(g.means.device)[None]
+    Ks = cam.K.float().to(g.means.device)[None]
+    return scales, opac, gp, viewmats, Ks, w_img.permute(1, 2, 0)[None].contiguous()
+
+
 def bench_gsplat(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int,
                  gsw_image: torch.Tensor) -> dict[str, float]:
     """gsplat 1.5.3's timings and peaks in both modes, and its image difference to gsw's."""
     import gsplat
 
-    scales = g.log_scales.exp().contiguous()
-    opac = torch.sigmoid(g.opacity_logits).contiguous()
-    viewmats = cam.viewmat.float().to(g.means.device)[None]
-    Ks = cam.K.float().to(g.means.device)[None]
+    scales, opac, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
     W, H = cam.width, cam.height
-    gp = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, scales, opac, g.sh)]
-    w_hwc = w_img.permute(1, 2, 0)[None].contiguous()
 
     def reset():
         for p in gp:

@@ -22,7 +22,7 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_cuda import env_info, make_scene  # noqa: E402
+from bench_cuda import env_info, gsplat_inputs, make_scene  # noqa: E402
 
 import gsw  # noqa: E402
 from gsw.gaussians import Gaussians  # noqa: E402
@@ -95,12 +95,7 @@ def main() -> None:
         def gsw_fwdbwd():
             (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
 
-        scales = g.log_scales.exp().contiguous()
-        opac = torch.sigmoid(g.opacity_logits).contiguous()
-        gp = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, scales, opac, g.sh)]
-        viewmats = cam.viewmat.float().cuda()[None]
-        Ks = cam.K.float().cuda()[None]
-        w_hwc = w_img.permute(1, 2, 0)[None].contiguous()
+        _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
 
         def gsplat_fwdbwd():
             img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]

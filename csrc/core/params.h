@@ -6,6 +6,8 @@
 #pragma once
 
 #include <cstdint>
+#include <utility>
+#include <vector>
 
 #include "math.h"
 
@@ -136,6 +138,24 @@ inline int64_t blend_records_budget(int value_bytes, double mib = -1.0) {
   const double bytes = (mib > 0.0 ? mib : kRecordsBudgetMiB) * 1048576.0;
   const int64_t rows = static_cast<int64_t>(bytes / (double(kBlendGrads) * value_bytes));
   return rows > 0 ? rows : 1;
+}
+
+// The chunks [t0, t1) of whole tiles a backward's records come in: tile t holds rows
+// row_offsets[t] .. row_offsets[t + 1] - 1 (an exclusive prefix sum over the tiles); a chunk holds
+// at most budget_rows of them (< 0: one chunk), a tile with more is a chunk of its own. Returns
+// the largest chunk's rows. Host code (both backends).
+inline int64_t plan_record_chunks(const int32_t* row_offsets, int64_t tiles, int64_t budget_rows,
+                                  std::vector<std::pair<int64_t, int64_t>>& chunks) {
+  chunks.clear();
+  int64_t max_rows = 0;
+  for (int64_t t0 = 0; t0 < tiles;) {
+    int64_t t1 = t0 + 1;
+    while (t1 < tiles && (budget_rows < 0 || row_offsets[t1 + 1] - row_offsets[t0] <= budget_rows)) ++t1;
+    chunks.emplace_back(t0, t1);
+    max_rows = row_offsets[t1] - row_offsets[t0] > max_rows ? row_offsets[t1] - row_offsets[t0] : max_rows;
+    t0 = t1;
+  }
+  return max_rows;
 }
 
 // The intersections (sorted positions [lo, hi)) whose records a reduction adds up; `accumulate`: onto

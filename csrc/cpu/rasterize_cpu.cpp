@@ -517,16 +517,9 @@ template <typename T>
 void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, int64_t budget_rows) {
   const int64_t num_tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
   const int32_t* to = p.bins.tile_offsets;
-  // Chunks [t0, t1) of whole tiles with at most budget_rows intersections (a larger tile alone).
+  // One record per intersection, at its sorted position: a tile's rows are its list range.
   std::vector<std::pair<int64_t, int64_t>> chunks;
-  int64_t max_rows = 0;
-  for (int64_t t0 = 0; t0 < num_tiles;) {
-    int64_t t1 = t0 + 1;
-    while (t1 < num_tiles && (budget_rows < 0 || to[t1 + 1] - to[t0] <= budget_rows)) ++t1;
-    chunks.emplace_back(t0, t1);
-    max_rows = std::max<int64_t>(max_rows, to[t1] - to[t0]);
-    t0 = t1;
-  }
+  const int64_t max_rows = plan_record_chunks(to, num_tiles, budget_rows, chunks);
   const auto recs = pack_gaussians(p);
   std::unique_ptr<T[]> scratch(new T[size_t(max_rows) * kBlendGrads]);
   const bool chunked = chunks.size() > 1;
@@ -545,7 +538,6 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
       thread_local std::vector<int32_t> count;
       backward_tile(p, g, recs.get(), t0 + k, splats, count, scratch.get(), row0);
     });
-    // one record per intersection, at its sorted position
     const BlendRecords by_slot{nullptr, nullptr, row0};
     const SlotSpan span = chunked ? SlotSpan{to[t0], to[t1], true} : SlotSpan{};
     parallel_items(p.N, [&](int64_t i) { reduce_blend_grads(p.bins, by_slot, scratch.get(), g, i, span); });

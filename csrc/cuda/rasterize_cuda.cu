@@ -45,12 +45,10 @@
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
 // as on the CPU. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the tile totals to the
 // gradients with one atomic per value instead: no scratch, not bitwise deterministic.
-#include <algorithm>
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
 #include <string>
-#include <utility>
 #include <vector>
 
 #include <cub/device/device_scan.cuh>
@@ -735,7 +733,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   // intersections up to kRecordsNoSyncBytes and the budget are one chunk, allocated without a host
   // synchronisation; otherwise the layout is read back first: the visited ones only, in chunks of
   // at most budget_rows records (a tile with more is a chunk of its own).
-  std::vector<std::pair<int, int>> chunks{{0, static_cast<int>(tiles)}};
+  std::vector<std::pair<int64_t, int64_t>> chunks{{0, tiles}};
   int64_t rows = p.bins.M;
   std::vector<int32_t> host;  // the layout's offsets, when read back
   if (size_t(rows) * kBlendGrads * sizeof(T) > kRecordsNoSyncBytes || (budget_rows >= 0 && rows > budget_rows)) {
@@ -744,15 +742,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     GSW_CUDA_CHECK(cudaStreamSynchronize(stream));
     rows = host[tiles];
     if (budget_rows >= 0 && rows > budget_rows) {
-      chunks.clear();
-      rows = 0;
-      for (int64_t t0 = 0; t0 < tiles;) {
-        int64_t t1 = t0 + 1;
-        while (t1 < tiles && host[t1 + 1] - host[t0] <= budget_rows) ++t1;
-        chunks.emplace_back(static_cast<int>(t0), static_cast<int>(t1));
-        rows = std::max<int64_t>(rows, host[t1] - host[t0]);
-        t0 = t1;
-      }
+      rows = plan_record_chunks(host.data(), tiles, budget_rows, chunks);
       zero_grads();  // each chunk adds to the gradients
     }
   }
@@ -765,7 +755,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   int device = 0, sms = 0;
   GSW_CUDA_CHECK(cudaGetDevice(&device));
   GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
-  for (const auto& [t0, t1] : chunks) {
+  for (const auto& [c0, c1] : chunks) {
+    const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
     const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
     if (px2) {
