@@ -90,7 +90,7 @@ def run(family: str, n: int, size: int, sh_degree: int, repeats: int) -> dict:
 
     def project_backward():
         return _ops.project_backward(*inputs, sh_degree, a["viewmat"], a["fx"], a["fy"], a["cx"], a["cy"], size,
-                                     size, radii, conics, colors, opacities, v_means2d, v_conics, v_depths,
+                                     size, radii, v_means2d, v_conics, v_depths,
                                      v_colors, v_opacities)
 
     params = [t.requires_grad_() for t in inputs]

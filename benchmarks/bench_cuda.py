@@ -25,7 +25,8 @@ not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak
 `torch.cuda.max_memory_allocated()` during one run minus what was allocated before it; a forward+backward keeps
 the rendered image alone, for both renderers (gsw's alpha, depth and bins, gsplat's alphas and meta are dropped
 before the backward). gsw's blend backward holds at most its records budget at once (`GSW_BLEND_RECORDS_MIB`,
-csrc/core/params.h: by default max(8 MiB, 12 bytes per pixel)); set it to 0 in the environment for no limit.
+csrc/core/params.h: by default `kRecordsBudgetMiB`, 256 MiB, of csrc/core/constants.h; 0 for no limit;
+`records_budget.py` measures the trade-off).
 
 `--breakdown` also times each gsw op alone, with the ellipse tile assignment (csrc/core/tiles.h) and with every
 tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
@@ -376,8 +377,7 @@ def stage_breakdown(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, w
         if not tag:
             grads = bwd()
             res["project_bwd"] = cuda_time(lambda: _C.project_backward(
-                *ins, sh_degree=3, **ca, radii=radii, conics=conics, colors=colors, opacities=opac,
-                v_means2d=grads[0], v_conics=grads[1], v_depths=grads[4], v_colors=grads[2],
+                *ins, sh_degree=3, **ca, radii=radii, v_means2d=grads[0], v_conics=grads[1], v_depths=grads[4], v_colors=grads[2],
                 v_opacities=grads[3]), reps, warmup)
     res["image_max_abs_diff_rect"] = float((images[""] - images["_rect"]).abs().max())
     return res

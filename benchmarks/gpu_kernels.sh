@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
 # Rasterizer rounds on one GPU (issue #24; eleventh and twelfth sessions):
-#   bash benchmarks/gpu_kernels.sh setup     # wheels from .whl into /tmp/site2, CUDA build of gsw
+#   bash benchmarks/gpu_kernels.sh setup     # wheels from .whl into /tmp/site2, `jit`, CUDA build of gsw
 #   bash benchmarks/gpu_kernels.sh jit       # gsplat's CUDA code compiled in the background (/tmp/gsplat_jit.log)
+#   bash benchmarks/gpu_kernels.sh waitjit   # wait for that compilation
 #   bash benchmarks/gpu_kernels.sh suite     # the whole test suite with this CUDA build
 #   bash benchmarks/gpu_kernels.sh bench OUT TAG  # bench_cuda.py: atomic vs deterministic blend backward, gsplat side by side
 #   bash benchmarks/gpu_kernels.sh kernels OUT [TAG]  # kernel_times.py: each CUDA kernel's share of a forward / forward+backward
 #   bash benchmarks/gpu_kernels.sh memory OUT [TAG]   # memory_peak.py: what is live at the peak of a forward+backward
+#                                              # (KEEP=1: the image kept through the backward, as bench_cuda.py)
+#   bash benchmarks/gpu_kernels.sh budget OUT [TAG]   # records_budget.py: time and peak per blend-records budget
 #   bash benchmarks/gpu_kernels.sh ncu OUT [CASE]  # Nsight Compute: the blend forward and contribution kernels of CASE
 #   bash benchmarks/gpu_kernels.sh lego OUT TAG  # lego trained here for 60 s (build/gpu/lego carried), gsplat side by side
 #   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over it (e.g. the last
@@ -26,6 +29,7 @@ fi
 case "$1" in
   setup)
     python3 -m pip install -q --no-deps --target /tmp/site2 .whl/*.whl
+    bash "$0" jit  # gsplat compiles beside gsw's build
     GSW_WITH_CUDA=ON python3 -m pip install -q --no-build-isolation --no-deps -e . || exit 1
     python3 -c "import gsw; print(gsw.build_info())"
     ;;
@@ -38,6 +42,10 @@ o = torch.ones(1, device='cuda'); c = torch.ones(1, 3, device='cuda')
 K = torch.tensor([[[50., 0, 32], [0, 50., 32], [0, 0, 1]]], device='cuda')
 gsplat.rasterization(m, q, s, o, c, torch.eye(4, device='cuda')[None], K, 64, 64)
 print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/null &
+    ;;
+  waitjit)  # until gsplat's background compilation is done (at most 5 minutes)
+    for _ in $(seq 1 100); do grep -q "gsplat ready" /tmp/gsplat_jit.log 2>/dev/null && break; sleep 3; done
+    tail -1 /tmp/gsplat_jit.log
     ;;
   base)
     rm -rf /tmp/base && mkdir /tmp/base && cp -r benchmarks csrc gsw CMakeLists.txt pyproject.toml README.md /tmp/base/ &&
@@ -91,10 +99,14 @@ torch.cuda.synchronize()
 " > "$2/ncu_${CASE//:/_}.txt" 2>&1; grep -E "Duration|Throughput|Warp Cycles Per Issued|Achieved Occupancy|Registers Per|Stall|Issued Warp|No Eligible|One or More" "$2/ncu_${CASE//:/_}.txt" | head -60
     ;;
   memory)  # what is live at the peak of one forward+backward, gsw and gsplat
-    "${PY[@]}" benchmarks/memory_peak.py --ply build/gpu/ply/sh3_fixture/point_cloud.ply --out "$2/memory_peak_${3:-new}.json" \
-      --commit "$(git rev-parse --short HEAD 2>/dev/null)+${3:-new}" \
-      --cases frustum:100000:800x800 frustum:1000000:1920x1080 frustum:1000000:3840x2160 ply:9080:1920x1080 \
-              ply:9080:3840x2160 heavy:1000000:1920x1080 2>&1 | grep -v Warning | cut -c1-160
+    "${PY[@]}" benchmarks/memory_peak.py ${KEEP:+--keep-image} --ply build/gpu/ply/sh3_fixture/point_cloud.ply \
+      --out "$2/memory_peak_${3:-new}.json" --commit "$(git rev-parse --short HEAD 2>/dev/null)+${3:-new}" \
+      --cases frustum:100000:800x800 frustum:1000000:1920x1080 frustum:3000000:1920x1080 frustum:1000000:3840x2160 \
+              ply:9080:1920x1080 ply:9080:3840x2160 heavy:1000000:1920x1080 2>&1 | grep -v Warning | cut -c1-160
+    ;;
+  budget)  # forward+backward time and peak memory per blend-records budget, gsplat packed=False beside
+    "${PY[@]}" benchmarks/records_budget.py --ply build/gpu/ply/sh3_fixture/point_cloud.ply --out "$2/records_budget_${3:-new}.json" \
+      --commit "$(git rev-parse --short HEAD 2>/dev/null)+${3:-new}" --budgets default 0 64 32 16 8 2>&1 | grep -v Warning
     ;;
   kernels)
     "${PY[@]}" benchmarks/kernel_times.py --ply build/gpu/ply/sh3_fixture/point_cloud.ply --json "$2/kernel_times_${3:-new}.json" \

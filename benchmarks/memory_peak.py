@@ -6,7 +6,8 @@ that run are replayed (allocated at `alloc`, released at `free_requested`: the c
 what `torch.cuda.max_memory_allocated` counts); at the largest total, the live allocations made during the run are
 listed with the Python line that made them (innermost frame in gsw, gsplat or this script; C++ allocations carry
 the line of the op call that made them) and their sizes. Memory allocated before the run (inputs, parameters,
-weights) is not counted, as in `bench_cuda.py`'s peak.
+weights) is not counted, as in `bench_cuda.py`'s peak. `--keep-image` keeps each renderer's image alive through its
+backward, as `bench_cuda.py` (and a training loop) does; without it nothing is kept but the parameters.
 
     python benchmarks/memory_peak.py --cases frustum:1000000:1920x1080 ply:9080:3840x2160 --ply PLY --out OUT.json
 """
@@ -78,11 +79,13 @@ def main() -> None:
     ap.add_argument("--ply", default=None)
     ap.add_argument("--out", required=True)
     ap.add_argument("--commit", default="", help="the gsw commit measured, for the record")
+    ap.add_argument("--keep-image", action="store_true",
+                    help="keep the rendered image alive through the backward (as a training loop and bench_cuda.py do)")
     args = ap.parse_args()
     import gsplat
 
     result = {"env": env_info(args.commit), "budget_mib_setting": os.environ.get("GSW_BLEND_RECORDS_MIB", ""),
-              "cases": []}
+              "keep_image": args.keep_image, "cases": []}
     for case in args.cases:
         family, n, size = case.split(":")
         w, h = (int(v) for v in size.split("x"))
@@ -93,13 +96,22 @@ def main() -> None:
         g_train = Gaussians(*params)
 
         def gsw_fwdbwd():
-            (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
+            if not args.keep_image:  # the image is a temporary: freed once the loss's product is made
+                (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
+                return None
+            image = gsw.rasterize(g_train, cam, validate=False).image
+            (image * w_img).sum().backward()
+            return image
 
         _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
 
         def gsplat_fwdbwd():
+            if not args.keep_image:
+                (gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0] * w_hwc).sum().backward()
+                return None
             img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
             (img * w_hwc).sum().backward()
+            return img
 
         row: dict = {"case": case}
         for name, fn, ps in (("gsw", gsw_fwdbwd, params), ("gsplat_unpacked", gsplat_fwdbwd, gp)):

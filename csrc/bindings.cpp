@@ -40,6 +40,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   c["SH_C2"] = py::make_tuple(gsw::SH_C2_0, gsw::SH_C2_1, gsw::SH_C2_2, gsw::SH_C2_3, gsw::SH_C2_4);
   c["SH_C3"] = py::make_tuple(gsw::SH_C3_0, gsw::SH_C3_1, gsw::SH_C3_2, gsw::SH_C3_3,
                               gsw::SH_C3_4, gsw::SH_C3_5, gsw::SH_C3_6);
+  c["BLEND_GRADS"] = gsw::kBlendGrads;
+  c["RECORDS_BUDGET_MIB"] = gsw::kRecordsBudgetMiB;
   m.attr("constants") = c;
 
   py::dict b;

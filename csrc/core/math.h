@@ -570,29 +570,37 @@ GSW_HD Vec3<T> normalize3_vjp(const Vec3<T>& v, const Vec3<T>& v_n) {
 
 // View-dependent colour: rgb = max(0, sum_k basis_k(dir) sh[k] + SH_COLOR_OFFSET), with
 // dir = normalise(mean - camera centre). `sh` points to K x 3 coefficients (channel fastest).
+// The unclamped colour sum_k basis_k sh[k] + SH_COLOR_OFFSET (one order for forward and VJP).
+template <typename T>
+GSW_HD void sh_color_sum(int K, const T* basis, const T* sh, T* rgb) {
+  rgb[0] = rgb[1] = rgb[2] = T(SH_COLOR_OFFSET);
+  for (int k = 0; k < K; ++k)
+    for (int ch = 0; ch < 3; ++ch) rgb[ch] += basis[k] * sh[3 * k + ch];
+}
 template <typename T>
 GSW_HD Vec3<T> sh_to_color(int degree, const Vec3<T>& dir_unnorm, const T* sh) {
   const Vec3<T> d = normalize3(dir_unnorm);
   T basis[16];
   sh_basis(degree, d.x, d.y, d.z, basis);
-  T rgb[3] = {T(SH_COLOR_OFFSET), T(SH_COLOR_OFFSET), T(SH_COLOR_OFFSET)};
-  const int K = sh_num_coeffs(degree);
-  for (int k = 0; k < K; ++k)
-    for (int ch = 0; ch < 3; ++ch) rgb[ch] += basis[k] * sh[3 * k + ch];
+  T rgb[3];
+  sh_color_sum(sh_num_coeffs(degree), basis, sh, rgb);
   return {rgb[0] > T(0) ? rgb[0] : T(0), rgb[1] > T(0) ? rgb[1] : T(0),
           rgb[2] > T(0) ? rgb[2] : T(0)};
 }
-// VJP of sh_to_color. `color` is the forward output (a clamped channel has zero gradient).
-// Accumulates into v_sh (K x 3) and returns the cotangent of the unnormalised direction.
+// VJP of sh_to_color (a clamped channel has zero gradient: the colour is recomputed here, so the
+// forward's colours need not be kept for the backward). Accumulates into v_sh (K x 3) and returns
+// the cotangent of the unnormalised direction.
 template <typename T>
 GSW_HD Vec3<T> sh_to_color_vjp(int degree, const Vec3<T>& dir_unnorm, const T* sh,
-                               const Vec3<T>& color, const Vec3<T>& v_color, T* v_sh) {
+                               const Vec3<T>& v_color, T* v_sh) {
   const Vec3<T> d = normalize3(dir_unnorm);
   T basis[16];
   sh_basis(degree, d.x, d.y, d.z, basis);
-  const T vc[3] = {color.x > T(0) ? v_color.x : T(0), color.y > T(0) ? v_color.y : T(0),
-                   color.z > T(0) ? v_color.z : T(0)};
   const int K = sh_num_coeffs(degree);
+  T rgb[3];
+  sh_color_sum(K, basis, sh, rgb);
+  const T vc[3] = {rgb[0] > T(0) ? v_color.x : T(0), rgb[1] > T(0) ? v_color.y : T(0),
+                   rgb[2] > T(0) ? v_color.z : T(0)};
   T v_basis[16];
   for (int k = 0; k < K; ++k) {
     v_basis[k] = T(0);

@@ -26,7 +26,7 @@ struct ProjectParams {
   const T* log_scales = nullptr;      // [N, 3]
   const T* opacity_logits = nullptr;  // [N]
   const T* sh = nullptr;              // [N, K, 3] or [N, 3] (direct colours)
-  // outputs (forward) / saved (backward)
+  // outputs (forward); the backward reads `radii` alone and recomputes the others it needs
   int32_t* radii = nullptr;  // [N] pixel radius, 0 = culled
   T* means2d = nullptr;      // [N, 2] pixels (K p)
   T* conics = nullptr;       // [N, 3] inverse dilated 2-D covariance (a, b, c)

@@ -98,6 +98,8 @@ GSW_HD int32_t nonfinite_fields(const ProjectParams<T>& p, int64_t i) {
 // VJP of project_gaussian for everything but the colour: writes the cotangents of the
 // quaternion, log-scales and opacity logit of a visible Gaussian i and returns the cotangent of
 // its world mean from the geometry (the colour's view-direction term is added by the caller).
+// Reads the inputs and p.radii only: the projection's other outputs are recomputed, so a render
+// keeps none of them for this VJP once the blending's backward is done.
 template <typename T>
 GSW_HD Vec3<T> project_gaussian_vjp_geometry(const ProjectParams<T>& p, const ProjectGradParams<T>& g,
                                              int64_t i) {
@@ -106,9 +108,12 @@ GSW_HD Vec3<T> project_gaussian_vjp_geometry(const ProjectParams<T>& p, const Pr
   const T* log_scale = p.log_scales + 3 * i;
   const Vec3<T> pc = world_to_cam(cam, load_vec3(p.means + 3 * i));
   const Mat3<T> cov = cov_world_to_cam(cam, covariance_3d(quat, log_scale));
-  const T* cn = p.conics + 3 * i;
+  // The conic and the opacity are recomputed (as the forward did), not kept from the forward.
+  Sym2<T> conic;
+  T det;
+  conic_from_cov2d(project_ewa(cam, pc, cov).cov2d, conic, det);
   const T* vc = g.v_conics + 3 * i;
-  const Sym2<T> v_cov2d = conic_from_cov2d_vjp(Sym2<T>{cn[0], cn[1], cn[2]}, Sym2<T>{vc[0], vc[1], vc[2]});
+  const Sym2<T> v_cov2d = conic_from_cov2d_vjp(conic, Sym2<T>{vc[0], vc[1], vc[2]});
   const Vec2<T> v_mean2d = {g.v_means2d[2 * i], g.v_means2d[2 * i + 1]};
   Vec3<T> v_pc = {T(0), T(0), g.v_depths[i]};
   Mat3<T> v_cov = mat3_zero<T>();
@@ -118,7 +123,7 @@ GSW_HD Vec3<T> project_gaussian_vjp_geometry(const ProjectParams<T>& p, const Pr
   covariance_3d_vjp(quat, log_scale, cov_world_to_cam_vjp(cam, v_cov), vq, vls);
   for (int k = 0; k < 4; ++k) g.v_quats[4 * i + k] = vq[k];
   for (int k = 0; k < 3; ++k) g.v_log_scales[3 * i + k] = vls[k];
-  g.v_opacity_logits[i] = sigmoid_vjp(p.opacities[i], g.v_opacities[i]);
+  g.v_opacity_logits[i] = sigmoid_vjp(sigmoid(p.opacity_logits[i]), g.v_opacities[i]);
   return world_to_cam_vjp(cam, v_pc);
 }
 

@@ -30,10 +30,8 @@ void project_backward(const ProjectParams<T>& p, const ProjectGradParams<T>& g) 
     if (p.sh_degree >= 0) {
       const Vec3<T> mean = load_vec3(p.means + 3 * i);
       const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
-      const T* col = p.colors + 3 * i;
-      const Vec3<T> v_dir =
-          sh_to_color_vjp(p.sh_degree, dir, p.sh + int64_t(3) * p.K * i, Vec3<T>{col[0], col[1], col[2]},
-                          Vec3<T>{v_col[0], v_col[1], v_col[2]}, v_sh);
+      const Vec3<T> v_dir = sh_to_color_vjp(p.sh_degree, dir, p.sh + int64_t(3) * p.K * i,
+                                            Vec3<T>{v_col[0], v_col[1], v_col[2]}, v_sh);
       v_world.x += v_dir.x;
       v_world.y += v_dir.y;
       v_world.z += v_dir.z;

@@ -101,9 +101,7 @@ __global__ void __launch_bounds__(kThreads)
     for (int k = 0; k < 3 * KD; ++k) vs[k] = T(0);
     const Vec3<T> center = camera_center(p.cam);
     const Vec3<T> dir = {mean.x - center.x, mean.y - center.y, mean.z - center.z};
-    const T* col = p.colors + 3 * i;
-    const Vec3<T> v_dir = sh_to_color_vjp(DEG, dir, shl, Vec3<T>{col[0], col[1], col[2]},
-                                          Vec3<T>{v_col[0], v_col[1], v_col[2]}, vs);
+    const Vec3<T> v_dir = sh_to_color_vjp(DEG, dir, shl, Vec3<T>{v_col[0], v_col[1], v_col[2]}, vs);
     v_world.x += v_dir.x;
     v_world.y += v_dir.y;
     v_world.z += v_dir.z;

@@ -611,6 +611,34 @@ __global__ void __launch_bounds__(kBlock)
     big[1 + atomicAdd(big, 1)] = static_cast<int32_t>(i);
 }
 
+// Second pass of a chunk of tiles [t0, t1) in a chunked backward: the same per-Gaussian work as
+// reduce_blend_grads_kernel, for the Gaussians with intersections in the chunk only (the others keep
+// their stored sums), found from the chunk's sorted positions instead of a pass over all N: the
+// thread of position s handles Gaussian gauss_ids[s] when s is its first intersection in the chunk
+// (a bisection over its entry slots, which grow with the entry). Grid-stride over the positions.
+template <typename T>
+__global__ void __launch_bounds__(kBlock)
+    reduce_chunk_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
+                        const T* __restrict__ records, int32_t* __restrict__ big, int t0, int t1) {
+  const SlotSpan span = chunk_span(p.bins, t0, t1);
+  const int64_t stride = int64_t(gridDim.x) * blockDim.x;
+  for (int64_t s = span.lo + int64_t(blockIdx.x) * blockDim.x + threadIdx.x; s < span.hi; s += stride) {
+    const int32_t i = p.bins.gauss_ids[s];
+    int32_t lo = p.bins.entry_offsets[i], n = p.bins.entry_offsets[i + 1] - lo;
+    const int32_t e0 = lo;
+    while (n > 1) {  // the entry holding s: the last e with entry_slots[e] <= s
+      const int32_t half = n >> 1;
+      lo = p.bins.entry_slots[lo + half] <= s ? lo + half : lo;
+      n -= half;
+    }
+    if (lo > e0 && p.bins.entry_slots[lo - 1] >= span.lo) continue;  // not its first in the chunk
+    if (p.bins.entry_offsets[i + 1] - e0 <= kSerialEntries)
+      reduce_blend_grads(p.bins, layout, records, g, i, span);
+    else
+      big[1 + atomicAdd(big, 1)] = i;
+  }
+}
+
 // Second pass, Gaussians with more intersections (a large splat spans thousands of tiles): a warp
 // each (grid-stride over `big`); lane l sums the records of intersections e0 + l, e0 + l + 32, ...
 // in that order, then the warp adds the lanes' sums with one transposed butterfly. The lanes and
@@ -767,7 +795,10 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     }
     GSW_KERNEL_CHECK();
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
-    reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
+    if (chunks.size() == 1)
+      reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
+    else  // the chunk's Gaussians only (a chunk of whole tiles holds at most budget_rows records)
+      reduce_chunk_kernel<T><<<static_cast<unsigned>(8 * sms), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
     GSW_KERNEL_CHECK();
     reduce_big_kernel<T><<<static_cast<unsigned>(8 * sms), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
     GSW_KERNEL_CHECK();

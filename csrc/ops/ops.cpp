@@ -199,8 +199,7 @@ py::tuple project_forward(const Tensor& means, const Tensor& quats, const Tensor
 py::tuple project_backward(const Tensor& means, const Tensor& quats, const Tensor& log_scales,
                            const Tensor& opacity_logits, const Tensor& sh, int sh_degree,
                            const Tensor& viewmat, double fx, double fy, double cx, double cy,
-                           int width, int height, const Tensor& radii, const Tensor& conics,
-                           const Tensor& colors, const Tensor& opacities, const Tensor& v_means2d,
+                           int width, int height, const Tensor& radii, const Tensor& v_means2d,
                            const Tensor& v_conics, const Tensor& v_depths, const Tensor& v_colors,
                            const Tensor& v_opacities) {
   const GaussianArgs g{means, quats, log_scales, opacity_logits, sh, sh_degree};
@@ -209,9 +208,6 @@ py::tuple project_backward(const Tensor& means, const Tensor& quats, const Tenso
   check_camera(c);
   const int64_t N = means.size(0);
   check_int_tensor(radii, "radii", means, N);
-  check_tensor(conics, "conics", means, {N, 3});
-  check_tensor(colors, "colors", means, {N, 3});
-  check_tensor(opacities, "opacities", means, {N});
   check_tensor(v_means2d, "v_means2d", means, {N, 2});
   check_tensor(v_conics, "v_conics", means, {N, 3});
   check_tensor(v_depths, "v_depths", means, {N});
@@ -223,9 +219,6 @@ py::tuple project_backward(const Tensor& means, const Tensor& quats, const Tenso
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "gsw_project_backward", [&] {
     ProjectParams<scalar_t> p = project_params<scalar_t>(g, c, K);
     p.radii = radii.data_ptr<int32_t>();
-    p.conics = conics.data_ptr<scalar_t>();
-    p.colors = colors.data_ptr<scalar_t>();
-    p.opacities = opacities.data_ptr<scalar_t>();
     ProjectGradParams<scalar_t> gp;
     gp.v_means2d = v_means2d.data_ptr<scalar_t>();
     gp.v_conics = v_conics.data_ptr<scalar_t>();
@@ -570,10 +563,10 @@ void register_ops(py::module_& m) {
   m.def("project_backward", &project_backward, py::arg("means"), py::arg("quats"),
         py::arg("log_scales"), py::arg("opacity_logits"), py::arg("sh"), py::arg("sh_degree"),
         py::arg("viewmat"), py::arg("fx"), py::arg("fy"), py::arg("cx"), py::arg("cy"),
-        py::arg("width"), py::arg("height"), py::arg("radii"), py::arg("conics"),
-        py::arg("colors"), py::arg("opacities"), py::arg("v_means2d"), py::arg("v_conics"),
+        py::arg("width"), py::arg("height"), py::arg("radii"), py::arg("v_means2d"), py::arg("v_conics"),
         py::arg("v_depths"), py::arg("v_colors"), py::arg("v_opacities"),
-        "VJP of project_forward: -> (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh)");
+        "VJP of project_forward: -> (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh). Reads the inputs "
+        "and radii only: conics, colours and opacities are recomputed");
   m.def("bin_gaussians", &bin_gaussians, py::arg("means2d"), py::arg("conics"), py::arg("opacities"),
         py::arg("radii"), py::arg("depths"), py::arg("width"), py::arg("height"),
         py::arg("nonfinite") = py::none(),

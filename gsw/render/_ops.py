@@ -81,14 +81,14 @@ def _(means, quats, log_scales, opacity_logits, sh, sh_degree, viewmat, fx, fy, 
 
 def _project_backward_impl(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
                            sh_degree: int, viewmat: Tensor, fx: float, fy: float, cx: float, cy: float, width: int,
-                           height: int, radii: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor,
-                           v_means2d: Tensor, v_conics: Tensor, v_depths: Tensor, v_colors: Tensor,
+                           height: int, radii: Tensor, v_means2d: Tensor, v_conics: Tensor, v_depths: Tensor, v_colors: Tensor,
                            v_opacities: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """VJP of ``gsw::project``: (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh)."""
+    """VJP of ``gsw::project``: (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh). It reads the inputs and
+    ``radii`` only: the conics, colours and opacities are recomputed, so a render does not keep them for it."""
     return tuple(_C.project_backward(
         _c(means), _c(quats), _c(log_scales), _c(opacity_logits), _c(sh), sh_degree=sh_degree,
         viewmat=viewmat.detach(), fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, radii=_c(radii),
-        conics=_c(conics), colors=_c(colors), opacities=_c(opacities), v_means2d=_c(v_means2d),
+        v_means2d=_c(v_means2d),
         v_conics=_c(v_conics), v_depths=_c(v_depths), v_colors=_c(v_colors), v_opacities=_c(v_opacities)))
 
 
@@ -103,14 +103,16 @@ def _(means, quats, log_scales, opacity_logits, sh, *args):
 
 def _project_setup(ctx, inputs, output) -> None:
     means, quats, log_scales, opacity_logits, sh, sh_degree, viewmat, fx, fy, cx, cy, width, height, _ = inputs
-    radii, _, conics, _, colors, opacities, _ = output
+    radii = output[0]
     ctx.args = dict(sh_degree=sh_degree, fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height)
-    ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh, viewmat, radii, conics, colors, opacities)
+    # The radii alone of the outputs: the backward recomputes the rest, so after the blending's backward has run
+    # the projected conics, colours and opacities are freed before the projection's gradients are allocated.
+    ctx.save_for_backward(means, quats, log_scales, opacity_logits, sh, viewmat, radii)
     ctx.mark_non_differentiable(radii, output[6])
 
 
 def _project_backward(ctx, _v_radii, v_means2d, v_conics, v_depths, v_colors, v_opacities, _v_flags):
-    means, quats, log_scales, opacity_logits, sh, viewmat, radii, conics, colors, opacities = ctx.saved_tensors
+    means, quats, log_scales, opacity_logits, sh, viewmat, radii = ctx.saved_tensors
     a = ctx.args
     cotangents = [v_means2d, v_conics, v_depths, v_colors, v_opacities]
     if any(v is None for v in cotangents):  # outputs that got no gradient: zeros of their shapes
@@ -119,7 +121,7 @@ def _project_backward(ctx, _v_radii, v_means2d, v_conics, v_depths, v_colors, v_
         cotangents = [means.new_zeros(s) if v is None else v for v, s in zip(cotangents, shapes)]
     grads = call(
         project_backward, means, quats, log_scales, opacity_logits, sh, a["sh_degree"], viewmat, a["fx"], a["fy"],
-        a["cx"], a["cy"], a["width"], a["height"], radii, conics, colors, opacities, *cotangents)
+        a["cx"], a["cy"], a["width"], a["height"], radii, *cotangents)
     return (*grads, None, None, None, None, None, None, None, None, None)
 
 

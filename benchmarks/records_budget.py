@@ -1,0 +1,124 @@
+"""The blend backward's records budget: forward+backward time and peak memory per budget, gsplat 1.5.3 beside it.
+
+gsw's deterministic blend backward stores kBlendGrads values per visited tile intersection and reduces them per
+Gaussian afterwards (csrc/cuda/rasterize_cuda.cu). Over a budget (`GSW_BLEND_RECORDS_MIB`, read at every call; 0:
+no limit) it runs in chunks of whole tiles. For each case and budget this measures, as `bench_cuda.py` does (same
+scenes, image kept through the backward, loss = sum(image * fixed weights)): the forward+backward's median time
+(CUDA events) and its peak memory over what was allocated before; once per case, gsplat `packed=False` (its faster
+mode on these scenes) and the visited records' size (the rows a one-pass backward holds).
+
+    python benchmarks/records_budget.py --ply PLY --budgets 0 64 32 16 8 --out OUT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import sys
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_cuda import cuda_time, env_info, gsplat_inputs, make_scene, peak_mb  # noqa: E402
+
+import gsw  # noqa: E402
+from gsw._ext import _C  # noqa: E402
+from gsw.gaussians import Gaussians  # noqa: E402
+
+BUDGET_ENV = "GSW_BLEND_RECORDS_MIB"
+
+
+@contextlib.contextmanager
+def budget(mib: str | None):
+    """Runs the block with GSW_BLEND_RECORDS_MIB = mib (None: unset, the library's default)."""
+    old = os.environ.get(BUDGET_ENV)
+    if mib is None:
+        os.environ.pop(BUDGET_ENV, None)
+    else:
+        os.environ[BUDGET_ENV] = mib
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(BUDGET_ENV, None)
+        else:
+            os.environ[BUDGET_ENV] = old
+
+
+def visited_records_mib(n_contrib: torch.Tensor) -> float:
+    """Size of a one-pass backward's records: per tile its pixels' largest n_contrib, x kBlendGrads float32."""
+    t = _C.constants["TILE_SIZE"]
+    h, w = n_contrib.shape
+    padded = torch.zeros((-(-h // t) * t, -(-w // t) * t), dtype=torch.int32, device=n_contrib.device)
+    padded[:h, :w] = n_contrib
+    per_tile = padded.view(padded.shape[0] // t, t, padded.shape[1] // t, t).amax(dim=(1, 3))
+    return float(per_tile.sum()) * _C.constants["BLEND_GRADS"] * 4 / 2**20
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", nargs="+", default=[
+        "frustum:100000:800x800", "heavy:100000:800x800", "frustum:1000000:1920x1080", "frustum:3000000:1920x1080",
+        "frustum:1000000:3840x2160", "ply:9080:1920x1080", "ply:9080:3840x2160"])
+    ap.add_argument("--budgets", nargs="+", default=["default", "0", "64", "32", "16", "8"],
+                    help="MiB values for GSW_BLEND_RECORDS_MIB ('default': unset)")
+    ap.add_argument("--ply", default=None)
+    ap.add_argument("--reps", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--commit", default="")
+    args = ap.parse_args()
+    import gsplat
+
+    result = {"env": env_info(args.commit), "reps": args.reps, "warmup": args.warmup, "cases": []}
+    for case in args.cases:
+        family, n, size = case.split(":")
+        w, h = (int(v) for v in size.split("x"))
+        g, cam = make_scene(family, int(n), w, h, args.ply)
+        w_img = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
+        params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits,
+                                                                 g.sh)]
+        g_train = Gaussians(*params)
+
+        def reset(ps=params):
+            for p in ps:
+                p.grad = None
+
+        def gsw_fwdbwd():
+            image = gsw.rasterize(g_train, cam, validate=False).image
+            (image * w_img).sum().backward()
+            return image
+
+        _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
+
+        def gsplat_fwdbwd():
+            img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
+            (img * w_hwc).sum().backward()
+            return img
+
+        with torch.no_grad():
+            rec = visited_records_mib(gsw.rasterize(g, cam, validate=False).n_contrib)
+        row: dict = {"case": case, "visited_records_mib": rec,
+                     "gsplat_unpacked_fwdbwd_ms": cuda_time(gsplat_fwdbwd, args.reps, args.warmup, lambda: reset(gp)),
+                     "gsplat_unpacked_fwdbwd_peak_mb": peak_mb(gsplat_fwdbwd, lambda: reset(gp)), "gsw": {}}
+        reset(gp)
+        for b in args.budgets:
+            with budget(None if b == "default" else b):
+                row["gsw"][b] = {"fwdbwd_ms": cuda_time(gsw_fwdbwd, args.reps, args.warmup, reset),
+                                 "fwdbwd_peak_mb": peak_mb(gsw_fwdbwd, reset)}
+            reset()
+        gs = row["gsplat_unpacked_fwdbwd_ms"]
+        print(f"{case}: records {rec:.1f} MiB; gsplat {gs:.2f} ms {row['gsplat_unpacked_fwdbwd_peak_mb']:.0f} MiB; "
+              + "; ".join(f"{b}: {r['fwdbwd_ms']:.2f} ms ({r['fwdbwd_ms'] / gs:.2f}x) {r['fwdbwd_peak_mb']:.0f} MiB"
+                          for b, r in row["gsw"].items()), flush=True)
+        result["cases"].append(row)
+        del g, g_train, params, gp
+        torch.cuda.empty_cache()
+    with open(args.out, "w") as f:
+        json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
