@@ -10,7 +10,8 @@
 #                                              # (KEEP=1: the image kept through the backward, as bench_cuda.py)
 #   bash benchmarks/gpu_kernels.sh budget OUT [TAG]   # records_budget.py: time and peak per blend-records budget
 #   bash benchmarks/gpu_kernels.sh ncu OUT [CASE]  # Nsight Compute: the blend forward and contribution kernels of CASE
-#   bash benchmarks/gpu_kernels.sh lego OUT TAG  # lego trained here for 60 s (build/gpu/lego carried), gsplat side by side
+#   bash benchmarks/gpu_kernels.sh lego_train OUT TAG  # lego trained here for 60 s (build/gpu/lego carried)
+#   bash benchmarks/gpu_kernels.sh lego OUT TAG  # that model (trained first if none), gsplat side by side
 #   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over it (e.g. the last
 #                                              # commit's csrc/ and gsw/: `git archive HEAD csrc gsw | tar -x -C DIR`),
 #                                              # built into /tmp/gsw_base (not editable)
@@ -68,12 +69,16 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
               ply:9080:1920x1080 ply:9080:3840x2160 \
       --commit "$(git rev-parse --short HEAD 2>/dev/null)+$TAG" --out "$OUT/cuda_$TAG.json" --md "$OUT/cuda_$TAG.md" 2>&1 | tail -60
     ;;
-  lego)  # a lego model trained on this machine for 60 s (once per machine), against gsplat at 1x and 2x render size
+  lego_train)  # a lego model trained on this machine for 60 s (may run beside `suite`)
+    python3 benchmarks/train_lego.py --device cuda --preset inria --time-budget-s 60 --data build/gpu/lego \
+      --no-progress --tag "train_lego_cuda_$3" > /tmp/train_lego.log 2>&1 || { tail -20 /tmp/train_lego.log; exit 1; }
+    cp "benchmarks/results/train_lego_cuda_$3.json" "$2/" 2>/dev/null
+    tail -3 /tmp/train_lego.log
+    ;;
+  lego)  # that model (trained first if this machine has none), against gsplat at 1x and 2x render size
     P=$(find build/train_lego -name point_cloud.ply 2>/dev/null | sort | tail -1)
     if [ -z "$P" ]; then
-      python3 benchmarks/train_lego.py --device cuda --preset inria --time-budget-s 60 --data build/gpu/lego \
-        --no-progress --tag "train_lego_cuda_$3" > /tmp/train_lego.log 2>&1 || { tail -20 /tmp/train_lego.log; exit 1; }
-      cp "benchmarks/results/train_lego_cuda_$3.json" "$2/" 2>/dev/null
+      bash "$0" lego_train "$2" "$3" || exit 1
       P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
     fi
     "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 \

@@ -183,3 +183,24 @@ def test_restored_bins_reject_tensors_of_another_binning() -> None:
         _ops.restore_bins(cam.width, cam.height, t[0], t[1].long(), t[2], t[3])
     with pytest.raises(RuntimeError, match="width/height"):
         _ops.restore_bins(0, cam.height, *t)
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_projection_keeps_none_of_its_outputs_but_the_radii(degree) -> None:
+    # The projection's backward recomputes the conics, colours and opacities: its node holds the inputs and the
+    # radii only, so those outputs are freed once the blending's backward (which needs them) has run, before the
+    # projection's gradients are allocated.
+    g, cam = _scene(degree=degree)
+    leaves = [t.detach().clone().requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+    out = rasterize(Gaussians(*(leaves[k] for k in (0, 2, 1, 3, 4))), cam)
+    proj = out.projection
+    node = proj.conics.grad_fn
+    saved = node.saved_tensors
+    kept = {t.untyped_storage().data_ptr() for t in saved}
+    for name in ("means2d", "conics", "colors", "opacities", "depths"):
+        assert getattr(proj, name).untyped_storage().data_ptr() not in kept, name
+    assert proj.radii.untyped_storage().data_ptr() in kept
+    assert len(saved) == 7
+    # and the recomputed gradients are the reference's (the kernels' parity tests cover every path)
+    (out.image.square().sum() + out.alpha.sum()).backward()
+    assert all(t.grad is not None and torch.isfinite(t.grad).all() for t in leaves)
