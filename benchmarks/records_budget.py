@@ -72,7 +72,8 @@ def main() -> None:
     args = ap.parse_args()
     import gsplat
 
-    result = {"env": env_info(args.commit), "reps": args.reps, "warmup": args.warmup, "cases": []}
+    result = {"env": env_info(args.commit), "reps": args.reps, "warmup": args.warmup,
+              "default_budget_mib": _C.constants["RECORDS_BUDGET_MIB"], "cases": []}
     for case in args.cases:
         family, n, size = case.split(":")
         w, h = (int(v) for v in size.split("x"))

@@ -568,8 +568,6 @@ GSW_HD Vec3<T> normalize3_vjp(const Vec3<T>& v, const Vec3<T>& v_n) {
   return {(v_n.x - n.x * d) * inv, (v_n.y - n.y * d) * inv, (v_n.z - n.z * d) * inv};
 }
 
-// View-dependent colour: rgb = max(0, sum_k basis_k(dir) sh[k] + SH_COLOR_OFFSET), with
-// dir = normalise(mean - camera centre). `sh` points to K x 3 coefficients (channel fastest).
 // The unclamped colour sum_k basis_k sh[k] + SH_COLOR_OFFSET (one order for forward and VJP).
 template <typename T>
 GSW_HD void sh_color_sum(int K, const T* basis, const T* sh, T* rgb) {
@@ -577,6 +575,8 @@ GSW_HD void sh_color_sum(int K, const T* basis, const T* sh, T* rgb) {
   for (int k = 0; k < K; ++k)
     for (int ch = 0; ch < 3; ++ch) rgb[ch] += basis[k] * sh[3 * k + ch];
 }
+// View-dependent colour: rgb = max(0, sum_k basis_k(dir) sh[k] + SH_COLOR_OFFSET), with
+// dir = normalise(mean - camera centre). `sh` points to K x 3 coefficients (channel fastest).
 template <typename T>
 GSW_HD Vec3<T> sh_to_color(int degree, const Vec3<T>& dir_unnorm, const T* sh) {
   const Vec3<T> d = normalize3(dir_unnorm);

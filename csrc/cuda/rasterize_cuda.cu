@@ -594,26 +594,32 @@ __device__ __forceinline__ SlotSpan chunk_span(const TileBins& bins, int t0, int
   return SlotSpan{bins.tile_offsets[t0], bins.tile_offsets[t1], true};
 }
 
-// Second pass, Gaussians with at most kSerialEntries intersections: each one's records of tiles
-// [t0, t1) summed in intersection order by one thread (reduce_blend_grads, as on the CPU); the
-// others with intersections there are appended to `big` (big[0]: their count, zeroed by the
-// caller) for reduce_big_kernel.
+// Gaussian i with intersections in `span`: with at most kSerialEntries of them, its records summed
+// in intersection order by this thread (reduce_blend_grads, as on the CPU); otherwise appended to
+// `big` (big[0]: their count, zeroed by the caller) for reduce_big_kernel.
+template <typename T>
+__device__ __forceinline__ void reduce_or_defer(const RasterParams<T>& p, const RasterGradParams<T>& g,
+                                                const BlendRecords& layout, const T* records, int32_t* big,
+                                                int32_t i, const SlotSpan& span) {
+  if (p.bins.entry_offsets[i + 1] - p.bins.entry_offsets[i] <= kSerialEntries)
+    reduce_blend_grads(p.bins, layout, records, g, i, span);
+  else
+    big[1 + atomicAdd(big, 1)] = i;
+}
+
+// Second pass of a one-pass backward: reduce_or_defer for every Gaussian (from zero: those without
+// intersections get zero cotangents).
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
     reduce_blend_grads_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                              const T* __restrict__ records, int32_t* __restrict__ big, int t0, int t1) {
+                              const T* __restrict__ records, int32_t* __restrict__ big) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i >= p.N) return;
-  const SlotSpan span = chunk_span(p.bins, t0, t1);
-  if (p.bins.entry_offsets[i + 1] - p.bins.entry_offsets[i] <= kSerialEntries)
-    reduce_blend_grads(p.bins, layout, records, g, i, span);
-  else if (!span.accumulate || has_slots_in(p.bins, i, span))
-    big[1 + atomicAdd(big, 1)] = static_cast<int32_t>(i);
+  if (i < p.N) reduce_or_defer(p, g, layout, records, big, static_cast<int32_t>(i), SlotSpan{});
 }
 
-// Second pass of a chunk of tiles [t0, t1) in a chunked backward: the same per-Gaussian work as
-// reduce_blend_grads_kernel, for the Gaussians with intersections in the chunk only (the others keep
-// their stored sums), found from the chunk's sorted positions instead of a pass over all N: the
+// Second pass of a chunk of tiles [t0, t1) in a chunked backward: reduce_or_defer for the Gaussians
+// with intersections in the chunk only (the others keep their stored sums), found from the chunk's
+// sorted positions instead of a pass over all N: the
 // thread of position s handles Gaussian gauss_ids[s] when s is its first intersection in the chunk
 // (a bisection over its entry slots, which grow with the entry). Grid-stride over the positions.
 template <typename T>
@@ -632,10 +638,7 @@ __global__ void __launch_bounds__(kBlock)
       n -= half;
     }
     if (lo > e0 && p.bins.entry_slots[lo - 1] >= span.lo) continue;  // not its first in the chunk
-    if (p.bins.entry_offsets[i + 1] - e0 <= kSerialEntries)
-      reduce_blend_grads(p.bins, layout, records, g, i, span);
-    else
-      big[1 + atomicAdd(big, 1)] = i;
+    reduce_or_defer(p, g, layout, records, big, i, span);
   }
 }
 
@@ -796,7 +799,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     GSW_KERNEL_CHECK();
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
     if (chunks.size() == 1)
-      reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
+      reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big);
     else  // the chunk's Gaussians only (a chunk of whole tiles holds at most budget_rows records)
       reduce_chunk_kernel<T><<<static_cast<unsigned>(8 * sms), kBlock, 0, stream>>>(p, g, layout, rec, big, t0, t1);
     GSW_KERNEL_CHECK();

@@ -81,15 +81,15 @@ def _(means, quats, log_scales, opacity_logits, sh, sh_degree, viewmat, fx, fy, 
 
 def _project_backward_impl(means: Tensor, quats: Tensor, log_scales: Tensor, opacity_logits: Tensor, sh: Tensor,
                            sh_degree: int, viewmat: Tensor, fx: float, fy: float, cx: float, cy: float, width: int,
-                           height: int, radii: Tensor, v_means2d: Tensor, v_conics: Tensor, v_depths: Tensor, v_colors: Tensor,
-                           v_opacities: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+                           height: int, radii: Tensor, v_means2d: Tensor, v_conics: Tensor, v_depths: Tensor,
+                           v_colors: Tensor, v_opacities: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """VJP of ``gsw::project``: (v_means, v_quats, v_log_scales, v_opacity_logits, v_sh). It reads the inputs and
     ``radii`` only: the conics, colours and opacities are recomputed, so a render does not keep them for it."""
     return tuple(_C.project_backward(
         _c(means), _c(quats), _c(log_scales), _c(opacity_logits), _c(sh), sh_degree=sh_degree,
         viewmat=viewmat.detach(), fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height, radii=_c(radii),
-        v_means2d=_c(v_means2d),
-        v_conics=_c(v_conics), v_depths=_c(v_depths), v_colors=_c(v_colors), v_opacities=_c(v_opacities)))
+        v_means2d=_c(v_means2d), v_conics=_c(v_conics), v_depths=_c(v_depths), v_colors=_c(v_colors),
+        v_opacities=_c(v_opacities)))
 
 
 project_backward = torch.library.custom_op("gsw::project_backward", mutates_args=())(_project_backward_impl)
