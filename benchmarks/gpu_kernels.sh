@@ -12,6 +12,7 @@
 #   bash benchmarks/gpu_kernels.sh ncu OUT [CASE]  # Nsight Compute: the blend forward and contribution kernels of CASE
 #   bash benchmarks/gpu_kernels.sh lego_train OUT TAG  # lego trained here for 60 s (build/gpu/lego carried)
 #   bash benchmarks/gpu_kernels.sh lego OUT TAG  # that model (trained first if none), gsplat side by side
+#   bash benchmarks/gpu_kernels.sh lego_kernels OUT TAG  # kernel_times.py on that model
 #   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over it (e.g. the last
 #                                              # commit's csrc/ and gsw/: `git archive HEAD csrc gsw | tar -x -C DIR`),
 #                                              # built into /tmp/gsw_base (not editable)
@@ -83,6 +84,15 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
     fi
     "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 \
       --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -12
+    ;;
+  lego_kernels)  # kernel_times.py on that model (trained first if this machine has none) at 1x and 2x render size
+    P=$(find build/train_lego -name point_cloud.ply 2>/dev/null | sort | tail -1)
+    if [ -z "$P" ]; then
+      bash "$0" lego_train "$2" "$3" || exit 1
+      P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
+    fi
+    "${PY[@]}" benchmarks/kernel_times.py --ply "$P" --json "$2/kernel_times_lego_$3.json" \
+      --cases ply:0:800x800 ply:0:1600x1600 2>&1 | grep -v Warning | cut -c1-130
     ;;
   ncu)  # Nsight Compute on the blend forward and the contribution kernel of one case (the second forward, the first
         # contribution after a warm-up forward), clocks left alone
