@@ -97,7 +97,7 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
   ncu)  # Nsight Compute on the blend forward and the contribution kernel of one case (the second forward, the first
         # contribution after a warm-up forward), clocks left alone
     CASE=${3:-frustum:1000000:3840x2160}
-    ncu --clock-control none -k regex:'forward_kernel|contribution_kernel' --launch-skip 1 --launch-count 2 \
+    ncu --clock-control none -k regex:'(^|::)(forward|contribution)_kernel' --launch-skip 1 --launch-count 2 \
       --section SpeedOfLight --section Occupancy --section LaunchStats --section WarpStateStats \
       --section SchedulerStats --section MemoryWorkloadAnalysis --section ComputeWorkloadAnalysis \
       "${PY[@]}" -c "
