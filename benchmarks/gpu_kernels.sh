@@ -82,8 +82,8 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
       bash "$0" lego_train "$2" "$3" || exit 1
       P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
     fi
-    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 \
-      --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -12
+    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward px4 px2 --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 \
+      --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -20
     ;;
   lego_kernels)  # kernel_times.py on that model (trained first if this machine has none) at 1x and 2x render size
     P=$(find build/train_lego -name point_cloud.ply 2>/dev/null | sort | tail -1)
