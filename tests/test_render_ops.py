@@ -156,6 +156,18 @@ def test_traced_calls_go_through_the_op() -> None:
     assert radii.shape == (7,) and type(radii) is not torch.Tensor  # a fake tensor from the op's fake kernel
 
 
+def test_tensor_subclasses_are_traced_and_parameters_are_not() -> None:
+    class Sub(torch.Tensor):
+        pass
+
+    g, cam = _scene(n=7)
+    real = tuple(_detach(t) for t in _project_args(g, cam))
+    assert not _ops._traced(real)
+    assert not _ops._traced((torch.nn.Parameter(real[0]), *real[1:]))
+    assert _ops._traced((real[0].as_subclass(Sub), *real[1:]))
+    assert _ops._traced((*real[:-1], real[0].as_subclass(Sub)))  # wherever it is
+
+
 def test_calls_inside_a_functorch_transform_are_traced() -> None:
     g, cam = _scene(n=7)
     real = tuple(_detach(t) for t in _project_args(g, cam))
