@@ -270,21 +270,14 @@ _EAGER = {
 }
 
 
-#: Argument types that never need the custom op's dispatch (plain tensors, parameters and the ops' scalars): an
-#: eager call checks each argument's type against this set first, and isinstance only for the others.
-_PLAIN_TYPES = frozenset({Tensor, torch.nn.Parameter, int, float, bool, str, type(None)})
-
-
 def _traced(args: tuple) -> bool:
     """Whether a call must go through the custom op: under ``torch.compile``, a dispatch mode (fake tensors, AOT
     autograd's tracing) or a functorch transform (vmap, grad, ...), or with tensor subclasses."""
     if (torch.compiler.is_compiling() or torch._C._len_torch_dispatch_stack() > 0
             or torch._C._functorch.peek_interpreter_stack() is not None):
         return True
-    for a in args:
-        if type(a) not in _PLAIN_TYPES and isinstance(a, Tensor):
-            return True  # a tensor subclass
-    return False
+    return any(type(a) is not Tensor and isinstance(a, Tensor) and not isinstance(a, torch.nn.Parameter)
+               for a in args)
 
 
 def call(op, *args):
