@@ -145,6 +145,49 @@ def make_scene(family: str, n: int, width: int, height: int, ply: str | None,
     raise ValueError(f"unknown scene family {family!r}")
 
 
+def parse_case(case: str) -> tuple[str, int, int, int]:
+    """A case "family:N:WxH" as (family, N, W, H)."""
+    family, n, size = case.split(":")
+    w, h = (int(v) for v in size.split("x"))
+    return family, int(n), w, h
+
+
+def trainable(g: Gaussians) -> tuple[list[torch.Tensor], Gaussians]:
+    """Leaf copies of g's parameters (means, log_scales, quats, opacity_logits, sh) and the Gaussians over them."""
+    params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
+    return params, Gaussians(*params)
+
+
+def fwdbwd_pair(g: Gaussians, cam: Camera, w_img: torch.Tensor, keep_image: bool = True):
+    """One forward+backward of gsw and of gsplat 1.5.3 (`packed=False`) on a scene, loss = sum(image * w_img), as
+    ((gsw_fn, gsw_params), (gsplat_fn, gsplat_params)). With `keep_image` each function keeps its image alive
+    through the backward and returns it (as a training loop does); otherwise the image is a temporary, freed once
+    the loss's product is made."""
+    import gsplat
+
+    params, g_train = trainable(g)
+    _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
+    w, h = cam.width, cam.height
+
+    def gsw_fwdbwd():
+        if not keep_image:
+            (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
+            return None
+        image = gsw.rasterize(g_train, cam, validate=False).image
+        (image * w_img).sum().backward()
+        return image
+
+    def gsplat_fwdbwd():
+        if not keep_image:
+            (gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0] * w_hwc).sum().backward()
+            return None
+        img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
+        (img * w_hwc).sum().backward()
+        return img
+
+    return (gsw_fwdbwd, params), (gsplat_fwdbwd, gp)
+
+
 def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.Tensor, reps: int,
               warmup: int) -> tuple[dict[str, float], torch.Tensor]:
     """gsw's timings and peaks for one scene; returns them and the forward image."""
@@ -154,8 +197,7 @@ def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.T
                 g.check_finite()
             return gsw.rasterize(g, cam, validate=validate).image
 
-    params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
-    g_train = Gaussians(*params)
+    params, g_train = trainable(g)
 
     def reset():
         for p in params:
@@ -247,20 +289,26 @@ def compare(row: dict[str, object]) -> None:
 
 
 @contextlib.contextmanager
-def backward_variant(name: str | None):
-    """Runs the block with the CUDA blend backward `name` (None: the default), restoring the environment after."""
-    old = os.environ.get(BACKWARD_ENV)
-    if name is None:
-        os.environ.pop(BACKWARD_ENV, None)
+def env_setting(name: str, value: str | None):
+    """Runs the block with environment variable `name` set to `value` (None: unset), restoring it after (the
+    kernels' benchmarking switches are read at every call)."""
+    old = os.environ.get(name)
+    if value is None:
+        os.environ.pop(name, None)
     else:
-        os.environ[BACKWARD_ENV] = name
+        os.environ[name] = value
     try:
         yield
     finally:
         if old is None:
-            os.environ.pop(BACKWARD_ENV, None)
+            os.environ.pop(name, None)
         else:
-            os.environ[BACKWARD_ENV] = old
+            os.environ[name] = old
+
+
+def backward_variant(name: str | None):
+    """Runs the block with the CUDA blend backward `name` (None: the default)."""
+    return env_setting(BACKWARD_ENV, name)
 
 
 def compare_backward_variants(g: Gaussians, cam: Camera, w_img: torch.Tensor, variants: list[str], reps: int,
@@ -280,8 +328,7 @@ def compare_backward_variants(g: Gaussians, cam: Camera, w_img: torch.Tensor, va
                                                        height=H)
     bwd = lambda: _C.rasterize_backward(m2d, conics, colors, opac, depths, bg, bins=bins,  # noqa: E731
                                         width=W, height=H, final_T=final_T, n_contrib=n_contrib, v_image=w_img)
-    params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
-    g_train = Gaussians(*params)
+    params, g_train = trainable(g)
 
     def reset():
         for p in params:
@@ -478,12 +525,11 @@ def main() -> None:
     print(env, flush=True)
     rows = []
     for case in args.cases:
-        family, n, size = case.split(":")
-        w, h = (int(v) for v in size.split("x"))
+        family, n, w, h = parse_case(case)
         try:
-            row = bench_case(family, int(n), w, h, args)
+            row = bench_case(family, n, w, h, args)
         except torch.cuda.OutOfMemoryError as e:
-            row = dict(family=family, N=int(n), width=w, height=h, error=f"out of memory: {e}"[:200])
+            row = dict(family=family, N=n, width=w, height=h, error=f"out of memory: {e}"[:200])
             torch.cuda.empty_cache()
         print(json.dumps(row), flush=True)
         rows.append(row)

@@ -19,7 +19,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_cuda import make_scene  # noqa: E402
+from bench_cuda import make_scene, parse_case, trainable  # noqa: E402
 
 
 def profile(fn, reps: int, warmup: int) -> list[tuple[str, float]]:
@@ -54,22 +54,20 @@ def main() -> None:
 
     out = []
     for case in args.cases:
-        family, n, size = case.split(":")
-        w, h = (int(v) for v in size.split("x"))
-        g, cam = make_scene(family, int(n), w, h, args.ply)
+        family, n, w, h = parse_case(case)
+        g, cam = make_scene(family, n, w, h, args.ply)
         weights = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
 
         def fwd():
             with torch.no_grad():
                 gsw.rasterize(g, cam, validate=False)
 
-        params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.sh)]
+        params, g_train = trainable(g)
 
         def fwdbwd():
             for p in params:
                 p.grad = None
-            gg = gsw.Gaussians(*params)
-            (gsw.rasterize(gg, cam, validate=False).image * weights).sum().backward()
+            (gsw.rasterize(g_train, cam, validate=False).image * weights).sum().backward()
 
         def contrib():
             gsw.contribution(g, cam, weights)

@@ -23,10 +23,7 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_cuda import env_info, gsplat_inputs, make_scene  # noqa: E402
-
-import gsw  # noqa: E402
-from gsw.gaussians import Gaussians  # noqa: E402
+from bench_cuda import env_info, fwdbwd_pair, make_scene, parse_case  # noqa: E402
 
 _OURS = ("/gsw/", "/gsplat/", "memory_peak.py")
 
@@ -82,37 +79,13 @@ def main() -> None:
     ap.add_argument("--keep-image", action="store_true",
                     help="keep the rendered image alive through the backward (as a training loop and bench_cuda.py do)")
     args = ap.parse_args()
-    import gsplat
-
     result = {"env": env_info(args.commit), "budget_mib_setting": os.environ.get("GSW_BLEND_RECORDS_MIB", ""),
               "keep_image": args.keep_image, "cases": []}
     for case in args.cases:
-        family, n, size = case.split(":")
-        w, h = (int(v) for v in size.split("x"))
-        g, cam = make_scene(family, int(n), w, h, args.ply)
+        family, n, w, h = parse_case(case)
+        g, cam = make_scene(family, n, w, h, args.ply)
         w_img = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
-        params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits,
-                                                                 g.sh)]
-        g_train = Gaussians(*params)
-
-        def gsw_fwdbwd():
-            if not args.keep_image:  # the image is a temporary: freed once the loss's product is made
-                (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
-                return None
-            image = gsw.rasterize(g_train, cam, validate=False).image
-            (image * w_img).sum().backward()
-            return image
-
-        _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
-
-        def gsplat_fwdbwd():
-            if not args.keep_image:
-                (gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0] * w_hwc).sum().backward()
-                return None
-            img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
-            (img * w_hwc).sum().backward()
-            return img
-
+        (gsw_fwdbwd, params), (gsplat_fwdbwd, gp) = fwdbwd_pair(g, cam, w_img, keep_image=args.keep_image)
         row: dict = {"case": case}
         for name, fn, ps in (("gsw", gsw_fwdbwd, params), ("gsplat_unpacked", gsplat_fwdbwd, gp)):
             for _ in range(2):  # warm-up (gsplat's JIT, the caching allocator)

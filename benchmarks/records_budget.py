@@ -13,7 +13,6 @@ mode on these scenes) and the visited records' size (the rows a one-pass backwar
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
@@ -21,30 +20,12 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_cuda import cuda_time, env_info, gsplat_inputs, make_scene, peak_mb  # noqa: E402
+from bench_cuda import cuda_time, env_info, env_setting, fwdbwd_pair, make_scene, parse_case, peak_mb  # noqa: E402
 
 import gsw  # noqa: E402
 from gsw._ext import _C  # noqa: E402
-from gsw.gaussians import Gaussians  # noqa: E402
 
 BUDGET_ENV = "GSW_BLEND_RECORDS_MIB"
-
-
-@contextlib.contextmanager
-def budget(mib: str | None):
-    """Runs the block with GSW_BLEND_RECORDS_MIB = mib (None: unset, the library's default)."""
-    old = os.environ.get(BUDGET_ENV)
-    if mib is None:
-        os.environ.pop(BUDGET_ENV, None)
-    else:
-        os.environ[BUDGET_ENV] = mib
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop(BUDGET_ENV, None)
-        else:
-            os.environ[BUDGET_ENV] = old
 
 
 def visited_records_mib(n_contrib: torch.Tensor) -> float:
@@ -70,43 +51,26 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--commit", default="")
     args = ap.parse_args()
-    import gsplat
-
     result = {"env": env_info(args.commit), "reps": args.reps, "warmup": args.warmup,
               "default_budget_mib": _C.constants["RECORDS_BUDGET_MIB"], "cases": []}
     for case in args.cases:
-        family, n, size = case.split(":")
-        w, h = (int(v) for v in size.split("x"))
-        g, cam = make_scene(family, int(n), w, h, args.ply)
+        family, n, w, h = parse_case(case)
+        g, cam = make_scene(family, n, w, h, args.ply)
         w_img = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
-        params = [t.detach().clone().requires_grad_() for t in (g.means, g.log_scales, g.quats, g.opacity_logits,
-                                                                 g.sh)]
-        g_train = Gaussians(*params)
+        (gsw_fwdbwd, params), (gsplat_fwdbwd, gp) = fwdbwd_pair(g, cam, w_img)
 
         def reset(ps=params):
             for p in ps:
                 p.grad = None
 
-        def gsw_fwdbwd():
-            image = gsw.rasterize(g_train, cam, validate=False).image
-            (image * w_img).sum().backward()
-            return image
-
-        _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
-
-        def gsplat_fwdbwd():
-            img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
-            (img * w_hwc).sum().backward()
-            return img
-
         with torch.no_grad():
             rec = visited_records_mib(gsw.rasterize(g, cam, validate=False).n_contrib)
         row: dict = {"case": case, "visited_records_mib": rec,
-                     "gsplat_unpacked_fwdbwd_ms": cuda_time(gsplat_fwdbwd, args.reps, args.warmup, lambda: reset(gp)),
-                     "gsplat_unpacked_fwdbwd_peak_mb": peak_mb(gsplat_fwdbwd, lambda: reset(gp)), "gsw": {}}
+                     "gsplat_unpacked_fwdbwd_ms": cuda_time(gsplat_fwdbwd, args.reps, args.warmup, lambda ps=gp: reset(ps)),
+                     "gsplat_unpacked_fwdbwd_peak_mb": peak_mb(gsplat_fwdbwd, lambda ps=gp: reset(ps)), "gsw": {}}
         reset(gp)
         for b in args.budgets:
-            with budget(None if b == "default" else b):
+            with env_setting(BUDGET_ENV, None if b == "default" else b):
                 row["gsw"][b] = {"fwdbwd_ms": cuda_time(gsw_fwdbwd, args.reps, args.warmup, reset),
                                  "fwdbwd_peak_mb": peak_mb(gsw_fwdbwd, reset)}
             reset()
@@ -115,7 +79,7 @@ def main() -> None:
               + "; ".join(f"{b}: {r['fwdbwd_ms']:.2f} ms ({r['fwdbwd_ms'] / gs:.2f}x) {r['fwdbwd_peak_mb']:.0f} MiB"
                           for b, r in row["gsw"].items()), flush=True)
         result["cases"].append(row)
-        del g, g_train, params, gp
+        del g, params, gp, gsw_fwdbwd, gsplat_fwdbwd
         torch.cuda.empty_cache()
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
