@@ -230,6 +230,24 @@ GSW_HD bool has_slots_in(const TileBins& bins, int64_t i, const SlotSpan& span) 
   return e0 < e1 && bins.entry_slots[e1 - 1] >= span.lo && bins.entry_slots[e0] < span.hi;
 }
 
+// Adds the records of Gaussian i's intersections e = entry_offsets[i] + first, + first + stride, ...
+// whose sorted positions lie in `span` to acc, in that order (an intersection behind its tile's
+// visited front has no record).
+template <typename T>
+GSW_HD void add_blend_records(const TileBins& bins, const BlendRecords& layout, const T* records, int64_t i,
+                              const SlotSpan& span, int32_t first, int32_t stride, T* acc) {
+  int32_t t = -1;
+  for (int32_t e = bins.entry_offsets[i] + first; e < bins.entry_offsets[i + 1]; e += stride) {
+    const int32_t s = bins.entry_slots[e];
+    if (s < span.lo) continue;
+    if (s >= span.hi) break;  // the positions grow with e
+    const T* r = blend_record(bins, layout, records, s, t);
+    if (r == nullptr) continue;
+    GSW_UNROLL
+    for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
+  }
+}
+
 // Blend backward, second pass: Gaussian i's cotangents are the sum of its visited intersections'
 // records (kBlendGrads values each, in kBlendGrads order), added in intersection order e =
 // entry_offsets[i] .. entry_offsets[i + 1] - 1 from zero; an intersection behind its tile's visited
@@ -249,16 +267,7 @@ GSW_HD void reduce_blend_grads(const TileBins& bins, const BlendRecords& layout,
     GSW_UNROLL
     for (int k = 0; k < kBlendGrads; ++k) acc[k] = T(0);
   }
-  int32_t t = -1;
-  for (int32_t e = bins.entry_offsets[i]; e < bins.entry_offsets[i + 1]; ++e) {
-    const int32_t s = bins.entry_slots[e];
-    if (s < span.lo) continue;
-    if (s >= span.hi) break;
-    const T* r = blend_record(bins, layout, records, s, t);
-    if (r == nullptr) continue;
-    GSW_UNROLL
-    for (int k = 0; k < kBlendGrads; ++k) acc[k] += r[k];
-  }
+  add_blend_records(bins, layout, records, i, span, 0, 1, acc);
   store_blend_grads(g, i, acc);
 }
 
