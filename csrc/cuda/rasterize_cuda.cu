@@ -13,13 +13,13 @@
 //
 // The contribution's cost is its per-splat reduction over the warp (the weighted w per channel,
 // hits and max w), not the blending: with one pixel per thread that reduction cost as much as the
-// whole forward. So each of its threads owns kContribPixels pixels of one column (the pixel layout,
-// below: pixel i of a warp's lanes lies in one row pair) and first reduces over them in registers: one warp reduction per splat (a transposed butterfly for the
+// whole forward. So each of its threads owns kContribPixels vertically adjacent pixels and first
+// reduces over them in registers: one warp reduction per splat (a transposed butterfly for the
 // channel sums, integer reductions for the hits and, in float32, for the max: non-negative floats
 // order like their bit patterns) then covers 32 * kContribPixels pixels, and a warp skips it when
-// none of them blended the splat, and pixel i of its lanes where the splat misses that row pair. The
-// pixels of a thread share their column, so the splat is read from shared memory once for all of
-// them and the compiler shares the x terms of the Gaussian's exponent. Each warp stores its results for a splat in its own shared-memory slot (plain stores:
+// none of them blended the splat. The pixels of a thread share their column, so the splat is read
+// from shared memory once for all of them and the compiler shares the x terms of the Gaussian's
+// exponent. Each warp stores its results for a splat in its own shared-memory slot (plain stores:
 // shared-memory float atomics are compare-and-swap loops); after each batch, one thread per splat
 // adds up the warps' slots and adds the block's totals to the splat's outputs with one atomic per
 // value.
@@ -29,9 +29,8 @@
 // T_i = T_{i+1} / (1 - alpha_i) as the CPU backend does. Its cost, like the contribution's, is
 // the per-splat reduction of the ten cotangents (blend_backward_step, core/math.h: the same
 // per-pixel step as the CPU backend's), so it has the same layout:
-// each thread owns kBackwardPixels pixels of one column (a warp covers 32 / TILE_SIZE *
-// kBackwardPixels whole rows), skips pixel i of its lanes where the splat's row mask misses that row
-// pair (the forward's culling), reads the splat from shared memory once for the others and
+// each thread owns kBackwardPixels vertically adjacent pixels of one column (a warp covers 32 /
+// TILE_SIZE * kBackwardPixels whole rows), reads the splat from shared memory once for them and
 // sums their ten cotangents in registers; a warp that blended the splat in none of its pixels skips
 // it (one vote); otherwise a transposed butterfly (warp_sum_transposed: 12 shuffles instead of ten
 // warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
@@ -107,39 +106,18 @@ __device__ __forceinline__ T alpha_at(const SplatGeo<T>& s, T pxc, T pyc) {
   return splat_alpha(s.opacity, gaussian_power(Sym2<T>{s.ca, s.cb, s.cc}, s.mx, s.my, pxc, pyc));
 }
 
-// Pixel layout: a warp's lanes cover kRowStep = 32 / TILE_SIZE rows of a tile at a time (lane l: column
-// l % TILE_SIZE, row l / TILE_SIZE of the pair), and a thread's PX pixels are PX such steps: pixel i of thread
-// t (warp w) is at column t % TILE_SIZE and tile row kWarpRows * w + kRowStep * i + (t % 32) / TILE_SIZE. So
-// pixel i of every lane of a warp lies in the same aligned row pair, the pair of one-pixel-per-thread warps.
-//
-// Row culling: a warp's threads hold kWarpRows(PX) whole rows of the tile, and a warp skips the staged splats
-// whose row mask (splat_row_mask, core/math.h) misses them: one ballot finds the warp's splats among 32 staged
-// ones, so the skipped ones cost no alpha evaluations. With PX > 1 pixels per thread, a warp also skips pixel i
-// of all its lanes where the mask misses that pixel's row pair (a warp-uniform branch), so every kernel makes
-// the same decision for a pixel as the forward's one-pixel warps of that pair. The mask's y extent is widened
-// by BIN_MARGIN pixels for the fast-math square root and division that compute it on the device; the rows left
-// out are rows where every alpha is 0, so no result changes.
-constexpr int kRowStep = 32 / TILE_SIZE;
-constexpr uint32_t kStepRows = (1u << kRowStep) - 1u;
+// Row culling (forward and contribution): a warp's threads hold kWarpRows(PX) whole rows of the tile,
+// and a warp skips the staged splats whose row mask (splat_row_mask, core/math.h) misses them: one
+// ballot finds the warp's splats among 32 staged ones, so the skipped ones cost no alpha evaluations.
+// The mask's y extent is widened by BIN_MARGIN pixels for the fast-math square root and division that
+// compute it on the device; the rows left out are rows where every alpha is 0, so no result changes.
 template <int PX>
-constexpr int kWarpRows = kRowStep * PX;
+constexpr int kWarpRows = 32 / TILE_SIZE * PX;
 static_assert(32 % TILE_SIZE == 0 && TILE_SIZE <= 32, "a warp holds whole tile rows");
-
-// The warp's first tile row.
-template <int PX>
-__device__ __forceinline__ int warp_row0() {
-  return kWarpRows<PX> * static_cast<int>(threadIdx.x >> 5);
-}
 
 template <int PX>
 __device__ __forceinline__ uint32_t warp_row_bits() {
-  return ((1u << kWarpRows<PX>) - 1u) << warp_row0<PX>();
-}
-
-// Whether a splat of row mask `rows` shifted by the warp's first row can reach pixel i of the warp's lanes.
-template <int PX>
-__device__ __forceinline__ bool reaches_step(uint32_t warp_rows_of_splat, int i) {
-  return PX == 1 || ((warp_rows_of_splat >> (kRowStep * i)) & kStepRows) != 0u;
+  return ((1u << kWarpRows<PX>) - 1u) << (kWarpRows<PX> * static_cast<int>(threadIdx.x >> 5));
 }
 
 template <typename T>
@@ -147,19 +125,17 @@ __device__ __forceinline__ uint32_t row_mask(const SplatGeo<T>& s, int tile_y0) 
   return splat_row_mask(Sym2<T>{s.ca, s.cb, s.cc}, s.opacity, s.my, tile_y0, T(BIN_MARGIN));
 }
 
-// The PX pixels of this thread (the layout above): (px, py + kRowStep * i) for i < PX.
+// The PX pixels of this thread: (px, py + i) for i < PX. Thread t of the tile's block has column
+// t % TILE_SIZE and first row PX * (t / TILE_SIZE).
 template <int PX>
 struct PixelCtx {
   int tile;
   int tile_y0;         // the tile's first pixel row
   int px, py;
-  int rows;            // pixel i is inside the image for i < rows
-  int64_t pix;         // index of (px, py)
-  int64_t step;        // index offset from pixel i to pixel i + 1
+  int rows;            // (px, py + i) is inside the image for i < rows
+  int64_t pix;         // index of (px, py); (px, py + i) is pix + i * width
   int32_t start, end;  // the tile's range in the intersection list
   __device__ __forceinline__ bool inside(int i = 0) const { return i < rows; }
-  __device__ __forceinline__ int row(int i) const { return py + kRowStep * i; }
-  __device__ __forceinline__ int64_t index(int i) const { return pix + i * step; }
 };
 
 template <int PX, typename T>
@@ -170,11 +146,9 @@ __device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p, int 
   const int t = static_cast<int>(threadIdx.x);
   c.tile_y0 = ty * TILE_SIZE;
   c.px = tx * TILE_SIZE + t % TILE_SIZE;
-  c.py = c.tile_y0 + warp_row0<PX>() + (t & 31) / TILE_SIZE;
-  const int below = p.height - c.py;  // rows from py to the image's bottom edge
-  c.rows = c.px < p.width && below > 0 ? min(PX, (below + kRowStep - 1) / kRowStep) : 0;
+  c.py = ty * TILE_SIZE + t / TILE_SIZE * PX;
+  c.rows = c.px < p.width ? max(0, min(PX, p.height - c.py)) : 0;
   c.pix = int64_t(c.py) * p.width + c.px;
-  c.step = int64_t(kRowStep) * p.width;
   c.start = p.bins.tile_offsets[c.tile];
   c.end = p.bins.tile_offsets[c.tile + 1];
   return c;
@@ -195,13 +169,12 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
   __shared__ SplatGeo<T> s_geo[kSplats];
   __shared__ uint32_t s_rows[kSplats];  // row_mask of each staged splat
   const uint32_t warp_rows = warp_row_bits<PX>();
-  const int row0 = warp_row0<PX>();
   const int lane = static_cast<int>(threadIdx.x & 31);
   const T pxc = T(c.px) + T(0.5);
   T pyc[PX];
 #pragma unroll
   for (int i = 0; i < PX; ++i) {
-    pyc[i] = T(c.row(i)) + T(0.5);
+    pyc[i] = T(c.py + i) + T(0.5);
     tr[i] = T(1);
     last[i] = 0;
   }
@@ -233,15 +206,13 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
         }
         const int k = k32 + __ffs(todo) - 1;
         const SplatGeo<T> s = s_geo[k];
-        const uint32_t splat_rows = s_rows[k] >> row0;
         T w[PX];
 #pragma unroll
         for (int i = 0; i < PX; ++i) {
-          w[i] = T(0);
-          if (!reaches_step<PX>(splat_rows, i)) continue;  // warp-uniform (row culling, above)
-          // alpha of done pixels too: no branch per lane, and the compiler can share the terms of
+          // alpha of done pixels too: no branch per pixel, and the compiler can share the terms of
           // the pixels' common column.
           const T alpha = alpha_at(s, pxc, pyc[i]);
+          w[i] = T(0);
           if ((live >> i & 1u) && alpha > T(0)) {
             if (blend_terminates(tr[i], alpha)) {
               live &= ~(1u << i);  // this splat is not blended (INRIA)
@@ -321,7 +292,8 @@ struct ContributionVisitor {
   static_assert(CT == 0 || CT == 1 || CT == 3, "dispatched for C = 1, 3 or any (0)");
   static constexpr int PX = kContribPixels;
   const ContributionParams<T>& cp;
-  int64_t P, pix, step;  // pixel i of this thread is pix + i * step
+  int64_t P, pix;  // pixel i of this thread is pix + i * width
+  int width;
   ContributionShared<T, CT>* sh;
   T wreg[PX][CT > 0 ? CT : 1];
   __device__ void load(int slot, int32_t gid) {
@@ -361,7 +333,7 @@ struct ContributionVisitor {
         T v = T(0);
 #pragma unroll
         for (int i = 0; i < PX; ++i)
-          if (w[i] > T(0)) v += w[i] * cp.weights[ch * P + pix + i * step];
+          if (w[i] > T(0)) v += w[i] * cp.weights[ch * P + pix + int64_t(i) * width];
         v = warp_sum(v);
         if (lane == 0 && v != T(0)) atomicAdd(out + ch, v);
       }
@@ -405,14 +377,14 @@ __global__ void __launch_bounds__(kContribBlock)
   __shared__ ContributionShared<T, CT> sh;
   const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, blockIdx.x);
   const int64_t P = int64_t(p.width) * p.height;
-  ContributionVisitor<T, CT> vis{cp, P, c.pix, c.step, &sh};
+  ContributionVisitor<T, CT> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
 #pragma unroll
     for (int i = 0; i < kContribPixels; ++i)
 #pragma unroll
       for (int ch = 0; ch < CT; ++ch)
         vis.wreg[i][ch] =
-            c.inside(i) ? cp.weights[ch * P + c.index(i)] : T(0);
+            c.inside(i) ? cp.weights[ch * P + c.pix + int64_t(i) * p.width] : T(0);
   }
   T tr[kContribPixels];
   int32_t last[kContribPixels];
@@ -439,7 +411,7 @@ __device__ __forceinline__ BackPixel<T> load_back_pixel(const RasterParams<T>& p
                                                         const RasterGradParams<T>& g,
                                                         const PixelCtx<PX>& c, int i) {
   BackPixel<T> q;
-  q.pyc = T(c.row(i)) + T(0.5);
+  q.pyc = T(c.py + i) + T(0.5);
   q.st.tr = q.cot.t_final = T(1);
   q.cot.v_t_final = q.cot.depth = T(0);
 #pragma unroll
@@ -448,7 +420,7 @@ __device__ __forceinline__ BackPixel<T> load_back_pixel(const RasterParams<T>& p
   for (int ch = 0; ch < 3; ++ch) q.cot.color[ch] = T(0);
   q.n = 0;
   if (!c.inside(i)) return q;
-  const int64_t P = int64_t(p.width) * p.height, pix = c.index(i);
+  const int64_t P = int64_t(p.width) * p.height, pix = c.pix + int64_t(i) * p.width;
   q.n = p.n_contrib[pix];
   q.st.tr = q.cot.t_final = p.final_T[pix];
 #pragma unroll
@@ -467,7 +439,6 @@ struct BackwardShared {
   SplatGeo<T> geo[kThreads];
   SplatColor<T> col[kThreads];
   int32_t gid[kThreads];
-  uint32_t rows[kThreads];  // row_mask of each staged splat
   // part[w][q][k]: warp w's sum of cotangent q of staged splat k, valid where hit[w][k] != 0.
   // The + 1 puts the ten values a warp stores for one splat into ten different banks.
   T part[kWarps][kBlendGrads][kThreads + 1];
@@ -478,19 +449,15 @@ struct BackwardShared {
 // the warp blended it, stores the warp's sums of its cotangents in the warp's shared slot.
 template <typename T, int PX>
 __device__ __forceinline__ void backward_splat(BackwardShared<T, PX>& sh, int k, int j, T pxc,
-                                               BackPixel<T> (&px)[PX], int row0) {
+                                               BackPixel<T> (&px)[PX]) {
   const SplatGeo<T> s = sh.geo[k];
   const Sym2<T> conic{s.ca, s.cb, s.cc};
-  const uint32_t splat_rows = sh.rows[k] >> row0;
   // The forward's alpha (alpha_at, bit for bit: gaussian_power has fixed roundings on the
-  // device) where the forward evaluated it (the same row culling), so a > 0 exactly for the splats
-  // the forward blended in front of n_contrib.
+  // device), so a > 0 exactly for the splats the forward blended in front of n_contrib.
   T a[PX], G[PX];
   bool any = false;
 #pragma unroll
   for (int i = 0; i < PX; ++i) {
-    a[i] = G[i] = T(0);
-    if (!reaches_step<PX>(splat_rows, i)) continue;  // warp-uniform
     const T power = gaussian_power(conic, s.mx, s.my, pxc, px[i].pyc);
     G[i] = splat_gaussian(power);
     a[i] = j < px[i].n ? splat_alpha_from_gaussian(s.opacity, power, G[i]) : T(0);
@@ -557,17 +524,11 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
   }
 }
 
-// Resident blocks per SM the float32 backward is compiled for: 640 threads, i.e. at most 102 registers a
-// thread (the compiler's own choice with the row culling, 111 for 4 pixels, costs a sixth of the warps
-// per SM). float64 (tests) is left to the compiler.
-template <typename T, int PX>
-constexpr int kBackwardMinBlocks = sizeof(T) == 4 ? 640 / (kTilePixels / PX) : 1;
-
-// Blend backward with PX pixels of one column per thread (see the file comment), block b on
+// Blend backward with PX vertically adjacent pixels per thread (see the file comment), block b on
 // tile tile0 + b. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's
 // rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
 template <typename T, int PX, bool Atomic>
-__global__ void __launch_bounds__(kTilePixels / PX, kBackwardMinBlocks<T, PX>)
+__global__ void __launch_bounds__(kTilePixels / PX)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
                     T* __restrict__ records, int tile0) {
   using Shared = BackwardShared<T, PX>;
@@ -576,7 +537,6 @@ __global__ void __launch_bounds__(kTilePixels / PX, kBackwardMinBlocks<T, PX>)
   __shared__ Shared sh;
   const PixelCtx<PX> c = pixel_ctx<PX>(p, tile0 + static_cast<int>(blockIdx.x));
   const T pxc = T(c.px) + T(0.5);
-  const int row0 = warp_row0<PX>();
   BackPixel<T> px[PX];
   int n_max = 0;
 #pragma unroll
@@ -596,15 +556,13 @@ __global__ void __launch_bounds__(kTilePixels / PX, kBackwardMinBlocks<T, PX>)
     if (lo + t < hi) {
       const int32_t gid = p.bins.gauss_ids[c.start + lo + t];
       sh.gid[t] = gid;
-      const SplatGeo<T> geo = load_geo(p, gid);
-      sh.geo[t] = geo;
-      sh.rows[t] = row_mask(geo, c.tile_y0);
+      sh.geo[t] = load_geo(p, gid);
       sh.col[t] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2], p.depths[gid]};
 #pragma unroll
       for (int w = 0; w < Shared::kWarps; ++w) sh.hit[w][t] = 0;
     }
     __syncthreads();
-    for (int k = min(hi, warp_n) - lo - 1; k >= 0; --k) backward_splat(sh, k, lo + k, pxc, px, row0);
+    for (int k = min(hi, warp_n) - lo - 1; k >= 0; --k) backward_splat(sh, k, lo + k, pxc, px);
     __syncthreads();  // every warp has stored its sums of the batch
     if (lo + t < hi)
       flush_splat<T, PX, Atomic>(g, sh, t, Atomic ? nullptr : tile_records + int64_t(kBlendGrads) * (lo + t));
@@ -686,9 +644,9 @@ __global__ void __launch_bounds__(kBlock)
 
 // Second pass, Gaussians with more intersections (a large splat spans thousands of tiles): a warp
 // each (grid-stride over `big`); lane l sums the records of intersections e0 + l, e0 + l + 32, ...
-// in that order (add_blend_records), then the warp adds the lanes' sums with one transposed butterfly. The lanes and
-// the butterfly's order depend on nothing but the Gaussian, so the gradients are the same bits on
-// every run (in which order the Gaussians were appended to `big` does not matter).
+// in that order (add_blend_records), then the warp adds the lanes' sums with one transposed
+// butterfly. The lanes and the butterfly's order depend on nothing but the Gaussian, so the
+// gradients are the same bits on every run (in which order the Gaussians were appended to `big` does not matter).
 // In a chunked backward each chunk's sum of a Gaussian's records (of tiles [t0, t1)) is added to
 // its stored sums: a fixed order again.
 template <typename T>
