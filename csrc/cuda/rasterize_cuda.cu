@@ -51,6 +51,7 @@
 #include <string>
 #include <vector>
 
+#include <cub/device/device_radix_sort.cuh>
 #include <cub/device/device_scan.cuh>
 
 #include "cuda/common.cuh"
@@ -373,9 +374,9 @@ struct ContributionVisitor {
 
 template <typename T, int CT>
 __global__ void __launch_bounds__(kContribBlock)
-    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp) {
+    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp, const int32_t* __restrict__ order) {
   __shared__ ContributionShared<T, CT> sh;
-  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, blockIdx.x);
+  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, order[blockIdx.x]);
   const int64_t P = int64_t(p.width) * p.height;
   ContributionVisitor<T, CT> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
@@ -525,17 +526,19 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
 }
 
 // Blend backward with PX vertically adjacent pixels per thread (see the file comment), block b on
-// tile tile0 + b. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's
-// rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
+// tile order[b] or, without an order, tile0 + b. `records` (unless Atomic): the BlendRecords buffer
+// (core/params.h); this tile's rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile])
+// are all written.
 template <typename T, int PX, bool Atomic>
 __global__ void __launch_bounds__(kTilePixels / PX)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                    T* __restrict__ records, int tile0) {
+                    T* __restrict__ records, const int32_t* __restrict__ order, int tile0) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
   __shared__ Shared sh;
-  const PixelCtx<PX> c = pixel_ctx<PX>(p, tile0 + static_cast<int>(blockIdx.x));
+  const int tile = order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, tile);
   const T pxc = T(c.px) + T(0.5);
   BackPixel<T> px[PX];
   int n_max = 0;
@@ -682,6 +685,41 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
+// Each tile's cost offsets[t + 1] - offsets[t] and its index.
+__global__ void __launch_bounds__(kBlock) tile_cost_kernel(const int32_t* __restrict__ offsets, int tiles,
+                                                           int32_t* __restrict__ cost, int32_t* __restrict__ ids) {
+  const int t = static_cast<int>(blockIdx.x * blockDim.x + threadIdx.x);
+  if (t >= tiles) return;
+  cost[t] = offsets[t + 1] - offsets[t];
+  ids[t] = t;
+}
+
+// The tiles' indices in decreasing order of their cost offsets[t + 1] - offsets[t] (<= max_cost; ties
+// in index order), as the block order of a blending kernel. A block is one tile, and blocks start
+// roughly in index order: a dense tile that starts in the last wave of blocks prolongs the whole
+// kernel by its own time. Started first (longest-processing-time-first), it runs beside the others.
+// The order changes no result: every tile's block computes the same values wherever it runs.
+// max_cost <= 0: nothing is sorted (an empty buffer).
+DeviceBuffer tile_order(const int32_t* offsets, int64_t tiles, int64_t max_cost, cudaStream_t stream) {
+  if (max_cost <= 0 || tiles <= 0) return DeviceBuffer(0);
+  const int n = static_cast<int>(tiles);
+  DeviceBuffer work(sizeof(int32_t) * 3 * size_t(n)), order(sizeof(int32_t) * size_t(n));
+  int32_t* cost = work.as<int32_t>();
+  int32_t* ids = cost + n;
+  int32_t* sorted_cost = ids + n;
+  tile_cost_kernel<<<blocks_for(n, kBlock), kBlock, 0, stream>>>(offsets, n, cost, ids);
+  GSW_KERNEL_CHECK();
+  int end_bit = 1;  // the costs' significant bits
+  while (end_bit < 31 && (int64_t(1) << end_bit) <= max_cost) ++end_bit;
+  size_t temp_bytes = 0;
+  GSW_CUDA_CHECK(cub::DeviceRadixSort::SortPairsDescending(nullptr, temp_bytes, cost, sorted_cost, ids,
+                                                           order.as<int32_t>(), n, 0, end_bit, stream));
+  DeviceBuffer temp(temp_bytes);
+  GSW_CUDA_CHECK(cub::DeviceRadixSort::SortPairsDescending(temp.as<void>(), temp_bytes, cost, sorted_cost, ids,
+                                                           order.as<int32_t>(), n, 0, end_bit, stream));
+  return order;
+}
+
 template <typename T>
 int64_t num_tiles(const RasterParams<T>& p) {
   return int64_t(p.bins.tiles_x) * p.bins.tiles_y;
@@ -741,7 +779,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   GSW_KERNEL_CHECK();
   BlendRecords layout{visited, offsets};
   if (variant == BackwardVariant::kAtomic) {
-    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, 0);
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, nullptr, 0);
     GSW_KERNEL_CHECK();
     return;
   }
@@ -775,6 +813,10 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   if constexpr (sizeof(BackwardShared<T, 2>) > 48 * 1024) px2 = false;  // float64: px2's shared memory would not fit
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
+  // One pass: the tiles in decreasing order of their visited splats (tile_order). A chunk's tiles run
+  // in index order.
+  const DeviceBuffer order_buf = tile_order(offsets, tiles, chunks.size() == 1 ? p.bins.M : 0, stream);
+  const int32_t* order = chunks.size() == 1 ? order_buf.as<int32_t>() : nullptr;
   int device = 0, sms = 0;
   GSW_CUDA_CHECK(cudaGetDevice(&device));
   GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
@@ -784,9 +826,9 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
     if (px2) {
       if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
-        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, t0);
+        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, order, t0);
     } else {
-      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, t0);
+      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, order, t0);
     }
     GSW_KERNEL_CHECK();
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
@@ -810,10 +852,13 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& cp) {
   const int64_t tiles = num_tiles(p);
   if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   const unsigned grid = static_cast<unsigned>(tiles);
+  // The tiles in decreasing order of their intersections (tile_order).
+  const DeviceBuffer order_buf = tile_order(p.bins.tile_offsets, tiles, p.bins.M, stream);
+  const int32_t* order = order_buf.as<int32_t>();
   switch (cp.C) {
-    case 1: contribution_kernel<T, 1><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
-    case 3: contribution_kernel<T, 3><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
-    default: contribution_kernel<T, 0><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
+    case 1: contribution_kernel<T, 1><<<grid, kContribBlock, 0, stream>>>(p, cp, order); break;
+    case 3: contribution_kernel<T, 3><<<grid, kContribBlock, 0, stream>>>(p, cp, order); break;
+    default: contribution_kernel<T, 0><<<grid, kContribBlock, 0, stream>>>(p, cp, order); break;
   }
   GSW_KERNEL_CHECK();
 }
