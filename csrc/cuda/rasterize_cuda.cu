@@ -374,9 +374,9 @@ struct ContributionVisitor {
 
 template <typename T, int CT>
 __global__ void __launch_bounds__(kContribBlock)
-    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp, const int32_t* __restrict__ order) {
+    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp) {
   __shared__ ContributionShared<T, CT> sh;
-  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, order[blockIdx.x]);
+  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, blockIdx.x);
   const int64_t P = int64_t(p.width) * p.height;
   ContributionVisitor<T, CT> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
@@ -695,11 +695,11 @@ __global__ void __launch_bounds__(kBlock) tile_cost_kernel(const int32_t* __rest
 }
 
 // The tiles' indices in decreasing order of their cost offsets[t + 1] - offsets[t] (<= max_cost; ties
-// in index order), as the block order of a blending kernel. A block is one tile, and blocks start
-// roughly in index order: a dense tile that starts in the last wave of blocks prolongs the whole
-// kernel by its own time. Started first (longest-processing-time-first), it runs beside the others.
-// The order changes no result: every tile's block computes the same values wherever it runs.
-// max_cost <= 0: nothing is sorted (an empty buffer).
+// in index order), as the block order of the blend backward (cost: the tile's visited splats). A
+// block is one tile, and blocks start roughly in index order: a dense tile that starts in the last
+// wave of blocks prolongs the whole kernel by its own time. Started first (longest-processing-time-
+// first), it runs beside the others. The order changes no result: every tile's block computes the
+// same values wherever it runs. max_cost <= 0: nothing is sorted (an empty buffer).
 DeviceBuffer tile_order(const int32_t* offsets, int64_t tiles, int64_t max_cost, cudaStream_t stream) {
   if (max_cost <= 0 || tiles <= 0) return DeviceBuffer(0);
   const int n = static_cast<int>(tiles);
@@ -852,13 +852,10 @@ void contribution(const RasterParams<T>& p, const ContributionParams<T>& cp) {
   const int64_t tiles = num_tiles(p);
   if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   const unsigned grid = static_cast<unsigned>(tiles);
-  // The tiles in decreasing order of their intersections (tile_order).
-  const DeviceBuffer order_buf = tile_order(p.bins.tile_offsets, tiles, p.bins.M, stream);
-  const int32_t* order = order_buf.as<int32_t>();
   switch (cp.C) {
-    case 1: contribution_kernel<T, 1><<<grid, kContribBlock, 0, stream>>>(p, cp, order); break;
-    case 3: contribution_kernel<T, 3><<<grid, kContribBlock, 0, stream>>>(p, cp, order); break;
-    default: contribution_kernel<T, 0><<<grid, kContribBlock, 0, stream>>>(p, cp, order); break;
+    case 1: contribution_kernel<T, 1><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
+    case 3: contribution_kernel<T, 3><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
+    default: contribution_kernel<T, 0><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
   }
   GSW_KERNEL_CHECK();
 }
