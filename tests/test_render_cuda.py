@@ -411,7 +411,7 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "frustum"])
+@pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "frustum", "dense_tiles"])
 def test_chunked_backward_matches_one_pass(name: str, dtype: torch.dtype, monkeypatch) -> None:
     """Records over the budget (GSW_BLEND_RECORDS_MIB) are made and reduced a chunk of tiles at a time
     (csrc/core/params.h BlendRecords): Gaussians with at most 32 intersections (summed by one thread in intersection

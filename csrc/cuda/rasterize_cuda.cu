@@ -764,29 +764,28 @@ BackwardVariant backward_variant() {
                               "'");
 }
 
-// The default blend backward of one pass: the dense tiles (dense_min_kernel) with 2 pixels per
-// thread on a side stream, beside the other tiles with 4 on `stream`, which then waits for it. A
-// dense tile's walk is the longest of the kernel (a trained model's densest tiles visit ~6x the
-// mean splats, BENCHMARKS.md 2k); twice its warps halve each warp's share of that walk. Each tile is
-// walked by one kernel, chosen by the inputs alone: the gradients are the same bits on every call.
+// The default blend backward on the tiles of `sched` (a grid of `grid` blocks): the dense ones
+// (at least *sched.dense_min visited splats, dense_min_kernel) with 2 pixels per thread on a side
+// stream, beside the others with 4 on `stream`, which then waits for it. A dense tile's walk is the
+// longest of the kernel (a trained model's densest tiles visit ~6x the mean splats, BENCHMARKS.md
+// 2k); twice its warps halve each warp's share of that walk. Each tile is walked by one kernel,
+// chosen by the inputs alone (the whole image's counts, also in a chunked backward): the gradients
+// are the same bits on every call and in every chunking.
 template <typename T>
 void backward_split(const RasterParams<T>& p, const RasterGradParams<T>& g, const BlendRecords& layout, T* rec,
-                    const int32_t* order, const int32_t* offsets, const int32_t* busy, int32_t* dense_min,
-                    cudaStream_t stream) {
-  const int tiles = p.bins.tiles_x * p.bins.tiles_y;
-  const unsigned grid = static_cast<unsigned>(tiles);
-  dense_min_kernel<<<1, 1, 0, stream>>>(offsets, tiles, busy, dense_min);
-  GSW_KERNEL_CHECK();
+                    TileSchedule sched, unsigned grid, cudaStream_t stream) {
   const cudaStream_t side = c10::cuda::getStreamFromPool().stream();
   cudaEvent_t fork = nullptr, join = nullptr;
   GSW_CUDA_CHECK(cudaEventCreateWithFlags(&fork, cudaEventDisableTiming));
   GSW_CUDA_CHECK(cudaEventCreateWithFlags(&join, cudaEventDisableTiming));
   GSW_CUDA_CHECK(cudaEventRecord(fork, stream));
   GSW_CUDA_CHECK(cudaStreamWaitEvent(side, fork, 0));
-  backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, side>>>(p, g, layout, rec, TileSchedule{order, 0, dense_min, 1});
+  sched.select = 1;
+  backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, side>>>(p, g, layout, rec, sched);
   GSW_KERNEL_CHECK();
   GSW_CUDA_CHECK(cudaEventRecord(join, side));
-  backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, TileSchedule{order, 0, dense_min, -1});
+  sched.select = -1;
+  backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched);
   GSW_KERNEL_CHECK();
   GSW_CUDA_CHECK(cudaStreamWaitEvent(stream, join, 0));
   GSW_CUDA_CHECK(cudaEventDestroy(fork));  // released once recorded and waited on
@@ -866,8 +865,11 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   T* rec = records.as<T>();
   constexpr bool kHasPx2 = sizeof(BackwardShared<T, 2>) <= 48 * 1024;  // float64: px2's shared memory would not fit
   const bool px2 = kHasPx2 && variant == BackwardVariant::kPx2;
-  // The split: one pass only (a chunk's tiles run in index order).
-  const bool split = kHasPx2 && variant == BackwardVariant::kSplit && chunks.size() == 1;
+  const bool split = kHasPx2 && variant == BackwardVariant::kSplit;
+  if (split) {
+    dense_min_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), busy, dense_min);
+    GSW_KERNEL_CHECK();
+  }
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
   // One pass: the tiles in decreasing order of their visited splats (tile_order). A chunk's tiles run
@@ -882,7 +884,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
     const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
     if (split) {
-      if constexpr (kHasPx2) backward_split(p, g, layout, rec, order, offsets, busy, dense_min, stream);
+      if constexpr (kHasPx2) backward_split(p, g, layout, rec, TileSchedule{order, t0, dense_min}, chunk_grid, stream);
     } else if (px2) {
       if constexpr (kHasPx2)
         backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, TileSchedule{order, t0});
