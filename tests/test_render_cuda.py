@@ -415,8 +415,9 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
 def test_chunked_backward_matches_one_pass(name: str, dtype: torch.dtype, monkeypatch) -> None:
     """Records over the budget (GSW_BLEND_RECORDS_MIB) are made and reduced a chunk of tiles at a time
     (csrc/core/params.h BlendRecords): Gaussians with at most 32 intersections (summed by one thread in intersection
-    order) get the one-pass gradients bit for bit, the others (a warp's sums per chunk) to rounding; the chunked
-    gradients repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats)."""
+    order) get the one-pass gradients bit for bit, the others (a warp's sums per chunk) to rounding (the dense
+    tiles of the default backward are walked with 2 pixels per thread in every chunking); the chunked gradients
+    repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats)."""
     g64, cam, bg, deg = SCENES[name]()
     g = g64.to(dtype=dtype, device="cuda")
     w = _weights(cam, dtype)
