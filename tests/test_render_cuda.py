@@ -150,8 +150,8 @@ def _scene_large_splats():
 
 def _scene_dense_tiles():
     # A few tiles far denser than the others (a trained model's tail, BENCHMARKS.md 2k): hundreds of small, faint
-    # splats around one point over a sparse field of larger ones. The default CUDA backward walks the dense tiles
-    # with 2 pixels per thread beside the others (rasterize_cuda.cu, backward_split).
+    # splats around one point over a sparse field of larger ones; the blend backward starts with those tiles
+    # (rasterize_cuda.cu, tile_order).
     cluster = random_gaussians(700, sh_degree=1, seed=41, extent=0.04, scale_range=(0.004, 0.02),
                                opacity_range=(0.02, 0.2), dtype=torch.float64)
     field = random_gaussians(150, sh_degree=1, seed=42, extent=0.9, scale_range=(0.02, 0.08),
@@ -188,7 +188,6 @@ SCENES = {
     "heavy": _scene_heavy,
     "large_splats": _scene_large_splats,
     "dense_tiles": _scene_dense_tiles,
-    "one_tile": lambda: _scene_sizes(16, 16),
     "thin_rows": _scene_thin_rows,
 }
 DTYPES = [torch.float32, torch.float64]
@@ -297,17 +296,17 @@ def _assert_gradients_match_cpu(name: str, dtype: torch.dtype) -> None:
         assert torch.isfinite(gpu[key]).all(), key
 
 
-@pytest.mark.parametrize("variant", ["split", "px2", "px4", "atomic"])
+@pytest.mark.parametrize("variant", ["px2", "px4", "atomic"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "size_17x33", "large_splats", "dense_tiles"])
 def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str, monkeypatch) -> None:
     """Each blend backward behind the benchmarking switch GSW_CUDA_BACKWARD (csrc/cuda/rasterize_cuda.cu) gives
-    the CPU's gradients (float64 runs px4 for px2 and split)."""
+    the CPU's gradients (float64 runs px4 for px2)."""
     monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
     _assert_gradients_match_cpu(name, dtype)
 
 
-@pytest.mark.parametrize("variant", ["split", "px2", "px4"])
+@pytest.mark.parametrize("variant", ["px2", "px4"])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "dense_tiles"])
 def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch) -> None:
     """The blend backward stores one record per intersection and sums them per Gaussian in a fixed order (no float
@@ -324,41 +323,12 @@ def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch)
             assert torch.equal(again[key], ref), key
 
 
-def _tile_visited(n_contrib: torch.Tensor) -> torch.Tensor:
-    """Each 16x16 tile's largest n_contrib (its visited splats), flattened."""
+def _visited_records(n_contrib: torch.Tensor) -> int:
+    """Sum over 16x16 tiles of the tile's largest n_contrib: the blend backward's record count."""
     H, W = n_contrib.shape[-2:]
     pad = torch.zeros((H + 15) // 16 * 16, (W + 15) // 16 * 16, dtype=torch.int64)
     pad[:H, :W] = n_contrib.reshape(H, W).cpu()
-    return pad.reshape(pad.shape[0] // 16, 16, pad.shape[1] // 16, 16).amax(dim=(1, 3)).flatten()
-
-
-def test_split_backward_walks_only_the_dense_tiles_apart(monkeypatch) -> None:
-    """The default blend backward ("split") walks a tile with 2 pixels per thread only when it visits at least
-    twice the mean of the tiles that visit any splat: a lone busy tile never is (the same bits as px4), the
-    cluster's tiles of `dense_tiles` are (another summation order: other bits). Both match the CPU
-    (test_backward_variants_match_cpu)."""
-    def grads(name: str, variant: str) -> tuple[dict, torch.Tensor]:
-        monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
-        g64, cam, bg, deg = SCENES[name]()
-        g = g64.to(dtype=torch.float32, device="cuda")
-        visited = _tile_visited(_render(g, cam, bg, deg).n_contrib)
-        return _grads(g, cam, bg, deg, _weights(cam, torch.float32)), visited
-
-    split, visited = grads("one_tile", "split")
-    assert int((visited > 0).sum()) == 1
-    px4, _ = grads("one_tile", "px4")
-    assert all(torch.equal(split[k], px4[k]) for k in px4)
-
-    split, visited = grads("dense_tiles", "split")
-    busy = visited[visited > 0]
-    assert int((busy * busy.numel() >= 2 * busy.sum()).sum()) >= 1  # the scene has dense tiles
-    px4, _ = grads("dense_tiles", "px4")
-    assert any(not torch.equal(split[k], px4[k]) for k in px4)
-
-
-def _visited_records(n_contrib: torch.Tensor) -> int:
-    """Sum over 16x16 tiles of the tile's largest n_contrib: the blend backward's record count."""
-    return int(_tile_visited(n_contrib).sum())
+    return int(pad.reshape(pad.shape[0] // 16, 16, pad.shape[1] // 16, 16).amax(dim=(1, 3)).sum())
 
 
 def test_backward_records_only_visited_splats(monkeypatch) -> None:
@@ -415,9 +385,8 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
 def test_chunked_backward_matches_one_pass(name: str, dtype: torch.dtype, monkeypatch) -> None:
     """Records over the budget (GSW_BLEND_RECORDS_MIB) are made and reduced a chunk of tiles at a time
     (csrc/core/params.h BlendRecords): Gaussians with at most 32 intersections (summed by one thread in intersection
-    order) get the one-pass gradients bit for bit, the others (a warp's sums per chunk) to rounding (the dense
-    tiles of the default backward are walked with 2 pixels per thread in every chunking); the chunked gradients
-    repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats)."""
+    order) get the one-pass gradients bit for bit, the others (a warp's sums per chunk) to rounding; the chunked
+    gradients repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats)."""
     g64, cam, bg, deg = SCENES[name]()
     g = g64.to(dtype=dtype, device="cuda")
     w = _weights(cam, dtype)

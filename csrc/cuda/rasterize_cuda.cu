@@ -43,12 +43,8 @@
 // the same bits on every run, for kBlendGrads values of scratch per visited intersection. The alpha of each pixel is
 // the forward's bit for bit (the same gaussian_power / splat_alpha), so exactly the splats the
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
-// as on the CPU. The blocks start with the tiles that visit the most splats (tile_order), and the
-// dense tiles (at least kDenseTileFactor x the busy tiles' mean) are walked with 2 pixels per thread,
-// twice the warps, on a side stream beside the others (backward_split): a trained model's densest
-// tiles otherwise set the kernel's length. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the
-// tile totals to the gradients with one atomic per value instead: no scratch, not bitwise
-// deterministic.
+// as on the CPU. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the tile totals to the
+// gradients with one atomic per value instead: no scratch, not bitwise deterministic.
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
@@ -398,13 +394,9 @@ __global__ void __launch_bounds__(kContribBlock)
 
 // ------------------------------------------------------------------ backward
 
-// Pixels per thread of backward_kernel (see rasterize_backward for the dense tiles' and
-// GSW_CUDA_BACKWARD's exceptions).
+// Pixels per thread of backward_kernel unless GSW_CUDA_BACKWARD says otherwise (see
+// rasterize_backward).
 constexpr int kBackwardPixels = 4;
-// A tile is dense when it visits at least this many times the mean over the tiles that visit any
-// splat: the default backward walks the dense ones with 2 pixels per thread (twice the warps per
-// tile) beside the others (rasterize_backward).
-constexpr int kDenseTileFactor = 2;
 
 // Back-to-front state of one pixel (core/math.h's blend backward state and cotangents).
 template <typename T>
@@ -533,29 +525,19 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
   }
 }
 
-// The tiles one backward_kernel launch walks: block b takes tile order[b] (or tile0 + b without an
-// order); with select != 0 only those whose visited count is >= *dense_min (select > 0) or below it
-// (select < 0), the other blocks return at once.
-struct TileSchedule {
-  const int32_t* order = nullptr;
-  int tile0 = 0;
-  const int32_t* dense_min = nullptr;
-  int select = 0;
-};
-
-// Blend backward with PX vertically adjacent pixels per thread (see the file comment), on the tiles
-// of `sched`. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
-// layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
+// Blend backward with PX vertically adjacent pixels per thread (see the file comment), block b on
+// tile order[b] or, without an order, tile0 + b. `records` (unless Atomic): the BlendRecords buffer
+// (core/params.h); this tile's rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile])
+// are all written.
 template <typename T, int PX, bool Atomic>
 __global__ void __launch_bounds__(kTilePixels / PX)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                    T* __restrict__ records, const TileSchedule sched) {
+                    T* __restrict__ records, const int32_t* __restrict__ order, int tile0) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
   __shared__ Shared sh;
-  const int tile = sched.order != nullptr ? sched.order[blockIdx.x] : sched.tile0 + static_cast<int>(blockIdx.x);
-  if (sched.select != 0 && (layout.visited[tile] >= *sched.dense_min) != (sched.select > 0)) return;
+  const int tile = order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
   const PixelCtx<PX> c = pixel_ctx<PX>(p, tile);
   const T pxc = T(c.px) + T(0.5);
   BackPixel<T> px[PX];
@@ -591,12 +573,11 @@ __global__ void __launch_bounds__(kTilePixels / PX)
 }
 
 // Record layout, first pass: each tile's visited count, the largest n_contrib of its pixels (one
-// block per tile, one thread per pixel; visited[tiles] = 0 for the prefix sum's total), its index in
-// ids[tile] (the values tile_order sorts), and in *busy (zeroed by the caller) the number of tiles
-// that visit any splat.
+// block per tile, one thread per pixel; visited[tiles] = 0 for the prefix sum's total), and its
+// index in ids[tile] (the values tile_order sorts).
 template <typename T>
-__global__ void __launch_bounds__(kBlock) tile_visited_kernel(const RasterParams<T> p, int32_t* __restrict__ visited,
-                                                              int32_t* __restrict__ ids, int32_t* __restrict__ busy) {
+__global__ void __launch_bounds__(kBlock)
+    tile_visited_kernel(const RasterParams<T> p, int32_t* __restrict__ visited, int32_t* __restrict__ ids) {
   __shared__ int32_t tile_max;
   const PixelCtx<1> c = pixel_ctx<1>(p, blockIdx.x);
   const int n = c.inside() ? p.n_contrib[c.pix] : 0;
@@ -609,17 +590,7 @@ __global__ void __launch_bounds__(kBlock) tile_visited_kernel(const RasterParams
     visited[c.tile] = tile_max;
     ids[c.tile] = c.tile;
     if (c.tile == 0) visited[gridDim.x] = 0;
-    if (tile_max > 0) atomicAdd(busy, 1);
   }
-}
-
-// The smallest visited count of a dense tile: kDenseTileFactor x the mean over the busy tiles
-// (offsets[tiles]: the total), rounded up; INT32_MAX (none) when no tile is busy.
-__global__ void dense_min_kernel(const int32_t* __restrict__ offsets, int tiles, const int32_t* __restrict__ busy,
-                                 int32_t* __restrict__ dense_min) {
-  const long long total = offsets[tiles], b = *busy;
-  *dense_min = b > 0 ? static_cast<int32_t>(min((kDenseTileFactor * total + b - 1) / b, (long long)INT32_MAX))
-                     : INT32_MAX;
 }
 
 // The intersections of tiles [t0, t1) (a chunk of a chunked backward, added onto the stored sums)
@@ -681,9 +652,9 @@ __global__ void __launch_bounds__(kBlock)
 // each (grid-stride over `big`); lane l sums the records of intersections e0 + l, e0 + l + 32, ...
 // in that order (add_blend_records), then the warp adds the lanes' sums with one transposed
 // butterfly. The lanes and the butterfly's order depend on nothing but the Gaussian, so the
-// gradients are the same bits on every run (in which order the Gaussians were appended to `big` does not matter).
-// In a chunked backward each chunk's sum of a Gaussian's records (of tiles [t0, t1)) is added to
-// its stored sums: a fixed order again.
+// gradients are the same bits on every run (in which order the Gaussians were appended to `big`
+// does not matter). In a chunked backward each chunk's sum of a Gaussian's records (of tiles
+// [t0, t1)) is added to its stored sums: a fixed order again.
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
     reduce_big_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
@@ -746,50 +717,21 @@ int64_t num_tiles(const RasterParams<T>& p) {
 }
 
 // Which blend backward runs: a benchmarking switch, read at every call from the environment
-// variable GSW_CUDA_BACKWARD: "split" (the default, also when unset or empty: kBackwardPixels, and
-// the dense tiles with 2 pixels per thread beside them), "px4" / "px2" (every tile with 4 / 2 pixels
-// per thread; float64 runs px4 for px2 and split, px2's shared memory would not fit) or "atomic"
-// (px4 adding the tile totals with atomics: the former design, not bitwise deterministic). Anything
-// else is an error.
-enum class BackwardVariant { kAtomic, kPx2, kPx4, kSplit };
-static_assert(kBackwardPixels == 4, "the split backward walks the dense tiles with 2 pixels per thread, the others 4");
+// variable GSW_CUDA_BACKWARD: "px4" / "px2" (backward_kernel with 4 / 2 pixels per thread; float64
+// runs px4 for px2, whose shared memory would not fit) or "atomic" (px4 adding the tile totals
+// with atomics: the former design, not bitwise deterministic); unset or empty: kBackwardPixels.
+// Anything else is an error.
+enum class BackwardVariant { kAtomic, kPx2, kPx4 };
+static_assert(kBackwardPixels == 2 || kBackwardPixels == 4, "the variants are px2 and px4");
 
 BackwardVariant backward_variant() {
   const char* e = std::getenv("GSW_CUDA_BACKWARD");
-  if (e == nullptr || *e == '\0' || std::strcmp(e, "split") == 0) return BackwardVariant::kSplit;
+  if (e == nullptr || *e == '\0')
+    return kBackwardPixels == 2 ? BackwardVariant::kPx2 : BackwardVariant::kPx4;
   if (std::strcmp(e, "px4") == 0) return BackwardVariant::kPx4;
   if (std::strcmp(e, "px2") == 0) return BackwardVariant::kPx2;
   if (std::strcmp(e, "atomic") == 0) return BackwardVariant::kAtomic;
-  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be split, px4, px2 or atomic (or unset), not '") + e +
-                              "'");
-}
-
-// The default blend backward on the tiles of `sched` (a grid of `grid` blocks): the dense ones
-// (at least *sched.dense_min visited splats, dense_min_kernel) with 2 pixels per thread on a side
-// stream, beside the others with 4 on `stream`, which then waits for it. A dense tile's walk is the
-// longest of the kernel (a trained model's densest tiles visit ~6x the mean splats, BENCHMARKS.md
-// 2k); twice its warps halve each warp's share of that walk. Each tile is walked by one kernel,
-// chosen by the inputs alone (the whole image's counts, also in a chunked backward): the gradients
-// are the same bits on every call and in every chunking.
-template <typename T>
-void backward_split(const RasterParams<T>& p, const RasterGradParams<T>& g, const BlendRecords& layout, T* rec,
-                    TileSchedule sched, unsigned grid, cudaStream_t stream) {
-  const cudaStream_t side = c10::cuda::getStreamFromPool().stream();
-  cudaEvent_t fork = nullptr, join = nullptr;
-  GSW_CUDA_CHECK(cudaEventCreateWithFlags(&fork, cudaEventDisableTiming));
-  GSW_CUDA_CHECK(cudaEventCreateWithFlags(&join, cudaEventDisableTiming));
-  GSW_CUDA_CHECK(cudaEventRecord(fork, stream));
-  GSW_CUDA_CHECK(cudaStreamWaitEvent(side, fork, 0));
-  sched.select = 1;
-  backward_kernel<T, 2, false><<<grid, kTilePixels / 2, 0, side>>>(p, g, layout, rec, sched);
-  GSW_KERNEL_CHECK();
-  GSW_CUDA_CHECK(cudaEventRecord(join, side));
-  sched.select = -1;
-  backward_kernel<T, 4, false><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched);
-  GSW_KERNEL_CHECK();
-  GSW_CUDA_CHECK(cudaStreamWaitEvent(stream, join, 0));
-  GSW_CUDA_CHECK(cudaEventDestroy(fork));  // released once recorded and waited on
-  GSW_CUDA_CHECK(cudaEventDestroy(join));
+  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be px4, px2 or atomic (or unset), not '") + e + "'");
 }
 
 }  // namespace
@@ -821,19 +763,16 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
   const unsigned grid = static_cast<unsigned>(tiles);
   // Record layout (BlendRecords): each tile's visited count and their prefix sum; then each tile's
-  // index (tile_order's values), the busy tiles' count and the dense tiles' smallest visited count.
-  DeviceBuffer layout_buf(sizeof(int32_t) * (3 * tiles + 4));
+  // index (tile_order's values).
+  DeviceBuffer layout_buf(sizeof(int32_t) * (3 * tiles + 2));
   int32_t* visited = layout_buf.as<int32_t>();
   int32_t* offsets = visited + tiles + 1;
   int32_t* ids = offsets + tiles + 1;
-  int32_t* busy = ids + tiles;
-  int32_t* dense_min = busy + 1;
-  GSW_CUDA_CHECK(cudaMemsetAsync(busy, 0, sizeof(int32_t), stream));
-  tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited, ids, busy);
+  tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited, ids);
   GSW_KERNEL_CHECK();
   BlendRecords layout{visited, offsets};
   if (variant == BackwardVariant::kAtomic) {
-    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, TileSchedule{});
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, nullptr, 0);
     GSW_KERNEL_CHECK();
     return;
   }
@@ -863,13 +802,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
   DeviceBuffer records(size_t(rows) * kBlendGrads * sizeof(T));
   T* rec = records.as<T>();
-  constexpr bool kHasPx2 = sizeof(BackwardShared<T, 2>) <= 48 * 1024;  // float64: px2's shared memory would not fit
-  const bool px2 = kHasPx2 && variant == BackwardVariant::kPx2;
-  const bool split = kHasPx2 && variant == BackwardVariant::kSplit;
-  if (split) {
-    dense_min_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), busy, dense_min);
-    GSW_KERNEL_CHECK();
-  }
+  bool px2 = variant == BackwardVariant::kPx2;
+  if constexpr (sizeof(BackwardShared<T, 2>) > 48 * 1024) px2 = false;  // float64: px2's shared memory would not fit
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
   // One pass: the tiles in decreasing order of their visited splats (tile_order). A chunk's tiles run
@@ -883,13 +817,11 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
     const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
-    if (split) {
-      if constexpr (kHasPx2) backward_split(p, g, layout, rec, TileSchedule{order, t0, dense_min}, chunk_grid, stream);
-    } else if (px2) {
-      if constexpr (kHasPx2)
-        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, TileSchedule{order, t0});
+    if (px2) {
+      if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
+        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, order, t0);
     } else {
-      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, TileSchedule{order, t0});
+      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, order, t0);
     }
     GSW_KERNEL_CHECK();
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
