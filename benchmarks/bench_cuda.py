@@ -32,7 +32,7 @@ csrc/core/params.h: by default `kRecordsBudgetMiB`, 256 MiB, of csrc/core/consta
 tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
 that change.
 
-`--backward atomic px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
+`--backward atomic auto px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
 GSW_CUDA_BACKWARD of csrc/cuda/rasterize_cuda.cu, set in this process around each call): per variant the
 blend backward op alone on the same bins and the whole forward+backward, two interleaved rounds, and the
 largest gradient difference to the first variant named (relative to each gradient tensor's largest value).
@@ -62,7 +62,7 @@ from gsw.scenes import frustum_scene, heavy_scene
 
 GSPLAT_MODES = {"packed": True, "unpacked": False}
 BACKWARD_ENV = "GSW_CUDA_BACKWARD"  # read by the CUDA blend backward at every call
-BACKWARD_VARIANTS = ("atomic", "px2", "px4")
+BACKWARD_VARIANTS = ("atomic", "auto", "px2", "px4")
 
 
 def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
@@ -514,7 +514,7 @@ def main() -> None:
     ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (ellipse tiles vs radius rectangles)")
     ap.add_argument("--backward", nargs="+", choices=BACKWARD_VARIANTS, default=[],
                     help="also compare these CUDA blend backward variants (the first is the reference of the gradient "
-                         "differences), e.g. atomic px2 px4")
+                         "differences), e.g. atomic auto px2 px4")
     ap.add_argument("--commit", default="", help="gsw commit to record")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")

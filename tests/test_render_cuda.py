@@ -151,7 +151,7 @@ def _scene_large_splats():
 def _scene_dense_tiles():
     # A few tiles far denser than the others (a trained model's tail, BENCHMARKS.md 2k): hundreds of small, faint
     # splats around one point over a sparse field of larger ones; the blend backward starts with those tiles
-    # (rasterize_cuda.cu, tile_order).
+    # (rasterize_cuda.cu, tile_order) and, on so small an image, walks every tile with 2 pixels per thread.
     cluster = random_gaussians(700, sh_degree=1, seed=41, extent=0.04, scale_range=(0.004, 0.02),
                                opacity_range=(0.02, 0.2), dtype=torch.float64)
     field = random_gaussians(150, sh_degree=1, seed=42, extent=0.9, scale_range=(0.02, 0.08),
@@ -296,17 +296,17 @@ def _assert_gradients_match_cpu(name: str, dtype: torch.dtype) -> None:
         assert torch.isfinite(gpu[key]).all(), key
 
 
-@pytest.mark.parametrize("variant", ["px2", "px4", "atomic"])
+@pytest.mark.parametrize("variant", ["auto", "px2", "px4", "atomic"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "size_17x33", "large_splats", "dense_tiles"])
 def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str, monkeypatch) -> None:
     """Each blend backward behind the benchmarking switch GSW_CUDA_BACKWARD (csrc/cuda/rasterize_cuda.cu) gives
-    the CPU's gradients (float64 runs px4 for px2)."""
+    the CPU's gradients (float64 runs px4 for px2 and auto)."""
     monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
     _assert_gradients_match_cpu(name, dtype)
 
 
-@pytest.mark.parametrize("variant", ["px2", "px4"])
+@pytest.mark.parametrize("variant", ["auto", "px2", "px4"])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "dense_tiles"])
 def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch) -> None:
     """The blend backward stores one record per intersection and sums them per Gaussian in a fixed order (no float
@@ -323,12 +323,45 @@ def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch)
             assert torch.equal(again[key], ref), key
 
 
-def _visited_records(n_contrib: torch.Tensor) -> int:
-    """Sum over 16x16 tiles of the tile's largest n_contrib: the blend backward's record count."""
+def _tile_visited(n_contrib: torch.Tensor) -> torch.Tensor:
+    """Each 16x16 tile's largest n_contrib (the splats the blend backward walks there), flattened."""
     H, W = n_contrib.shape[-2:]
     pad = torch.zeros((H + 15) // 16 * 16, (W + 15) // 16 * 16, dtype=torch.int64)
     pad[:H, :W] = n_contrib.reshape(H, W).cpu()
-    return int(pad.reshape(pad.shape[0] // 16, 16, pad.shape[1] // 16, 16).amax(dim=(1, 3)).sum())
+    return pad.reshape(pad.shape[0] // 16, 16, pad.shape[1] // 16, 16).amax(dim=(1, 3)).flatten()
+
+
+def _visited_records(n_contrib: torch.Tensor) -> int:
+    """Sum over 16x16 tiles of the tile's largest n_contrib: the blend backward's record count."""
+    return int(_tile_visited(n_contrib).sum())
+
+
+def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
+    """The default blend backward ("auto") walks every tile with 2 pixels per thread when the densest tile's walk is
+    longer than twice the total walk shared by one wave of 4-pixel blocks (rasterize_cuda.cu, choose_layout_kernel),
+    else with 4: its gradients are px2's bits on a small image and px4's on a 1080p render of uniform tiles. A wave
+    holds at least one block per SM and at most 32, which bounds the choice from the tiles' counts alone."""
+    sms = torch.cuda.get_device_properties(0).multi_processor_count
+
+    def grads(g: Gaussians, cam: Camera, bg, deg: int, variant: str) -> dict:
+        monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+        return _grads(g, cam, bg, deg, _weights(cam, torch.float32))
+
+    small = SCENES["dense_tiles"]()
+    cam_large = make_camera(1920, 1080)
+    large = (frustum_scene(1_000_000, cam_large, sh_degree=0, seed=7, dtype=torch.float32), cam_large, (0.0, 0.0, 0.0), 0)
+    for (g, cam, bg, deg), expected, bound in ((small, "px2", 1), (large, "px4", 32)):
+        g = g.to(dtype=torch.float32, device="cuda")
+        visited = _tile_visited(_render(g, cam, bg, deg).n_contrib)
+        most, total = int(visited.max()), int(visited.sum())
+        if expected == "px2":
+            assert most * sms * bound > 2 * total  # true for any wave of at least one block per SM
+        else:
+            assert most * sms * bound <= 2 * total  # true for any wave of at most 32 blocks per SM
+        auto, ref = grads(g, cam, bg, deg, "auto"), grads(g, cam, bg, deg, expected)
+        assert all(torch.equal(auto[k], ref[k]) for k in ref), expected
+        other = grads(g, cam, bg, deg, "px4" if expected == "px2" else "px2")  # the layouts differ in the bits
+        assert any(not torch.equal(auto[k], other[k]) for k in ref), expected
 
 
 def test_backward_records_only_visited_splats(monkeypatch) -> None:

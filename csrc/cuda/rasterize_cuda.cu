@@ -1,6 +1,6 @@
 // CUDA blending stage: forward, backward and per-Gaussian contribution, one thread block per
 // 16x16 tile. The forward runs one thread per pixel, the contribution one thread per
-// kContribPixels pixels and the backward one per kBackwardPixels pixels (see below).
+// kContribPixels pixels and the backward one per 4 or 2 pixels (see below).
 //
 // Forward and contribution share one front-to-back traversal (traverse_tile): the tile's splats
 // are staged in shared memory in batches of one splat per thread, every warp walks the batch's
@@ -29,8 +29,8 @@
 // T_i = T_{i+1} / (1 - alpha_i) as the CPU backend does. Its cost, like the contribution's, is
 // the per-splat reduction of the ten cotangents (blend_backward_step, core/math.h: the same
 // per-pixel step as the CPU backend's), so it has the same layout:
-// each thread owns kBackwardPixels vertically adjacent pixels of one column (a warp covers 32 /
-// TILE_SIZE * kBackwardPixels whole rows), reads the splat from shared memory once for them and
+// each thread owns PX = 4 (or 2) vertically adjacent pixels of one column (a warp covers 32 /
+// TILE_SIZE * PX whole rows), reads the splat from shared memory once for them and
 // sums their ten cotangents in registers; a warp that blended the splat in none of its pixels skips
 // it (one vote); otherwise a transposed butterfly (warp_sum_transposed: 12 shuffles instead of ten
 // warp_sum()s' 50) leaves the ten warp sums in even lanes, which store them in the warp's
@@ -43,8 +43,12 @@
 // the same bits on every run, for kBlendGrads values of scratch per visited intersection. The alpha of each pixel is
 // the forward's bit for bit (the same gaussian_power / splat_alpha), so exactly the splats the
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
-// as on the CPU. GSW_CUDA_BACKWARD=atomic (A/B benchmarks only) adds the tile totals to the
-// gradients with one atomic per value instead: no scratch, not bitwise deterministic.
+// as on the CPU. The blocks start with the tiles that visit the most splats (tile_order). When the
+// densest tile's walk is longer than the time the busy tiles' total work keeps the GPU filled (a
+// trained model's few dense tiles; any small image), every tile is walked with 2 pixels per thread
+// instead of 4: twice the warps per tile (choose_layout_kernel). GSW_CUDA_BACKWARD=atomic (A/B
+// benchmarks only) adds the tile totals to the gradients with one atomic per value instead: no
+// scratch, not bitwise deterministic.
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
@@ -394,9 +398,11 @@ __global__ void __launch_bounds__(kContribBlock)
 
 // ------------------------------------------------------------------ backward
 
-// Pixels per thread of backward_kernel unless GSW_CUDA_BACKWARD says otherwise (see
-// rasterize_backward).
-constexpr int kBackwardPixels = 4;
+// Pixels per thread of backward_kernel: 4 (fewer warps, each reading a splat for more pixels: the
+// higher throughput), or 2 for a render whose densest tile sets the kernel's length, when its walk is
+// more than kCriticalPathFactor times the busy tiles' mean share of one wave of 4-pixel blocks
+// (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's densest tiles visit 6-7x the mean).
+constexpr int kCriticalPathFactor = 2;
 
 // Back-to-front state of one pixel (core/math.h's blend backward state and cotangents).
 template <typename T>
@@ -525,19 +531,28 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
   }
 }
 
-// Blend backward with PX vertically adjacent pixels per thread (see the file comment), block b on
-// tile order[b] or, without an order, tile0 + b. `records` (unless Atomic): the BlendRecords buffer
-// (core/params.h); this tile's rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile])
-// are all written.
+// The tiles of one backward_kernel launch: block b takes tile order[b] (or tile0 + b without an
+// order). With a layout flag (choose_layout_kernel's), the launch does nothing unless the flag
+// chose its pixels per thread: both layouts are launched, one returns at once.
+struct TileSchedule {
+  const int32_t* order = nullptr;
+  int tile0 = 0;
+  const int32_t* px2 = nullptr;
+};
+
+// Blend backward with PX vertically adjacent pixels per thread (see the file comment) on the tiles
+// of `sched`. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
+// layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
 template <typename T, int PX, bool Atomic>
 __global__ void __launch_bounds__(kTilePixels / PX)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                    T* __restrict__ records, const int32_t* __restrict__ order, int tile0) {
+                    T* __restrict__ records, const TileSchedule sched) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
   __shared__ Shared sh;
-  const int tile = order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
+  if (sched.px2 != nullptr && (*sched.px2 != 0) != (PX == 2)) return;
+  const int tile = sched.order != nullptr ? sched.order[blockIdx.x] : sched.tile0 + static_cast<int>(blockIdx.x);
   const PixelCtx<PX> c = pixel_ctx<PX>(p, tile);
   const T pxc = T(c.px) + T(0.5);
   BackPixel<T> px[PX];
@@ -573,11 +588,13 @@ __global__ void __launch_bounds__(kTilePixels / PX)
 }
 
 // Record layout, first pass: each tile's visited count, the largest n_contrib of its pixels (one
-// block per tile, one thread per pixel; visited[tiles] = 0 for the prefix sum's total), and its
-// index in ids[tile] (the values tile_order sorts).
+// block per tile, one thread per pixel; visited[tiles] = 0 for the prefix sum's total), its index in
+// ids[tile] (the values tile_order sorts), and the largest count in *max_visited (zeroed by the
+// caller).
 template <typename T>
 __global__ void __launch_bounds__(kBlock)
-    tile_visited_kernel(const RasterParams<T> p, int32_t* __restrict__ visited, int32_t* __restrict__ ids) {
+    tile_visited_kernel(const RasterParams<T> p, int32_t* __restrict__ visited, int32_t* __restrict__ ids,
+                        int32_t* __restrict__ max_visited) {
   __shared__ int32_t tile_max;
   const PixelCtx<1> c = pixel_ctx<1>(p, blockIdx.x);
   const int n = c.inside() ? p.n_contrib[c.pix] : 0;
@@ -590,7 +607,18 @@ __global__ void __launch_bounds__(kBlock)
     visited[c.tile] = tile_max;
     ids[c.tile] = c.tile;
     if (c.tile == 0) visited[gridDim.x] = 0;
+    if (tile_max > 0) atomicMax(max_visited, tile_max);
   }
+}
+
+// The backward's layout for this render, in *px2: 1 (2 pixels per thread) when the densest tile's
+// walk is longer than kCriticalPathFactor x the total walk (offsets[tiles]) shared by `wave`
+// resident 4-pixel blocks, else 0. The kernel is then as long as that tile's walk by one block,
+// whatever the other SMs do: twice its warps shorten it. Otherwise the GPU is filled and 4 pixels
+// per thread, the higher throughput, win.
+__global__ void choose_layout_kernel(const int32_t* __restrict__ offsets, int tiles,
+                                     const int32_t* __restrict__ max_visited, int64_t wave, int32_t* __restrict__ px2) {
+  *px2 = int64_t(*max_visited) * wave > int64_t(kCriticalPathFactor) * offsets[tiles] ? 1 : 0;
 }
 
 // The intersections of tiles [t0, t1) (a chunk of a chunked backward, added onto the stored sums)
@@ -717,21 +745,21 @@ int64_t num_tiles(const RasterParams<T>& p) {
 }
 
 // Which blend backward runs: a benchmarking switch, read at every call from the environment
-// variable GSW_CUDA_BACKWARD: "px4" / "px2" (backward_kernel with 4 / 2 pixels per thread; float64
-// runs px4 for px2, whose shared memory would not fit) or "atomic" (px4 adding the tile totals
-// with atomics: the former design, not bitwise deterministic); unset or empty: kBackwardPixels.
+// variable GSW_CUDA_BACKWARD: "auto" (the default, also when unset or empty: 2 or 4 pixels per
+// thread as choose_layout_kernel decides), "px4" / "px2" (backward_kernel with 4 / 2 pixels per
+// thread on every render) or "atomic" (px4 adding the tile totals with atomics: the former design,
+// not bitwise deterministic). float64 runs px4 for px2 and auto: px2's shared memory would not fit.
 // Anything else is an error.
-enum class BackwardVariant { kAtomic, kPx2, kPx4 };
-static_assert(kBackwardPixels == 2 || kBackwardPixels == 4, "the variants are px2 and px4");
+enum class BackwardVariant { kAtomic, kAuto, kPx2, kPx4 };
 
 BackwardVariant backward_variant() {
   const char* e = std::getenv("GSW_CUDA_BACKWARD");
-  if (e == nullptr || *e == '\0')
-    return kBackwardPixels == 2 ? BackwardVariant::kPx2 : BackwardVariant::kPx4;
+  if (e == nullptr || *e == '\0' || std::strcmp(e, "auto") == 0) return BackwardVariant::kAuto;
   if (std::strcmp(e, "px4") == 0) return BackwardVariant::kPx4;
   if (std::strcmp(e, "px2") == 0) return BackwardVariant::kPx2;
   if (std::strcmp(e, "atomic") == 0) return BackwardVariant::kAtomic;
-  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be px4, px2 or atomic (or unset), not '") + e + "'");
+  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be auto, px4, px2 or atomic (or unset), not '") + e +
+                              "'");
 }
 
 }  // namespace
@@ -763,16 +791,19 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
   const unsigned grid = static_cast<unsigned>(tiles);
   // Record layout (BlendRecords): each tile's visited count and their prefix sum; then each tile's
-  // index (tile_order's values).
-  DeviceBuffer layout_buf(sizeof(int32_t) * (3 * tiles + 2));
+  // index (tile_order's values), the largest count and the layout flag (choose_layout_kernel).
+  DeviceBuffer layout_buf(sizeof(int32_t) * (3 * tiles + 4));
   int32_t* visited = layout_buf.as<int32_t>();
   int32_t* offsets = visited + tiles + 1;
   int32_t* ids = offsets + tiles + 1;
-  tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited, ids);
+  int32_t* max_visited = ids + tiles;
+  int32_t* px2_flag = max_visited + 1;
+  GSW_CUDA_CHECK(cudaMemsetAsync(max_visited, 0, sizeof(int32_t), stream));
+  tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited, ids, max_visited);
   GSW_KERNEL_CHECK();
   BlendRecords layout{visited, offsets};
   if (variant == BackwardVariant::kAtomic) {
-    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, nullptr, 0);
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, TileSchedule{});
     GSW_KERNEL_CHECK();
     return;
   }
@@ -802,8 +833,9 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
   DeviceBuffer records(size_t(rows) * kBlendGrads * sizeof(T));
   T* rec = records.as<T>();
-  bool px2 = variant == BackwardVariant::kPx2;
-  if constexpr (sizeof(BackwardShared<T, 2>) > 48 * 1024) px2 = false;  // float64: px2's shared memory would not fit
+  constexpr bool kHasPx2 = sizeof(BackwardShared<T, 2>) <= 48 * 1024;  // float64: px2's shared memory would not fit
+  const bool px2 = kHasPx2 && variant == BackwardVariant::kPx2;
+  const bool choose = kHasPx2 && variant == BackwardVariant::kAuto;
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
   // One pass: the tiles in decreasing order of their visited splats (tile_order). A chunk's tiles run
@@ -813,16 +845,24 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   int device = 0, sms = 0;
   GSW_CUDA_CHECK(cudaGetDevice(&device));
   GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  if (choose) {  // from the whole image's counts, so every chunking walks a tile alike (the same bits)
+    int per_sm = 0;
+    GSW_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, backward_kernel<T, 4, false>,
+                                                                 kTilePixels / 4, 0));
+    choose_layout_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), max_visited,
+                                              int64_t(per_sm) * sms, px2_flag);
+    GSW_KERNEL_CHECK();
+  }
   for (const auto& [c0, c1] : chunks) {
     const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
     const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
-    if (px2) {
-      if constexpr (sizeof(BackwardShared<T, 2>) <= 48 * 1024)
-        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, order, t0);
-    } else {
-      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, order, t0);
+    const TileSchedule sched{order, t0, choose ? px2_flag : nullptr};
+    if constexpr (kHasPx2) {
+      if (px2 || choose) backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, sched);
+      GSW_KERNEL_CHECK();
     }
+    if (!px2) backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched);
     GSW_KERNEL_CHECK();
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
     if (chunks.size() == 1)
