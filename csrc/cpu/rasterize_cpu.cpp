@@ -451,6 +451,7 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
                               T* out) {
   using V = VecT<T>;
   constexpr int S = kBlendGrads;
+  static_assert(S >= 8, "lane_sums8 sums the first 8 cotangents");
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   const BlockCentres<T> cen(x_centre0, y_centre0);
   RowBits active[TILE_SIZE] = {};  // the pixels that blended splat j or a splat behind it
@@ -472,7 +473,8 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
     for (; b + 2 <= nb; b += 2) backward_blocks<2, kDepth, kFinalT>(sl, s, cen, px, blocks + b, l);
     if (b < nb) backward_blocks<1, kDepth, kFinalT>(sl, s, cen, px, blocks + b, l);
     T* r = out + int64_t(S) * j;
-    for (int k = 0; k < S; ++k) r[k] = lane_sum(l[k]);
+    lane_sums8(l, r);
+    for (int k = 8; k < S; ++k) r[k] = lane_sum(l[k]);
   }
 }
 
@@ -507,10 +509,13 @@ GSW_CPU_KERNEL void backward_tile(const RasterParams<T>& p, const RasterGradPara
 constexpr int64_t kReduceAhead = 8;
 
 template <typename T>
-GSW_CPU_INLINE void prefetch_records(const TileBins& bins, const T* records, int64_t row0, int64_t i, int64_t n) {
+GSW_CPU_INLINE void prefetch_records(const TileBins& bins, const T* records, int64_t row0, const SlotSpan& span,
+                                     int64_t i, int64_t n) {
   if (i >= n) return;
   for (int32_t e = bins.entry_offsets[i]; e < bins.entry_offsets[i + 1]; ++e) {
-    const T* r = records + int64_t(kBlendGrads) * (bins.entry_slots[e] - row0);
+    const int32_t s = bins.entry_slots[e];
+    if (s < span.lo || s >= span.hi) continue;  // another chunk's record
+    const T* r = records + int64_t(kBlendGrads) * (s - row0);
     __builtin_prefetch(r);
     __builtin_prefetch(r + kBlendGrads - 1);
   }
@@ -556,7 +561,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     const BlendRecords by_slot{nullptr, nullptr, row0};
     const SlotSpan span = chunked ? SlotSpan{to[t0], to[t1], true} : SlotSpan{};
     parallel_items(p.N, [&](int64_t i) {
-      prefetch_records(p.bins, scratch.get(), row0, i + kReduceAhead, p.N);
+      prefetch_records(p.bins, scratch.get(), row0, span, i + kReduceAhead, p.N);
       reduce_blend_grads(p.bins, by_slot, scratch.get(), g, i, span);
     });
   }
