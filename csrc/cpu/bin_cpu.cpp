@@ -89,7 +89,8 @@ void count_tiles(const BinParams<T>& p, int32_t* tiles_touched, TileLists& lists
   const int64_t n = count_chunks(p.N);
   lists.chunks.assign(size_t(n), {});
   at::parallel_for(0, n, 1, [&](int64_t cb, int64_t ce) {
-    for (int64_t c = cb; c < ce; ++c) count_range(p, p.N * c / n, p.N * (c + 1) / n, tiles_touched, lists.chunks[size_t(c)]);
+    for (int64_t c = cb; c < ce; ++c)
+      count_range(p, p.N * c / n, p.N * (c + 1) / n, tiles_touched, lists.chunks[size_t(c)]);
   });
 }
 
