@@ -451,7 +451,6 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
                               T* out) {
   using V = VecT<T>;
   constexpr int S = kBlendGrads;
-  static_assert(S >= 8, "lane_sums8 sums the first 8 cotangents");
   const T x_centre0 = T(v.x0) + T(0.5), y_centre0 = T(v.y0) + T(0.5);
   const BlockCentres<T> cen(x_centre0, y_centre0);
   RowBits active[TILE_SIZE] = {};  // the pixels that blended splat j or a splat behind it
@@ -473,8 +472,7 @@ GSW_CPU_INLINE void walk_back(const TileView& v, const std::vector<PackedSplat<T
     for (; b + 2 <= nb; b += 2) backward_blocks<2, kDepth, kFinalT>(sl, s, cen, px, blocks + b, l);
     if (b < nb) backward_blocks<1, kDepth, kFinalT>(sl, s, cen, px, blocks + b, l);
     T* r = out + int64_t(S) * j;
-    lane_sums8(l, r);
-    for (int k = 8; k < S; ++k) r[k] = lane_sum(l[k]);
+    for (int k = 0; k < S; ++k) r[k] = lane_sum(l[k]);
   }
 }
 

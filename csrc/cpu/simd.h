@@ -60,21 +60,6 @@ GSW_CPU_INLINE auto lane_sum(V v) {
   v += __builtin_shufflevector(v, v, 1, 0, 3, 2, 5, 4, 7, 6);
   return v[0];
 }
-// The lane sums of 8 vectors, lane_sum(v[i]) into out[i]: the same additions in the same order
-// (so the same bits), eight sums sharing each level's shuffles and adds (21 operations instead
-// of 48).
-template <typename V, typename S>
-GSW_CPU_INLINE void lane_sums8(const V* v, S* out) {
-  V p[4], q[2];
-  for (int i = 0; i < 4; ++i)  // lanes (q, q + 4) of v[2i] and v[2i + 1]
-    p[i] = __builtin_shufflevector(v[2 * i], v[2 * i + 1], 0, 1, 2, 3, 8, 9, 10, 11) +
-           __builtin_shufflevector(v[2 * i], v[2 * i + 1], 4, 5, 6, 7, 12, 13, 14, 15);
-  for (int i = 0; i < 2; ++i)  // then (q, q + 2): the two partial sums of each of 4 vectors
-    q[i] = __builtin_shufflevector(p[2 * i], p[2 * i + 1], 0, 1, 4, 5, 8, 9, 12, 13) +
-           __builtin_shufflevector(p[2 * i], p[2 * i + 1], 2, 3, 6, 7, 10, 11, 14, 15);
-  store(out, __builtin_shufflevector(q[0], q[1], 0, 2, 4, 6, 8, 10, 12, 14) +  // then (q, q + 1)
-                 __builtin_shufflevector(q[0], q[1], 1, 3, 5, 7, 9, 11, 13, 15));
-}
 // Bit q set where lane q of an int32 mask is set.
 GSW_CPU_INLINE uint32_t lane_bits(VecI32 m) {
 #if defined(__SSE__)
