@@ -205,7 +205,10 @@ def main() -> int:
         configs = [REFERENCE_CONFIG] + [c for c in CONFIGS if not args.quick or c[1] <= 10_000]
     rows = []
     for cfg in configs:
-        cmd = [sys.executable, __file__, "--single", *map(str, cfg), "--repeats", str(args.repeats)]
+        # The child runs with this interpreter's -S: without it, an editable install's import hook in
+        # site-packages would load that tree's gsw instead of the one on PYTHONPATH.
+        site_flag = ["-S"] if sys.flags.no_site else []
+        cmd = [sys.executable, *site_flag, __file__, "--single", *map(str, cfg), "--repeats", str(args.repeats)]
         if cfg == REFERENCE_CONFIG:
             cmd.append("--reference")
         proc = subprocess.run(cmd, capture_output=True, text=True, check=True)

@@ -17,6 +17,14 @@
 #else
 #define GSW_CPU_KERNEL
 #endif
+// A kernel that inlines every call in its body (recursively, where possible): for kernels built
+// from core/ functions, which are plain `inline` and would otherwise stay out of line, compiled
+// for the baseline only.
+#if defined(__GNUC__) || defined(__clang__)
+#define GSW_CPU_FLATTEN __attribute__((flatten))
+#else
+#define GSW_CPU_FLATTEN
+#endif
 // Helpers of a GSW_CPU_KERNEL: always inlined, so they are compiled for the kernel's clone.
 #if defined(__GNUC__) || defined(__clang__)
 #define GSW_CPU_INLINE inline __attribute__((always_inline))
@@ -26,11 +34,16 @@
 
 namespace gsw::cpu {
 
-// Static chunks over [0, n): for uniform per-item work (per-Gaussian ops).
+// Static chunks over [0, n): for uniform per-item work (per-Gaussian ops). parallel_ranges hands
+// each chunk [begin, end) to fn (e.g. a GSW_CPU_KERNEL over a range), parallel_items each item.
+template <typename F>
+void parallel_ranges(int64_t n, F&& fn) {
+  constexpr int64_t kGrain = 2048;
+  at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) { fn(begin, end); });
+}
 template <typename F>
 void parallel_items(int64_t n, F&& fn) {
-  constexpr int64_t kGrain = 2048;
-  at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+  parallel_ranges(n, [&](int64_t begin, int64_t end) {
     for (int64_t i = begin; i < end; ++i) fn(i);
   });
 }
