@@ -69,6 +69,34 @@ def family_scene(family: str, n: int, width: int, height: int, sh_degree: int):
     return frustum_scene(n, cam, sh_degree=sh_degree, seed=0), cam
 
 
+def forward_backward_fn(g, cam):
+    """The timed forward+backward of every CPU benchmark: a closure that renders ``g`` from ``cam``
+    (``validate=False``) and back-propagates ``image.sum()`` to all Gaussian parameters (made to require grad,
+    their gradients cleared first); returns the render."""
+    from gsw.render.rasterize import rasterize
+
+    params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+
+    def forward_backward():
+        for p in params:
+            p.grad = None
+        out = rasterize(g, cam, validate=False)
+        out.image.sum().backward()
+        return out
+
+    return forward_backward
+
+
+def add_scene_args(parser: argparse.ArgumentParser, *, family: str, threads: int, repeats: int) -> None:
+    """The scene and timing options shared by the CPU benchmark scripts (bench_cpu_stages.py, bench_cpu_ab.py)."""
+    parser.add_argument("--family", choices=("frustum", "heavy"), default=family)
+    parser.add_argument("--n", type=int, default=100_000)
+    parser.add_argument("--size", type=int, default=800)
+    parser.add_argument("--sh-degree", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=threads)
+    parser.add_argument("--repeats", type=int, default=repeats)
+
+
 def run_single(family: str, n: int, width: int, height: int, sh_degree: int, repeats: int,
                reference: bool) -> dict:
     """Times one configuration in this process."""
@@ -77,19 +105,12 @@ def run_single(family: str, n: int, width: int, height: int, sh_degree: int, rep
     from gsw.render.rasterize import contribution_from_projection, rasterize
 
     g, cam = family_scene(family, n, width, height, sh_degree)
-    params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
+    forward_backward = forward_backward_fn(g, cam)
     weights = torch.rand(3, height, width, generator=torch.Generator().manual_seed(0))
 
     def forward(validate: bool = False):
         with torch.no_grad():
             return rasterize(g, cam, validate=validate)
-
-    def forward_backward():
-        for p in params:
-            p.grad = None
-        out = rasterize(g, cam, validate=False)
-        out.image.sum().backward()
-        return out
 
     def contrib():
         out = forward()

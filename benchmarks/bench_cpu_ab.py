@@ -30,7 +30,7 @@ import sys
 import time
 from types import ModuleType
 
-from bench_cpu import family_scene
+from bench_cpu import add_scene_args, family_scene, forward_backward_fn
 
 
 def load_build(name: str, path: str) -> ModuleType:
@@ -46,12 +46,7 @@ def load_build(name: str, path: str) -> ModuleType:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("builds", nargs="+", help="NAME=PATH of each build's extension module; the first is the base")
-    parser.add_argument("--family", choices=("frustum", "heavy"), default="frustum")
-    parser.add_argument("--n", type=int, default=100_000)
-    parser.add_argument("--size", type=int, default=800)
-    parser.add_argument("--sh-degree", type=int, default=3)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=20)
+    add_scene_args(parser, family="frustum", threads=2, repeats=20)
     parser.add_argument("--json", help="append the result as one JSON line to this file")
     args = parser.parse_args()
     builds = {}
@@ -66,7 +61,6 @@ def main() -> int:
     import torch
 
     import gsw._ext
-    from gsw.render.rasterize import rasterize
 
     torch.set_num_threads(args.threads)
     modules = {name: load_build(name, path) for name, path in builds.items()}
@@ -79,12 +73,7 @@ def main() -> int:
             holder._C = modules[name]
 
     g, cam = family_scene(args.family, args.n, args.size, args.size, args.sh_degree)
-    params = [t.requires_grad_() for t in (g.means, g.quats, g.log_scales, g.opacity_logits, g.sh)]
-
-    def whole() -> None:
-        for p in params:
-            p.grad = None
-        rasterize(g, cam, validate=False).image.sum().backward()
+    whole = forward_backward_fn(g, cam)
 
     wall: dict[str, list[float]] = {name: [] for name in builds}
     cpu: dict[str, list[float]] = {name: [] for name in builds}

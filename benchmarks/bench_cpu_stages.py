@@ -22,7 +22,7 @@ import os
 import sys
 import time
 
-from bench_cpu import family_scene
+from bench_cpu import add_scene_args, family_scene, forward_backward_fn
 
 
 def _load_extension(path: str) -> None:
@@ -54,7 +54,6 @@ def run(family: str, n: int, size: int, sh_degree: int, repeats: int) -> dict:
 
     from gsw._ext import _C
     from gsw.render import _ops
-    from gsw.render.rasterize import rasterize
 
     g, cam = family_scene(family, n, size, size, sh_degree)
     cam_args = dict(viewmat=cam.viewmat, fx=float(cam.fx), fy=float(cam.fy), cx=float(cam.cx), cy=float(cam.cy),
@@ -93,12 +92,7 @@ def run(family: str, n: int, size: int, sh_degree: int, repeats: int) -> dict:
                                      size, radii, v_means2d, v_conics, v_depths,
                                      v_colors, v_opacities)
 
-    params = [t.requires_grad_() for t in inputs]
-
-    def whole():
-        for p in params:
-            p.grad = None
-        rasterize(g, cam, validate=False).image.sum().backward()
+    whole = forward_backward_fn(g, cam)
 
     out = {"intersections": int(b.num_intersections)}
     for name, fn in (("project", project), ("bin", bins), ("blend_forward", blend_forward),
@@ -111,12 +105,7 @@ def run(family: str, n: int, size: int, sh_degree: int, repeats: int) -> dict:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--family", choices=("heavy", "frustum"), default="heavy")
-    parser.add_argument("--n", type=int, default=100_000)
-    parser.add_argument("--size", type=int, default=800)
-    parser.add_argument("--sh-degree", type=int, default=3)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--repeats", type=int, default=5)
+    add_scene_args(parser, family="heavy", threads=1, repeats=5)
     parser.add_argument("--so", help="path of another build of the extension to load as gsw._C")
     parser.add_argument("--json", help="append the result as one JSON line to this file")
     args = parser.parse_args()
