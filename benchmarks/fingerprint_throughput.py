@@ -167,7 +167,8 @@ def _summary(rows: list[dict]) -> dict:
                 meeting_99=sum(m >= 0.99 for m in means), meeting_37=sum(p >= 37 for p in ps),
                 mean_steps=sum(steps) / len(steps), min_steps=min(steps), max_steps=max(steps),
                 stopped_early=sum(bool(r["stopped_early"]) for r in rows),
-                refusals=sum(r.get("refusals") or 0 for r in rows))
+                refusals=sum(r.get("refusals") or 0 for r in rows), redraws=sum(r.get("redraws") or 0 for r in rows),
+                redrawn_steps=sum(r.get("redrawn_steps") or 0 for r in rows))
 
 
 def setting_config(setting: dict, bg):
@@ -211,6 +212,7 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
         copy = load_inria_model(r.folder).gaussians.to(dev)
         accs, ps = held_out_scores(copy, held_orig, held, bg, messages[r.name].float(), dec)
         rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
+                         redraws=r.redraws, redrawn_steps=r.redrawn_steps,
                          seconds=r.seconds, train_bits=r.bit_accuracy,
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps,
                          **head_start(start_logits, messages[r.name].cpu())))
@@ -220,7 +222,8 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
                early_stop=None if setting["stop"] is None else vars(setting["stop"]),
                setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
                recipients_per_hour=3600 * len(rows) / fine,
-               ms_per_recipient_step=1000 * fine / max(1, sum(r["steps"] or 0 for r in rows)),
+               ms_per_recipient_step=1000 * fine / max(1, sum((r["steps"] or 0) + (r["redrawn_steps"] or 0)
+                                                             for r in rows)),
                peak_gib=torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None,
                summary=_summary(rows), rows=rows)
     print(json.dumps({x: y for x, y in out.items() if x != "rows"}), flush=True)

@@ -78,6 +78,10 @@ def test_fingerprint_readout_klein_records_the_wrapper(model_dir, tmp_path, caps
     assert _fingerprint(model_dir, tmp_path, "recipient,message\ncarol,0123456789ab\n", "--readout", "klein",
                         "--bits", "48") == 2
     assert "no valid test through --readout klein at 48 bits" in capsys.readouterr().err
+    # A stopping rule that may redraw drawn messages registers them as chosen: refused there too.
+    assert _fingerprint(model_dir, tmp_path, "recipient\ndave\n", "--readout", "klein", "--bits", "48",
+                        "--early-stop", "careful,redraw=1") == 2
+    assert "no valid test through --readout klein at 48 bits" in capsys.readouterr().err
     # The same folder cannot take copies read through the direct readout.
     assert _fingerprint(model_dir, tmp_path, "recipient\nbob\n") == 2
     assert "another decoder" in capsys.readouterr().err

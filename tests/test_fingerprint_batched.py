@@ -185,6 +185,35 @@ def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
     assert rule.extension(12) == 6 and EarlyStop().extension(12) == 0
 
 
+def test_a_copy_below_redraw_bits_at_its_last_cap_gets_a_new_message() -> None:
+    from gsw.mark.message import redrawn_message
+
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    ones, zeros = torch.ones(32), torch.zeros(32)
+    progress = []
+    # _Confident reads every bit as 1: a message of zeros reads 0 %, a redrawn one about half its bits, never all
+    rule = EarlyStop(min_steps=100, window=1, check_every=2, confirm=0.9, redraw=2, redraw_bits=0.9)
+    good, drawn, given = finetune_batch(ws, ["good", "drawn", "given"], torch.stack([ones, zeros, zeros]),
+                                        progress.append, slots=2, stop=rule, redrawable=[True, True, False])
+    assert (good.redraws, good.message, good.bit_accuracy) == (0, None, 1.0)  # never below redraw_bits
+    assert (given.redraws, given.message, given.steps) == (0, None, 12)  # a given message is kept as it is
+    assert (drawn.redraws, drawn.steps, drawn.redrawn_steps) == (2, 12, 24)  # two attempts discarded
+    expected = redrawn_message(redrawn_message(zeros, 1), 2)
+    assert torch.equal(drawn.message, expected) and 0 < drawn.bit_accuracy < 0.9
+    assert drawn.bit_accuracy == pytest.approx(float(expected.mean()))
+    assert sum(progress) == 3 * 12  # a redrawn recipient's later attempts are not counted
+    # its copy is what a recipient with the last message gets from scratch (fresh parameters and Adam state)
+    alone = finetune_batch(ws, ["alone"], expected[None], stop=EarlyStop(min_steps=100, window=1, check_every=2))[0]
+    assert torch.equal(alone.gaussians.sh, drawn.gaussians.sh)
+    assert not rule.redraws(0.5, 2) and rule.redraws(0.5, 1) and not rule.redraws(0.95, 0)
+    # replacements are derived, different per attempt and message, uniform-looking bits
+    assert not torch.equal(redrawn_message(zeros, 1), redrawn_message(zeros, 2))
+    assert not torch.equal(redrawn_message(zeros, 1), redrawn_message(ones, 1))
+
+
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
@@ -213,6 +242,10 @@ def test_early_stop_settings() -> None:
     careful = EarlyStop.parse("careful")
     assert (careful.min_steps, careful.confirm, careful.accuracy_window, careful.extend) == (384, 0.998, 32, 0.5)
     assert careful == EarlyStop.parse("quality,confirm=0.998,accuracy_window=32,min_steps=384")
+    assert (EarlyStop.parse("careful,redraw=2").redraw, EarlyStop().redraw_bits) == (2, 0.995)
+    for bad in ("redraw=-1", "redraw_bits=1.5", "redraw=0.5"):
+        with pytest.raises(ValueError, match="redraw"):
+            EarlyStop.parse(bad)
     assert EarlyStop.parse("throughput,extend=0.25") == EarlyStop.parse(PRESETS["throughput"] + ",extend=0.25")
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),

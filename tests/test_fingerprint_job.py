@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 
 import pytest
+import torch
 
 import gsw
 from gsw.fingerprint.store import DONE_FILE, JOB_FILE
@@ -178,12 +179,46 @@ def test_without_ray(tmp_path, monkeypatch) -> None:
         _run(_scene(), ["d1"], tmp_path / "out", tmp_path / "r.sqlite", use_ray=True)
 
 
+class _ReadsOnes(torch.nn.Module):
+    """A decoder that reads every bit as 1: a drawn message reads about half its bits, never all of them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias = torch.nn.Parameter(torch.full((32,), 5.0))
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        return self.bias.expand(ll.shape[0], 32) + 0 * ll.mean()
+
+
+def test_redrawn_messages_are_registered_as_chosen(tmp_path) -> None:
+    import json
+
+    from gsw.fingerprint.plan import Recipient
+    from gsw.fingerprint.stopping import EarlyStop
+    from gsw.mark.message import message_from_key, message_to_hex
+
+    people = [Recipient("drawn"), Recipient("given", "0123abcd"), Recipient("keyed", key="k-secret")]
+    rule = EarlyStop(min_steps=100, window=1, check_every=1, confirm=1.0, redraw=1, redraw_bits=1.0)
+    report = _run(_scene(), people, tmp_path / "out", tmp_path / "r.sqlite", decoder=_ReadsOnes(), early_stop=rule)
+    rep = {r.name: r for r in report.recipients}
+    assert (rep["drawn"].redraws, rep["given"].redraws, rep["keyed"].redraws) == (1, 0, 0)
+    with open_registry(tmp_path / "r.sqlite") as r:
+        marks = {m.label: m for m in r.list()}
+    assert (marks["drawn"].origin, marks["given"].origin, marks["keyed"].origin) == ("chosen", "chosen", "random")
+    assert marks["given"].message_hex == "0123abcd"
+    assert marks["keyed"].message_hex == message_to_hex(message_from_key("k-secret", 32))
+    record = json.loads((tmp_path / "out" / "drawn" / "watermark.json").read_text())
+    assert record["message_origin"] == "chosen"
+    for f in (tmp_path / "out").rglob("*"):  # the new message is in the registry only
+        if f.is_file():
+            assert marks["drawn"].message_hex.encode() not in f.read_bytes().lower(), f
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_same_job_same_bits(device, tmp_path) -> None:
     """Two runs of one job (same scene, messages and settings) write bitwise-identical copies: the rasterizer's
     backward sums in a fixed order and the decoder's convolutions run deterministically (gsw.device.deterministic),
     so a copy does not depend on the run, the worker or the GPU count that made it (#27)."""
-    import torch
 
     from gsw.data import load_inria_model
 

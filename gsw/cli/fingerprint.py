@@ -49,9 +49,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "the measured lego jobs), 'careful' (the same share, no early-stopped copy missing) or "
                          "'throughput' (faster, ~85 %%), and/or "
                          "'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,extend=F,"
-                         "accuracy_window=N' (extend: a copy below "
+                         "accuracy_window=N,redraw=N,redraw_bits=ACC' (extend: a copy below "
                          "confirm / psnr_target at the cap goes on F x the cap; accuracy_window: a recipient whose "
-                         "running bit accuracy over ~N steps reaches confirm may also finish), e.g. 'quality,extend=1' "
+                         "running bit accuracy over ~N steps reaches confirm may also finish; redraw: a copy that ends "
+                         "below redraw_bits (default 0.995) is discarded and its recipient, if gsw drew its message, "
+                         "starts over with a new one, up to N times, registered as a chosen message), e.g. "
+                         "'quality,extend=1' "
                          "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")
@@ -123,9 +126,10 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
 
     with reading(args.recipients):
         recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
-    check_readout_origin(args.readout, "chosen" if any(r.message is not None for r in recipients) else "random",
-                         args.bits)
     early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
+    redraws = early_stop is not None and early_stop.redraw > 0  # a redrawn message is registered as chosen
+    check_readout_origin(args.readout, "chosen" if redraws or any(r.message is not None for r in recipients)
+                         else "random", args.bits)
     device = resolve_device(args.device)
     t0 = time.perf_counter()
     g, cams, images = _load_model(args)
@@ -153,6 +157,11 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     print(f"{len(report.names('embedded'))} embedded, {len(report.recipients) - len(report.names('embedded'))} "
           f"already done ({report.runner} runner, {report.timings.get('total', 0.0):.1f} s); messages are in the "
           "registry only")
+    redrawn = [r.name for r in report.recipients if r.redraws]
+    if redrawn:
+        print(f"{len(redrawn)} recipient(s) got a new message after a copy that read too few bits "
+              f"({', '.join(redrawn)}): registered as chosen messages (tested with the decoder's calibrated null "
+              "model)")
     _warn_unconfirmed(report, early_stop)
     return 0
 

@@ -10,7 +10,9 @@ slot renders the next view of its own shuffled order (the order :func:`gsw.mark.
 
 A recipient leaves its slot when it is finished (:mod:`gsw.fingerprint.stopping`: early stopping on its own
 training renders, or the step cap of ``EmbedConfig.epochs`` passes); its copy is scored, handed out, and the
-slot is refilled with the next recipient (a fresh copy of the starting parameters, fresh Adam state).
+slot is refilled with the next recipient (a fresh copy of the starting parameters, fresh Adam state). A copy
+the rule redraws (:attr:`~gsw.fingerprint.stopping.EarlyStop.redraw`) is discarded and its recipient queued
+first with its new message.
 """
 
 from __future__ import annotations
@@ -250,6 +252,10 @@ class CopyResult:
             loss) before its batch began: 0 when the worker had it cached from an earlier batch.
         worker_warm_s: seconds its worker's warm-up took (:func:`gsw.fingerprint.shared.warm_worker`: the
             original renders and the loss, made while the driver ran the set-up); 0 without one.
+        redraws: new messages its recipient got (:attr:`~gsw.fingerprint.stopping.EarlyStop.redraw`); the steps,
+            scores and seconds above are those of the last attempt.
+        redrawn_steps: the steps of its discarded attempts.
+        message: [k] the message this copy carries when it was redrawn (CPU), else None (the given one).
     """
 
     name: str
@@ -265,6 +271,9 @@ class CopyResult:
     refusals: int = 0
     worker_setup_s: float = 0.0
     worker_warm_s: float = 0.0
+    redraws: int = 0
+    redrawn_steps: int = 0
+    message: Tensor | None = None
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
@@ -296,10 +305,13 @@ class _Slot:
 class _Pool:
     """The slots, their recipients and the step loop's pieces."""
 
-    def __init__(self, scene, messages: Tensor, k: int, stop: EarlyStop | None) -> None:
+    def __init__(self, scene, messages: Tensor, k: int, stop: EarlyStop | None, redrawable: Sequence[bool]) -> None:
         cfg: EmbedConfig = scene.shared.config
         self.scene, self.cfg = scene, cfg
         self.messages = messages.to(scene.device, torch.float32)
+        self.redrawable = list(redrawable)
+        self.redraws = [0] * len(self.redrawable)  # new messages per recipient
+        self.redrawn_steps = [0] * len(self.redrawable)  # steps of its discarded attempts
         check_pool_config(cfg)  # a worker scene made without prepare_scene is checked too
         self.params = SlotParams(scene.model, k, cfg)
         self.monitor = SlotMonitor(k, cfg.weights.message, stop, scene.device)
@@ -317,6 +329,20 @@ class _Pool:
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
                               start=time.perf_counter())
+
+    def redraw(self, index: int, steps: int) -> None:
+        """Recipient ``index`` gets its next message (:func:`gsw.mark.message.redrawn_message`) after an attempt
+        of ``steps`` steps."""
+        from gsw.mark.message import redrawn_message
+
+        self.redraws[index] += 1
+        self.redrawn_steps[index] += steps
+        self.messages[index] = redrawn_message(self.messages[index], self.redraws[index]).to(self.messages)
+        self._cache.clear()  # the cached message rows
+
+    def counted(self, j: int) -> bool:
+        """Whether slot ``j``'s steps count towards the progress total (recipients x cap): not a redraw's."""
+        return self.redraws[self.slots[j].index] == 0
 
     def _indices(self, slots: tuple[int, ...]) -> tuple[Tensor, Tensor]:
         """The device index tensor of ``slots`` and their recipients' messages (cached while they stay)."""
@@ -372,7 +398,8 @@ class _Pool:
 
 def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Callable[[int], None] | None = None, *,
                    slots: int | None = None, stop: EarlyStop | None = None,
-                   on_copy: Callable[[CopyResult], None] | None = None) -> list[CopyResult]:
+                   on_copy: Callable[[CopyResult], None] | None = None,
+                   redrawable: Sequence[bool] | None = None) -> list[CopyResult]:
     """Fine-tunes one copy per recipient in a pool of ``slots`` slots and scores them on the embedding views.
 
     Args:
@@ -381,16 +408,18 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         messages: [R, k] their bits.
         on_step: progress: called with the number of recipient-steps done (after every step; a recipient
             that stops early reports the steps it skipped when it leaves; steps of an extension beyond the cap
-            are not counted, so the total is recipients x cap).
+            are not counted, nor those of a redrawn recipient's later attempts, so the total is recipients x cap).
         slots: recipients fine-tuned together (default: all of them).
         stop: the early-stopping rule (default: none; every recipient runs ``EmbedConfig.epochs`` passes).
         on_copy: called with each copy as soon as it is finished (in finishing order).
+        redrawable: per recipient, whether ``stop`` may give it a new message (default: none; only messages gsw
+            drew, never given or key-derived ones).
 
     Returns:
         One :class:`CopyResult` per recipient, in input order.
     """
     k = min(len(names), slots or len(names))
-    pool = _Pool(scene, messages, k, stop)
+    pool = _Pool(scene, messages, k, stop, redrawable or [False] * len(names))
     queue = list(range(len(names)))
     for j in range(k):
         pool.fill(j, queue.pop(0))
@@ -401,7 +430,7 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
         tick += 1
         steps = pool.params.steps
         if on_step is not None:
-            on_step(sum(steps[j] <= pool.cap for j in pool.active()))
+            on_step(sum(steps[j] <= pool.cap and pool.counted(j) for j in pool.active()))
         if tick % every and not any(steps[j] >= pool.caps[j] for j in pool.active()):
             continue
         occupied = [s is not None for s in pool.slots]
@@ -409,21 +438,28 @@ def finetune_batch(scene, names: Sequence[str], messages: Tensor, on_step: Calla
             result = _finish(pool, j, names, k)
             if result is None:  # its copy failed the confirmation on the embedding views: go on
                 continue
-            results[result[0]] = result[1]
-            if on_step is not None and pool.cap > result[1].steps:
-                on_step(pool.cap - result[1].steps)
-            if on_copy is not None:
-                on_copy(result[1])
+            if result is _REDRAWN:  # discarded: the recipient starts over first, with its new message
+                queue.insert(0, pool.slots[j].index)
+            else:
+                if on_step is not None and pool.cap > result[1].steps and pool.counted(j):
+                    on_step(pool.cap - result[1].steps)
+                results[result[0]] = result[1]
+                if on_copy is not None:
+                    on_copy(result[1])
             pool.slots[j] = None
             if queue:
                 pool.fill(j, queue.pop(0))
     return [results[i] for i in range(len(names))]
 
 
-def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | None:
+_REDRAWN = object()  # _finish: the copy was discarded for a new message
+
+
+def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, CopyResult] | object | None:
     """Slot ``j``'s copy, scored on the embedding views; None when the score fails the rule's confirmation and
     the recipient goes on: before the step cap (:meth:`~gsw.fingerprint.stopping.SlotMonitor.refuse`), or at
-    the cap with :attr:`~gsw.fingerprint.stopping.EarlyStop.extend` not yet used (its cap moves up once)."""
+    the cap with :attr:`~gsw.fingerprint.stopping.EarlyStop.extend` not yet used (its cap moves up once);
+    :data:`_REDRAWN` when, at its last cap, the rule discards it for a new message (:meth:`_Pool.redraw`)."""
     slot = pool.slots[j]
     steps = pool.params.steps[j]
     with torch.no_grad():
@@ -437,10 +473,17 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
         if pool.caps[j] == pool.cap and rule.extension(pool.cap):
             pool.caps[j] = pool.cap + rule.extension(pool.cap)
             return None
+    if rule is not None and steps >= pool.caps[j] and pool.redrawable[slot.index] and rule.redraws(
+            acc, pool.redraws[slot.index]):
+        pool.redraw(slot.index, steps)
+        return _REDRAWN
     weight = float(pool.monitor.weights[j])
+    redraws = pool.redraws[slot.index]
     return slot.index, CopyResult(names[slot.index], copy.to("cpu"), acc, acc_min, ps, ps_min,
                                   (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,
-                                  pool.monitor.rejections[j])
+                                  pool.monitor.rejections[j], redraws=redraws,
+                                  redrawn_steps=pool.redrawn_steps[slot.index],
+                                  message=pool.messages[slot.index].cpu() if redraws else None)
 
 
 def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:

@@ -50,6 +50,10 @@ class RecipientReport:
         steps: its optimisation steps (embedded only).
         stopped_early: whether the early-stopping rule finished it before the step cap (embedded only).
         refusals: early stops refused by the rule's confirmation (embedded only).
+        redraws: new messages it got (:attr:`~gsw.fingerprint.stopping.EarlyStop.redraw`; embedded only): then
+            its registered message is the last one, of origin "chosen"; the scores and steps are the last
+            attempt's.
+        redrawn_steps: the steps of its discarded attempts (embedded only).
         finished_s: seconds after the fine-tunes began when its copy reached the writer (embedded only; with
             Ray, a batch's copies arrive together when the batch ends).
         worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
@@ -68,6 +72,8 @@ class RecipientReport:
     steps: int | None = None
     stopped_early: bool | None = None
     refusals: int | None = None
+    redraws: int | None = None
+    redrawn_steps: int | None = None
     finished_s: float | None = None
     worker_setup_s: float | None = None
     worker_warm_s: float | None = None
@@ -146,7 +152,8 @@ class _Writer:
         self.folder, self.registry, self.shared, self.record, self.reports, self.bar = (
             folder, registry, shared, record, reports, bar)
         self.messages: dict[str, str] = {}
-        self.origins: dict[str, str] = {}  # "random" (drawn, or from a key) / "chosen" (given in the file)
+        # "random" (drawn, or from a key) / "chosen" (given in the file, or redrawn: kept for being embeddable)
+        self.origins: dict[str, str] = {}
         self.pool = ThreadPoolExecutor(max_workers=WRITER_THREADS, thread_name_prefix="gsw-fingerprint-writer")
         self.pending: list = []  # (result, future of its model hash)
         self.started = time.perf_counter()  # reset when the fine-tunes begin
@@ -163,7 +170,12 @@ class _Writer:
         return self.folder.write_copy(r.name, r.gaussians, cams, rec)
 
     def __call__(self, results: list) -> None:
+        from gsw.mark.message import message_to_hex
+
         now = time.perf_counter() - self.started
+        for r in results:
+            if r.redraws:
+                self.messages[r.name], self.origins[r.name] = message_to_hex(r.message), "chosen"
         self.arrived.update((r.name, now) for r in results)
         self.pending += [(r, self.pool.submit(self._write, r)) for r in results]
         self._register(wait=False)
@@ -195,8 +207,8 @@ class _Writer:
             self.folder.mark_done(r.name, h, mark_id)
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
-                                                   r.seconds, r.steps, r.stopped_early, r.refusals,
-                                                   self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s)
+                                                   r.seconds, r.steps, r.stopped_early, r.refusals, r.redraws,
+                                                   r.redrawn_steps,                                                    self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
@@ -296,7 +308,8 @@ def _run(model, cameras, people, folder, reg, cfg, num_bits, images, decoder, po
     runner = "none"
     if todo:
         size = pool["task_size"]
-        batches = [[(r.name, r.message) for r in todo[i:i + size]] for i in range(0, len(todo), size)]
+        drawn = {p.name for p in people if p.message is None and p.key is None}  # the stopping rule may redraw these
+        batches = [[(r.name, r.message, r.name in drawn) for r in todo[i:i + size]] for i in range(0, len(todo), size)]
         runner = _choose_runner(use_ray, address, len(batches), log)
         with contextlib.ExitStack() as stack:
             token = uuid.uuid4().hex

@@ -37,14 +37,14 @@ def ray_available() -> bool:
     return importlib.util.find_spec("ray") is not None
 
 
-def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Callable[[int], None] | None = None,
+def run_batch(shared, batch: Sequence[tuple[str, str, bool]], device: str, on_step: Callable[[int], None] | None = None,
               *, slots: int | None = None, stop: EarlyStop | None = None,
               on_copy: Callable[[Any], None] | None = None) -> list:
     """Fine-tunes recipients in a pool of ``slots`` slots on ``device`` (the body of a task).
 
     Args:
         shared: the :class:`~gsw.fingerprint.shared.SharedScene`.
-        batch: (recipient, hex message) pairs.
+        batch: (recipient, hex message, whether ``stop`` may redraw the message) triples.
         device: torch device.
         on_step: progress callback (local runs).
         slots: recipients fine-tuned together (default: all of ``batch``).
@@ -69,12 +69,12 @@ def run_batch(shared, batch: Sequence[tuple[str, str]], device: str, on_step: Ca
             if on_copy is not None:
                 on_copy(copy)
 
-        messages = torch.stack([message_from_hex(m, shared.num_bits) for _, m in batch])
-        return finetune_batch(scene, [n for n, _ in batch], messages, on_step, slots=slots, stop=stop,
-                              on_copy=with_setup)
+        messages = torch.stack([message_from_hex(m, shared.num_bits) for _, m, _ in batch])
+        return finetune_batch(scene, [n for n, _, _ in batch], messages, on_step, slots=slots, stop=stop,
+                              on_copy=with_setup, redrawable=[r for _, _, r in batch])
 
 
-def run_local(shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
+def run_local(shared, batches: Sequence[Sequence[tuple[str, str, bool]]], device: str,
               on_result: Callable[[list], None], on_step: Callable[[int], None] | None = None, *,
               slots: int | None = None, stop: EarlyStop | None = None) -> None:
     """Runs every recipient of ``batches`` through one pool of ``slots`` slots in this process; each copy
@@ -254,7 +254,7 @@ def ray_workers(address: str | None, device: str, batches: int, *, gpus_per_task
             ray.shutdown()
 
 
-def run_ray(workers: RayWorkers, shared, batches: Sequence[Sequence[tuple[str, str]]], device: str,
+def run_ray(workers: RayWorkers, shared, batches: Sequence[Sequence[tuple[str, str, bool]]], device: str,
             on_result: Callable[[list], None], *, slots: int | None = None, stop: EarlyStop | None = None) -> None:
     """Runs the batches on ``workers`` (:func:`ray_workers`), each a pool of ``slots`` slots (default: the
     batch's size) with the early-stopping rule ``stop``.
@@ -264,6 +264,6 @@ def run_ray(workers: RayWorkers, shared, batches: Sequence[Sequence[tuple[str, s
     """
     failed = workers.map(_ray_task, shared, batches, lambda _i, res: on_result(res), args=(device, slots, stop))
     if failed:
-        names = [n for i, _ in failed for n, _m in batches[i]]
+        names = [n for i, _ in failed for n, _m, _r in batches[i]]
         raise BatchFailure(f"{len(failed)} batch(es) failed ({', '.join(names)}): {failed[0][1]}; rerun the same "
                            "command to finish them (finished recipients are skipped)")

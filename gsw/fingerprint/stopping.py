@@ -15,7 +15,12 @@ strings ``window`` perfect steps together, yet passes the confirmation. A recipi
 reaches the step cap (``EmbedConfig.epochs`` passes over the views) finishes there, as without early stopping,
 unless ``extend`` is set: then a copy whose score at the cap fails the same confirmation (``confirm`` bit
 accuracy, the PSNR target) goes on for up to ``extend`` x the cap more steps, once, and finishes at that second
-cap or earlier by the rule.
+cap or earlier by the rule. With ``redraw``, a copy whose message was drawn by gsw (not given, not derived
+from a key) and that finishes at its last cap below ``redraw_bits`` on the embedding views is discarded: the
+recipient starts over from the input model with a new message (:func:`gsw.mark.message.redrawn_message`, derived
+from the old one, so as secret and as uniform before the choice), up to ``redraw`` times. Such a message is kept
+*because* it was embeddable, so it is registered as chosen and tested with the decoder's calibrated null model
+(:mod:`gsw.mark.evidence`), not the exact randomization test that needs a uniform message.
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
@@ -36,7 +41,7 @@ from gsw.mark.loss import steer_weight
 
 __all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
-_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window")
+_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "redraw")
 
 #: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" to
 #: "Tenth GPU round"): ``quality``: 954-1,122 per GPU-hour in five jobs, 122 of their 128 copies >= 99 % bits and
@@ -71,6 +76,9 @@ class EarlyStop:
         accuracy_window: 0, or: a recipient also passes when the running mean bit accuracy of its training steps
             (over about this many steps, counted since it started or its last refused stop, doubled per refusal)
             is >= ``confirm`` (which must then be > 0).
+        redraw: new messages a recipient may get (0: none; only for messages gsw drew): see the module docstring.
+        redraw_bits: a copy finished at its last cap below this mean bit accuracy on the embedding views is
+            redrawn (while ``redraw`` allows).
     """
 
     min_steps: int = 100
@@ -83,6 +91,8 @@ class EarlyStop:
     confirm: float = 0.0
     extend: float = 0.0
     accuracy_window: int = 0
+    redraw: int = 0
+    redraw_bits: float = 0.995
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -95,6 +105,9 @@ class EarlyStop:
         if self.accuracy_window < 0 or self.accuracy_window > 0 and self.confirm <= 0:
             raise ValueError("EarlyStop.accuracy_window must be >= 0, and > 0 only with a confirmation (confirm > 0), "
                              f"got accuracy_window={self.accuracy_window}, confirm={self.confirm}")
+        if self.redraw < 0 or not 0.0 <= self.redraw_bits <= 1.0:
+            raise ValueError("EarlyStop.redraw must be >= 0 and redraw_bits a bit accuracy in [0, 1], got "
+                             f"redraw={self.redraw}, redraw_bits={self.redraw_bits}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
@@ -106,6 +119,11 @@ class EarlyStop:
         """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early (or, with
         ``extend``, finish at the step cap)."""
         return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
+
+    def redraws(self, bit_accuracy: float, done: int) -> bool:
+        """Whether a copy finished at its last cap with ``bit_accuracy`` on the embedding views is discarded for a
+        new message, its recipient having had ``done`` new messages so far."""
+        return done < self.redraw and bit_accuracy < self.redraw_bits
 
     def extension(self, cap: int) -> int:
         """Extra steps a recipient that fails :meth:`confirmed` at the step ``cap`` gets (0: none)."""

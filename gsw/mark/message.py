@@ -50,6 +50,13 @@ def message_from_key(key: str, num_bits: int) -> Tensor:
     return torch.tensor(bits[:num_bits], dtype=torch.float32)
 
 
+def redrawn_message(message: Tensor, attempt: int) -> Tensor:
+    """The ``attempt``-th replacement of a drawn ``message`` [k]: derived from it with SHA-256
+    (:func:`message_from_key`), so a replacement is as secret as the message and uniform when the message was, and
+    every worker and rerun derives the same one."""
+    return message_from_key(f"gsw-redraw:{attempt}:{message_to_hex(message)}", message.numel())
+
+
 def message_to_hex(bits: Tensor) -> str:
     """[k] bits (k a multiple of 4, most significant bit first) -> hex string of k/4 digits."""
     b = [int(v) for v in (bits.detach().cpu().flatten() > 0.5).tolist()]

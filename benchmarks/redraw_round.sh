@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# #26 on a host with 2 GPUs (2026-11-28, seventeenth session): `EarlyStop.redraw` measured on fresh models and
+# messages, and the whole test suite with this CUDA build.
+#
+#   bash benchmarks/redraw_round.sh WORKDIR LEGO_DIR
+#
+# GPU 1: the whole test suite, then lego trained 60 s with train seed 5 and one pool job on it.
+# GPU 0: lego trained 60 s with train seed 4 and one pool job on it, then one job on the built-in scene (256x256,
+#        24 embedding / 8 held-out views, 64-epoch cap).
+# Each job: K = 16, 64 fresh secret 32-bit messages, `--early-stop careful,redraw=2` (the redraw rule's threshold,
+# 0.995 on the embedding views, was read off the earlier rounds' jobs; these models and messages are new).
+# Set-up, progress and polling as in benchmarks/gpu_round.sh (its header); .whl without gsplat.
+set -uo pipefail
+W=${1:?WORKDIR}
+LEGO=${2:?LEGO_DIR}
+. benchmarks/steps.sh
+STOP="careful,redraw=2"
+on_gpu() { local g=$1; shift; CUDA_VISIBLE_DEVICES=$g "$@"; }
+lego_job() {  # GPU SEED
+  local g=$1 seed=$2 fp="$W/fp$2"
+  step "prepare$seed" on_gpu "$g" python3 benchmarks/fingerprint_multi_gpu.py prepare --data "$LEGO" --workdir "$fp" \
+    --train-seed "$seed"
+  local photos
+  photos=$(python3 -c "import json, sys; print(json.load(open(sys.argv[1]))['photos'])" "$fp/prepare.json")
+  step "job$seed" on_gpu "$g" python3 benchmarks/fingerprint_throughput.py --device cuda --out "$W" --scene lego \
+    --model "$fp/model" --data "$photos" --budget-s 900 --setting "k=16 n=64 stop=$STOP" \
+    --tag "fingerprint_lego_h200_redraw_r17_seed$seed"
+}
+( step suite on_gpu 1 python3 -m pytest -q -p no:cacheprovider -rfE tests; lego_job 1 5 ) &
+( lego_job 0 4
+  step builtin on_gpu 0 python3 benchmarks/fingerprint_throughput.py --device cuda --out "$W" --scene builtin \
+    --size 256 --views 24 --held-out 8 --budget-s 900 --setting "k=16 n=64 epochs=64 stop=$STOP" \
+    --tag "fingerprint_builtin_h200_redraw_r17" ) &
+wait
+log "round done"
