@@ -4,12 +4,15 @@
 #
 #   bash benchmarks/redraw_round.sh WORKDIR LEGO_DIR
 #
-# GPU 1: the whole test suite, then lego trained 60 s with train seed 5 and one pool job on it.
+# GPU 1: the whole test suite (started by the set-up call: `benchmarks/redraw_round.sh WORKDIR - suite`, which
+#        returns once the suite has collected; its exit status lands in WORKDIR/suite.rc), then, once it is done,
+#        lego trained 60 s with train seed 5 and one pool job on it.
 # GPU 0: lego trained 60 s with train seed 4 and one pool job on it, then one job on the built-in scene (256x256,
 #        24 embedding / 8 held-out views, 64-epoch cap).
 # Each job: K = 16, 64 fresh secret 32-bit messages, `--early-stop careful,redraw=2` (the redraw rule's threshold,
 # 0.995 on the embedding views, was read off the earlier rounds' jobs; these models and messages are new).
-# Set-up, progress and polling as in benchmarks/gpu_round.sh (its header); .whl without gsplat.
+# Set-up, progress and polling as in benchmarks/gpu_round.sh (its header). The set-up call carries .whl (with
+# gsplat, for the suite's comparisons), the next one build/gpu/lego (64-MiB transfer limit).
 set -uo pipefail
 W=${1:?WORKDIR}
 LEGO=${2:?LEGO_DIR}
@@ -26,7 +29,13 @@ lego_job() {  # GPU SEED
     --model "$fp/model" --data "$photos" --budget-s 900 --setting "k=16 n=64 stop=$STOP" \
     --tag "fingerprint_lego_h200_redraw_r17_seed$seed"
 }
-( step suite on_gpu 1 python3 -m pytest -q -p no:cacheprovider -rfE tests; lego_job 1 5 ) &
+if [ "${3:-}" = suite ]; then
+  ( on_gpu 1 python3 -m pytest -q -p no:cacheprovider -rfE tests > "$W/suite.log" 2>&1; echo $? > "$W/suite.rc" ) &
+  until grep -q '%]' "$W/suite.log" 2>/dev/null || [ -f "$W/suite.rc" ]; do sleep 2; done  # collected
+  log "suite collected"
+  exit 0
+fi
+( until [ -f "$W/suite.rc" ]; do sleep 5; done; log "suite exit $(cat "$W/suite.rc")"; lego_job 1 5 ) &
 ( lego_job 0 4
   step builtin on_gpu 0 python3 benchmarks/fingerprint_throughput.py --device cuda --out "$W" --scene builtin \
     --size 256 --views 24 --held-out 8 --budget-s 900 --setting "k=16 n=64 epochs=64 stop=$STOP" \
