@@ -30,7 +30,8 @@ lego_job() {  # GPU SEED
     --tag "fingerprint_lego_h200_redraw_r17_seed$seed"
 }
 if [ "${3:-}" = suite ]; then
-  ( on_gpu 1 python3 -m pytest -q -p no:cacheprovider -rfE tests > "$W/suite.log" 2>&1; echo $? > "$W/suite.rc" ) &
+  CUDA_VISIBLE_DEVICES=1 setsid nohup bash -c 'python3 -m pytest -q -p no:cacheprovider -rfE tests > "$0/suite.log" 2>&1
+    echo $? > "$0/suite.rc"' "$W" > /dev/null 2>&1 &
   until grep -q '%]' "$W/suite.log" 2>/dev/null || [ -f "$W/suite.rc" ]; do sleep 2; done  # collected
   log "suite collected"
   exit 0
