@@ -37,6 +37,9 @@ GSW_CUDA_BACKWARD of csrc/cuda/rasterize_cuda.cu, set in this process around eac
 blend backward op alone on the same bins and the whole forward+backward, two interleaved rounds, and the
 largest gradient difference to the first variant named (relative to each gradient tensor's largest value).
 
+`--contribution auto px4 px2` times the contribution's layouts (GSW_CUDA_CONTRIBUTION) alike, two interleaved
+rounds each, with the largest difference of the values to the first variant named.
+
     python benchmarks/bench_cuda.py --out benchmarks/results/cuda.json --md benchmarks/results/cuda.md
 """
 
@@ -63,6 +66,8 @@ from gsw.scenes import frustum_scene, heavy_scene
 GSPLAT_MODES = {"packed": True, "unpacked": False}
 BACKWARD_ENV = "GSW_CUDA_BACKWARD"  # read by the CUDA blend backward at every call
 BACKWARD_VARIANTS = ("atomic", "auto", "px2", "px4")
+CONTRIBUTION_ENV = "GSW_CUDA_CONTRIBUTION"  # read by the CUDA contribution at every call
+CONTRIBUTION_VARIANTS = ("auto", "px2", "px4")
 
 
 def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
@@ -361,6 +366,28 @@ def compare_backward_variants(g: Gaussians, cam: Camera, w_img: torch.Tensor, va
     return res
 
 
+def compare_contribution_variants(g: Gaussians, cam: Camera, w_contrib: torch.Tensor, variants: list[str], reps: int,
+                                  warmup: int) -> dict[str, float]:
+    """The contribution per layout (two interleaved rounds, ms) and each one's largest difference of the values to
+    the first variant's (relative to their max abs)."""
+    def contrib():
+        return gsw.contribution(g, cam, w_contrib).values
+
+    res: dict[str, float] = {}
+    for rnd in range(2):
+        for v in variants:
+            with env_setting(CONTRIBUTION_ENV, v):
+                res[f"contrib_{v}_{rnd}"] = cuda_time(contrib, reps, warmup)
+    ref = None
+    for v in variants:
+        res[f"contrib_{v}"] = (res[f"contrib_{v}_0"] + res[f"contrib_{v}_1"]) / 2
+        with env_setting(CONTRIBUTION_ENV, v):
+            values = contrib()
+        ref = values if ref is None else ref
+        res[f"contrib_maxdiff_{v}"] = float((values - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
+    return res
+
+
 def bench_case(family: str, n: int, width: int, height: int, args: argparse.Namespace) -> dict[str, object]:
     g, cam = make_scene(family, n, width, height, args.ply, args.device)
     gen = torch.Generator(device="cpu").manual_seed(1)
@@ -382,6 +409,9 @@ def bench_case(family: str, n: int, width: int, height: int, args: argparse.Name
     if args.backward:
         row["gsw_backward_variants"] = compare_backward_variants(g, cam, w_img, args.backward, args.reps,
                                                                  args.warmup)
+    if args.contribution:
+        row["gsw_contribution_variants"] = compare_contribution_variants(g, cam, w_contrib, args.contribution,
+                                                                         args.reps, args.warmup)
     if not args.no_gsplat:
         row.update(bench_gsplat(g, cam, w_img, args.reps, args.warmup, image))
         compare(row)
@@ -493,6 +523,18 @@ def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int
                          + " | ".join(f"{d[f'grad_maxdiff_{v}']:.1e}" for v in names[1:]) + " | "
                          + " | ".join(f"{d[f'fwdbwd_peak_mb_{v}']:.0f}" for v in names) + " | "
                          + " | ".join(f"{d[f'bitwise_repeats_{v}']}/5" for v in names) + " |")
+    cv = [r for r in rows if "gsw_contribution_variants" in r]
+    if cv:
+        names = [k[len("contrib_maxdiff_"):] for k in cv[0]["gsw_contribution_variants"] if k.startswith("contrib_maxdiff_")]
+        lines += ["", f"CUDA contribution layouts ({CONTRIBUTION_ENV}; ms, mean of two interleaved rounds; diff: largest "
+                  f"difference of the values to {names[0]}, relative to their max abs):", "",
+                  "| scene | N | size | M | " + " | ".join(f"contrib {v}" for v in names) + " | "
+                  + " | ".join(f"diff {v}" for v in names[1:]) + " |", "|---|---|---|---|" + "---|" * (2 * len(names) - 1)]
+        for r in cv:
+            d = r["gsw_contribution_variants"]
+            lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | {r['intersections']:,} | "
+                         + " | ".join(f"{d[f'contrib_{v}']:.3f}" for v in names) + " | "
+                         + " | ".join(f"{d[f'contrib_maxdiff_{v}']:.1e}" for v in names[1:]) + " |")
     diffs = [r for r in rows if "image_mean_abs_diff_vs_gsplat_unpacked" in r]
     if diffs:
         lines += ["", "Image difference gsw vs gsplat unpacked (mean / max abs): " + "; ".join(
@@ -515,6 +557,8 @@ def main() -> None:
     ap.add_argument("--backward", nargs="+", choices=BACKWARD_VARIANTS, default=[],
                     help="also compare these CUDA blend backward variants (the first is the reference of the gradient "
                          "differences), e.g. atomic auto px2 px4")
+    ap.add_argument("--contribution", nargs="+", choices=CONTRIBUTION_VARIANTS, default=[],
+                    help="also time these CUDA contribution layouts (the first is the reference of the differences)")
     ap.add_argument("--commit", default="", help="gsw commit to record")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")

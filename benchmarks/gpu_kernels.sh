@@ -4,7 +4,8 @@
 #   bash benchmarks/gpu_kernels.sh jit       # gsplat's CUDA code compiled in the background (/tmp/gsplat_jit.log)
 #   bash benchmarks/gpu_kernels.sh waitjit   # wait for that compilation
 #   bash benchmarks/gpu_kernels.sh suite     # the whole test suite with this CUDA build
-#   bash benchmarks/gpu_kernels.sh bench OUT TAG  # bench_cuda.py: atomic vs deterministic blend backward (auto, px4), gsplat side by side
+#   bash benchmarks/gpu_kernels.sh bench OUT TAG  # bench_cuda.py: atomic vs deterministic blend backward (auto, px4), the
+#                                              # contribution's layouts (auto, px4, px2), gsplat side by side
 #   bash benchmarks/gpu_kernels.sh kernels OUT [TAG]  # kernel_times.py: each CUDA kernel's share of a forward / forward+backward
 #   bash benchmarks/gpu_kernels.sh memory OUT [TAG]   # memory_peak.py: what is live at the peak of a forward+backward
 #                                              # (KEEP=1: the image kept through the backward, as bench_cuda.py)
@@ -64,7 +65,8 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
   bench)
     OUT=${2:?OUT} TAG=${3:?TAG}
     cat /tmp/gsplat_jit.log
-    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward atomic auto px4 --ply build/gpu/ply/sh3_fixture/point_cloud.ply \
+    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward atomic auto px4 --contribution auto px4 px2 \
+      --ply build/gpu/ply/sh3_fixture/point_cloud.ply \
       --cases frustum:100000:800x800 heavy:100000:800x800 frustum:1000000:1920x1080 heavy:1000000:1920x1080 \
               frustum:3000000:1920x1080 heavy:3000000:1920x1080 frustum:1000000:3840x2160 heavy:1000000:3840x2160 \
               ply:9080:1920x1080 ply:9080:3840x2160 \
@@ -82,7 +84,8 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
       bash "$0" lego_train "$2" "$3" || exit 1
       P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
     fi
-    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward auto px4 px2 --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 \
+    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward auto px4 px2 --contribution auto px4 px2 --ply "$P" \
+      --cases ply:0:800x800 ply:0:1600x1600 \
       --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -20
     ;;
   lego_kernels)  # kernel_times.py on that model (trained first if this machine has none) at 1x and 2x render size

@@ -513,11 +513,16 @@ def test_ellipse_bins_match_cpu_on_the_same_splats(dtype: torch.dtype) -> None:
 # ----------------------------------------------------------------------------------------- contribution
 
 
+@pytest.mark.parametrize("variant", ["auto", "px4", "px2"])
 @pytest.mark.parametrize("channels", [1, 3, 5])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", ["random_sh1", "flat_huge_zero_opacity", "size_17x33", "dense_multi_batch",
-                                  "frustum", "tile_borders", "all_culled", "empty"])
-def test_contribution_matches_cpu(name: str, dtype: torch.dtype, channels: int) -> None:
+                                  "frustum", "tile_borders", "all_culled", "empty", "dense_tiles"])
+def test_contribution_matches_cpu(name: str, dtype: torch.dtype, channels: int, variant: str, monkeypatch) -> None:
+    """Each layout of the contribution behind GSW_CUDA_CONTRIBUTION (csrc/cuda/rasterize_cuda.cu: 4 or 2 pixels
+    per thread, or chosen per render, the default; tiles in decreasing order of their intersections) matches the
+    CPU's."""
+    monkeypatch.setenv("GSW_CUDA_CONTRIBUTION", variant)
     g64, cam, _, _ = SCENES[name]()
     g = g64.to(dtype=dtype)
     weights = torch.rand(channels, cam.height, cam.width, generator=torch.Generator().manual_seed(2),
@@ -531,6 +536,13 @@ def test_contribution_matches_cpu(name: str, dtype: torch.dtype, channels: int) 
         assert torch.equal(gpu.hits.cpu(), cpu.hits)
     else:
         assert (gpu.hits.cpu() - cpu.hits).abs().sum() <= max(2, cpu.hits.sum() // 10000)
+
+
+def test_contribution_variant_switch_rejects_unknown_names(monkeypatch) -> None:
+    monkeypatch.setenv("GSW_CUDA_CONTRIBUTION", "atomic")  # the backward's switch only
+    g64, cam, _, _ = SCENES["random_sh1"]()
+    with pytest.raises((ValueError, RuntimeError), match="GSW_CUDA_CONTRIBUTION"):
+        contribution(g64.to("cuda"), cam, torch.rand(3, cam.height, cam.width, device="cuda", dtype=torch.float64))
 
 
 def test_contribution_is_colour_gradient_on_cuda() -> None:

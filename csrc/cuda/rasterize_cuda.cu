@@ -1,6 +1,6 @@
 // CUDA blending stage: forward, backward and per-Gaussian contribution, one thread block per
-// 16x16 tile. The forward runs one thread per pixel, the contribution one thread per
-// kContribPixels pixels and the backward one per 4 or 2 pixels (see below).
+// 16x16 tile. The forward runs one thread per pixel, the contribution and the backward one per 4
+// or 2 pixels (see below).
 //
 // Forward and contribution share one front-to-back traversal (traverse_tile): the tile's splats
 // are staged in shared memory in batches of one splat per thread, every warp walks the batch's
@@ -13,16 +13,19 @@
 //
 // The contribution's cost is its per-splat reduction over the warp (the weighted w per channel,
 // hits and max w), not the blending: with one pixel per thread that reduction cost as much as the
-// whole forward. So each of its threads owns kContribPixels vertically adjacent pixels and first
+// whole forward. So each of its threads owns PX = 4 (or 2) vertically adjacent pixels and first
 // reduces over them in registers: one warp reduction per splat (a transposed butterfly for the
 // channel sums, integer reductions for the hits and, in float32, for the max: non-negative floats
-// order like their bit patterns) then covers 32 * kContribPixels pixels, and a warp skips it when
+// order like their bit patterns) then covers 32 * PX pixels, and a warp skips it when
 // none of them blended the splat. The pixels of a thread share their column, so the splat is read
 // from shared memory once for all of them and the compiler shares the x terms of the Gaussian's
 // exponent. Each warp stores its results for a splat in its own shared-memory slot (plain stores:
 // shared-memory float atomics are compare-and-swap loops); after each batch, one thread per splat
 // adds up the warps' slots and adds the block's totals to the splat's outputs with one atomic per
-// value.
+// value. The blocks start with the tiles that hold the most intersections (tile_order), and the
+// layout is chosen per render from those counts as the backward's is from its visited counts
+// (choose_layout_kernel): 2 pixels per thread when the densest tile sets the kernel's length.
+// GSW_CUDA_CONTRIBUTION=px4|px2 (A/B benchmarks only) forces one layout.
 //
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
 // batches from the tile's largest n_contrib down (a warp starts at its own largest), recovering
@@ -67,13 +70,7 @@ namespace {
 constexpr int kTilePixels = TILE_SIZE * TILE_SIZE;
 constexpr int kBlock = kTilePixels;  // forward and backward: one thread per pixel
 constexpr int kBatch = kBlock;       // splats staged per batch (one per thread)
-// Contribution: pixels per thread (a warp covers 32 / TILE_SIZE * kContribPixels whole rows of
-// the tile) and threads per tile.
-constexpr int kContribPixels = 4;
-constexpr int kContribBlock = kTilePixels / kContribPixels;
-constexpr int kContribWarps = kContribBlock / 32;
-static_assert(kTilePixels % kContribPixels == 0, "a thread's pixels lie in one tile column");
-static_assert(kBlock % 32 == 0 && kContribBlock % 32 == 0, "a tile must hold whole warps");
+static_assert(kBlock % 32 == 0 && kTilePixels / 4 % 32 == 0, "a tile must hold whole warps of 4-pixel threads");
 constexpr int kVoteEvery = 8;  // splats between two "is the whole warp done?" votes
 // Blend backward records up to this size (and the budget) are allocated for all M intersections
 // without a host synchronisation; larger ones for the visited ones only (see rasterize_backward).
@@ -277,34 +274,63 @@ __global__ void __launch_bounds__(kBlock) forward_kernel(const RasterParams<T> p
   p.n_contrib[c.pix] = last[0];
 }
 
+// ------------------------------------------------------------------ tile schedules
+
+// The tiles of one backward_kernel or contribution_kernel launch: block b takes tile order[b] (or
+// tile0 + b without an order). With a layout flag (choose_layout_kernel's), the launch does nothing
+// unless the flag chose its pixels per thread: both layouts are launched, one returns at once.
+struct TileSchedule {
+  const int32_t* order = nullptr;
+  int tile0 = 0;
+  const int32_t* px2 = nullptr;
+  __device__ __forceinline__ bool skips(int px) const { return px2 != nullptr && (*px2 != 0) != (px == 2); }
+  __device__ __forceinline__ int tile() const {
+    return order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
+  }
+};
+
+// Pixels per thread of backward_kernel and contribution_kernel: 4 (fewer warps, each reading a splat
+// for more pixels: the higher throughput), or 2 for a render whose densest tile sets the kernel's
+// length, when its walk is more than kCriticalPathFactor times the busy tiles' mean share of one wave
+// of 4-pixel blocks (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's densest tiles
+// visit 6-7x the mean).
+constexpr int kCriticalPathFactor = 2;
+
 // ------------------------------------------------------------------ contribution
 
 // Per-batch shared results of the contribution: for each warp and staged splat, the warp's
 // totals (part: the CT channel sums, then max w; hits), written by the warp only when it hit the
 // splat (hits stays 0 otherwise), summed over the warps after the batch by one thread per slot.
-template <typename T, int CT>
+template <typename T, int CT, int PX>
 struct ContributionShared {
-  T part[kContribWarps][CT + 1][kContribBlock];
-  int32_t hits[kContribWarps][kContribBlock];
-  int32_t gid[kContribBlock];
+  static constexpr int kThreads = kTilePixels / PX, kWarps = kThreads / 32;
+  T part[kWarps][CT + 1][kThreads];
+  int32_t hits[kWarps][kThreads];
+  int32_t gid[kThreads];
 };
+
+// Static shared memory of contribution_kernel<T, CT, PX>: its results and traverse_tile's staged batch.
+template <typename T, int CT, int PX>
+constexpr size_t contribution_shared_bytes() {
+  return sizeof(ContributionShared<T, CT, PX>) + size_t(kTilePixels / PX) * (sizeof(SplatGeo<T>) + sizeof(uint32_t));
+}
 
 // CT > 0: C = CT channels, this thread's weights in registers, channel sums accumulated in shared
 // memory; CT = 0: any C, weights read from global memory, channel sums added with one atomic per
 // warp and channel (hits and max w through shared memory in both cases).
-template <typename T, int CT>
+template <typename T, int CT, int PX>
 struct ContributionVisitor {
   static_assert(CT == 0 || CT == 1 || CT == 3, "dispatched for C = 1, 3 or any (0)");
-  static constexpr int PX = kContribPixels;
+  static constexpr int kWarps = ContributionShared<T, CT, PX>::kWarps;
   const ContributionParams<T>& cp;
   int64_t P, pix;  // pixel i of this thread is pix + i * width
   int width;
-  ContributionShared<T, CT>* sh;
+  ContributionShared<T, CT, PX>* sh;
   T wreg[PX][CT > 0 ? CT : 1];
   __device__ void load(int slot, int32_t gid) {
     sh->gid[slot] = gid;
 #pragma unroll
-    for (int wp = 0; wp < kContribWarps; ++wp) sh->hits[wp][slot] = 0;
+    for (int wp = 0; wp < kWarps; ++wp) sh->hits[wp][slot] = 0;
   }
   __device__ __forceinline__ void blend(int slot, const T (&w)[PX]) {
     // This thread's share: its pixels' sums, hits and max (w = 0 adds nothing).
@@ -357,7 +383,7 @@ struct ContributionVisitor {
 #pragma unroll
     for (int q = 0; q <= CT; ++q) v[q] = T(0);
 #pragma unroll
-    for (int wp = 0; wp < kContribWarps; ++wp) {
+    for (int wp = 0; wp < kWarps; ++wp) {
       const int32_t h = sh->hits[wp][slot];
       if (h == 0) continue;  // this warp wrote nothing for the splat
       hits += h;
@@ -376,33 +402,30 @@ struct ContributionVisitor {
   }
 };
 
-template <typename T, int CT>
-__global__ void __launch_bounds__(kContribBlock)
-    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp) {
-  __shared__ ContributionShared<T, CT> sh;
-  const PixelCtx<kContribPixels> c = pixel_ctx<kContribPixels>(p, blockIdx.x);
+// The contribution with PX pixels per thread on the tiles of `sched`.
+template <typename T, int CT, int PX>
+__global__ void __launch_bounds__(kTilePixels / PX)
+    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp, const TileSchedule sched) {
+  static_assert(contribution_shared_bytes<T, CT, PX>() <= 48 * 1024, "static shared memory is limited to 48 KiB");
+  __shared__ ContributionShared<T, CT, PX> sh;
+  if (sched.skips(PX)) return;
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, sched.tile());
   const int64_t P = int64_t(p.width) * p.height;
-  ContributionVisitor<T, CT> vis{cp, P, c.pix, p.width, &sh};
+  ContributionVisitor<T, CT, PX> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
 #pragma unroll
-    for (int i = 0; i < kContribPixels; ++i)
+    for (int i = 0; i < PX; ++i)
 #pragma unroll
       for (int ch = 0; ch < CT; ++ch)
         vis.wreg[i][ch] =
             c.inside(i) ? cp.weights[ch * P + c.pix + int64_t(i) * p.width] : T(0);
   }
-  T tr[kContribPixels];
-  int32_t last[kContribPixels];
+  T tr[PX];
+  int32_t last[PX];
   traverse_tile(p, c, vis, tr, last);
 }
 
 // ------------------------------------------------------------------ backward
-
-// Pixels per thread of backward_kernel: 4 (fewer warps, each reading a splat for more pixels: the
-// higher throughput), or 2 for a render whose densest tile sets the kernel's length, when its walk is
-// more than kCriticalPathFactor times the busy tiles' mean share of one wave of 4-pixel blocks
-// (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's densest tiles visit 6-7x the mean).
-constexpr int kCriticalPathFactor = 2;
 
 // Back-to-front state of one pixel (core/math.h's blend backward state and cotangents).
 template <typename T>
@@ -531,15 +554,6 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
   }
 }
 
-// The tiles of one backward_kernel launch: block b takes tile order[b] (or tile0 + b without an
-// order). With a layout flag (choose_layout_kernel's), the launch does nothing unless the flag
-// chose its pixels per thread: both layouts are launched, one returns at once.
-struct TileSchedule {
-  const int32_t* order = nullptr;
-  int tile0 = 0;
-  const int32_t* px2 = nullptr;
-};
-
 // Blend backward with PX vertically adjacent pixels per thread (see the file comment) on the tiles
 // of `sched`. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
 // layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
@@ -551,9 +565,8 @@ __global__ void __launch_bounds__(kTilePixels / PX)
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
   __shared__ Shared sh;
-  if (sched.px2 != nullptr && (*sched.px2 != 0) != (PX == 2)) return;
-  const int tile = sched.order != nullptr ? sched.order[blockIdx.x] : sched.tile0 + static_cast<int>(blockIdx.x);
-  const PixelCtx<PX> c = pixel_ctx<PX>(p, tile);
+  if (sched.skips(PX)) return;
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, sched.tile());
   const T pxc = T(c.px) + T(0.5);
   BackPixel<T> px[PX];
   int n_max = 0;
@@ -611,14 +624,30 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-// The backward's layout for this render, in *px2: 1 (2 pixels per thread) when the densest tile's
-// walk is longer than kCriticalPathFactor x the total walk (offsets[tiles]) shared by `wave`
-// resident 4-pixel blocks, else 0. The kernel is then as long as that tile's walk by one block,
+// The layout of the backward (counts: the tiles' visited splats) or the contribution (counts: their
+// intersections) for this render, in *px2: 1 (2 pixels per thread) when the densest tile's walk
+// (*max_count) is longer than kCriticalPathFactor x the total walk (offsets[tiles], the counts'
+// prefix sum) shared by `wave` resident 4-pixel blocks, else 0. The kernel is then as long as that tile's walk by one block,
 // whatever the other SMs do: twice its warps shorten it. Otherwise the GPU is filled and 4 pixels
 // per thread, the higher throughput, win.
 __global__ void choose_layout_kernel(const int32_t* __restrict__ offsets, int tiles,
-                                     const int32_t* __restrict__ max_visited, int64_t wave, int32_t* __restrict__ px2) {
-  *px2 = int64_t(*max_visited) * wave > int64_t(kCriticalPathFactor) * offsets[tiles] ? 1 : 0;
+                                     const int32_t* __restrict__ max_count, int64_t wave, int32_t* __restrict__ px2) {
+  *px2 = int64_t(*max_count) * wave > int64_t(kCriticalPathFactor) * offsets[tiles] ? 1 : 0;
+}
+
+// The contribution's tile counts: each tile's intersections in counts[tile], its index in ids[tile]
+// (the values tile_order sorts) and the largest count in *max_count (zeroed by the caller).
+__global__ void __launch_bounds__(kBlock)
+    tile_count_kernel(const int32_t* __restrict__ tile_offsets, int tiles, int32_t* __restrict__ counts,
+                      int32_t* __restrict__ ids, int32_t* __restrict__ max_count) {
+  const int t = static_cast<int>(blockIdx.x * blockDim.x + threadIdx.x);
+  const int32_t n = t < tiles ? tile_offsets[t + 1] - tile_offsets[t] : 0;
+  if (t < tiles) {
+    counts[t] = n;
+    ids[t] = t;
+  }
+  const int32_t warp_n = static_cast<int32_t>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n)));
+  if ((threadIdx.x & 31) == 0 && warp_n > 0) atomicMax(max_count, warp_n);
 }
 
 // The intersections of tiles [t0, t1) (a chunk of a chunked backward, added onto the stored sums)
@@ -717,7 +746,8 @@ __global__ void __launch_bounds__(kBlock)
 }
 
 // The tiles' indices in decreasing order of their visited splats (ties in index order) as the block
-// order of the blend backward; visited / ids: tile_visited_kernel's, max_visited >= each count. A
+// order of the blend backward (or of their intersections, the contribution's); visited / ids:
+// tile_visited_kernel's (tile_count_kernel's), max_visited >= each count. A
 // block is one tile, and blocks start roughly in index order: a dense tile that starts in the last
 // wave of blocks prolongs the whole kernel by its own time. Started first (longest-processing-time-
 // first), it runs beside the others. The order changes no result: every tile's block computes the
@@ -750,16 +780,28 @@ int64_t num_tiles(const RasterParams<T>& p) {
 // thread on every render) or "atomic" (px4 adding the tile totals with atomics: the former design,
 // not bitwise deterministic). float64 runs px4 for px2 and auto: px2's shared memory would not fit.
 // Anything else is an error.
-enum class BackwardVariant { kAtomic, kAuto, kPx2, kPx4 };
+// GSW_CUDA_CONTRIBUTION chooses the contribution's layout alike: "auto" (default), "px4" or "px2"
+// (float64: px2 only where its shared memory fits, else px4).
+enum class Variant { kAtomic, kAuto, kPx2, kPx4 };
 
-BackwardVariant backward_variant() {
-  const char* e = std::getenv("GSW_CUDA_BACKWARD");
-  if (e == nullptr || *e == '\0' || std::strcmp(e, "auto") == 0) return BackwardVariant::kAuto;
-  if (std::strcmp(e, "px4") == 0) return BackwardVariant::kPx4;
-  if (std::strcmp(e, "px2") == 0) return BackwardVariant::kPx2;
-  if (std::strcmp(e, "atomic") == 0) return BackwardVariant::kAtomic;
-  throw std::invalid_argument(std::string("GSW_CUDA_BACKWARD must be auto, px4, px2 or atomic (or unset), not '") + e +
-                              "'");
+Variant layout_variant(const char* name, bool atomic_allowed) {
+  const char* e = std::getenv(name);
+  if (e == nullptr || *e == '\0' || std::strcmp(e, "auto") == 0) return Variant::kAuto;
+  if (std::strcmp(e, "px4") == 0) return Variant::kPx4;
+  if (std::strcmp(e, "px2") == 0) return Variant::kPx2;
+  if (atomic_allowed && std::strcmp(e, "atomic") == 0) return Variant::kAtomic;
+  throw std::invalid_argument(std::string(name) + " must be auto, px4, px2" + (atomic_allowed ? " or atomic" : "") +
+                              " (or unset), not '" + e + "'");
+}
+
+// Resident 4-pixel blocks of `kernel` on the whole device: one wave (choose_layout_kernel).
+template <typename Kernel>
+int64_t wave_of(Kernel kernel, int threads) {
+  int device = 0, sms = 0, per_sm = 0;
+  GSW_CUDA_CHECK(cudaGetDevice(&device));
+  GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  GSW_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, kernel, threads, 0));
+  return int64_t(per_sm) * sms;
 }
 
 }  // namespace
@@ -776,7 +818,7 @@ template <typename T>
 void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, int64_t budget_rows) {
   cudaStream_t stream = current_stream();
   const int64_t tiles = num_tiles(p);
-  const BackwardVariant variant = backward_variant();
+  const Variant variant = layout_variant("GSW_CUDA_BACKWARD", true);
   auto zero_grads = [&] {
     const size_t n = size_t(p.N) * sizeof(T);
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_means2d, 0, 2 * n, stream));
@@ -785,7 +827,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_opacities, 0, n, stream));
     GSW_CUDA_CHECK(cudaMemsetAsync(g.v_depths, 0, n, stream));
   };
-  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0 || variant == BackwardVariant::kAtomic) {
+  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0 || variant == Variant::kAtomic) {
     zero_grads();
     if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   }
@@ -802,7 +844,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited, ids, max_visited);
   GSW_KERNEL_CHECK();
   BlendRecords layout{visited, offsets};
-  if (variant == BackwardVariant::kAtomic) {
+  if (variant == Variant::kAtomic) {
     backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, TileSchedule{});
     GSW_KERNEL_CHECK();
     return;
@@ -834,8 +876,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   DeviceBuffer records(size_t(rows) * kBlendGrads * sizeof(T));
   T* rec = records.as<T>();
   constexpr bool kHasPx2 = sizeof(BackwardShared<T, 2>) <= 48 * 1024;  // float64: px2's shared memory would not fit
-  const bool px2 = kHasPx2 && variant == BackwardVariant::kPx2;
-  const bool choose = kHasPx2 && variant == BackwardVariant::kAuto;
+  const bool px2 = kHasPx2 && variant == Variant::kPx2;
+  const bool choose = kHasPx2 && variant == Variant::kAuto;
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
   // One pass: the tiles in decreasing order of their visited splats (tile_order). A chunk's tiles run
@@ -846,11 +888,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   GSW_CUDA_CHECK(cudaGetDevice(&device));
   GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
   if (choose) {  // from the whole image's counts, so every chunking walks a tile alike (the same bits)
-    int per_sm = 0;
-    GSW_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, backward_kernel<T, 4, false>,
-                                                                 kTilePixels / 4, 0));
     choose_layout_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), max_visited,
-                                              int64_t(per_sm) * sms, px2_flag);
+                                              wave_of(backward_kernel<T, 4, false>, kTilePixels / 4), px2_flag);
     GSW_KERNEL_CHECK();
   }
   for (const auto& [c0, c1] : chunks) {
@@ -875,22 +914,55 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
 }
 
+// The contribution's launches for C = CT channels (0: any): the tiles in decreasing order of their
+// intersections (tile_order), with the layout `variant` asks for (auto: choose_layout_kernel's, from
+// those counts; px2 only where its shared memory fits).
+template <typename T, int CT>
+void launch_contribution(const RasterParams<T>& p, const ContributionParams<T>& cp, Variant variant,
+                         cudaStream_t stream) {
+  const int64_t tiles = num_tiles(p);
+  const unsigned grid = static_cast<unsigned>(tiles);
+  constexpr bool kHasPx2 = contribution_shared_bytes<T, CT, 2>() <= 48 * 1024;
+  const bool px2 = kHasPx2 && variant == Variant::kPx2;
+  const bool choose = kHasPx2 && variant == Variant::kAuto;
+  DeviceBuffer buf(sizeof(int32_t) * size_t(2 * tiles + 2));  // counts, ids, the largest count, the layout flag
+  int32_t* counts = buf.as<int32_t>();
+  int32_t* ids = counts + tiles;
+  int32_t* max_count = ids + tiles;
+  int32_t* px2_flag = max_count + 1;
+  GSW_CUDA_CHECK(cudaMemsetAsync(max_count, 0, sizeof(int32_t), stream));
+  tile_count_kernel<<<blocks_for(tiles, kBlock), kBlock, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles),
+                                                                      counts, ids, max_count);
+  GSW_KERNEL_CHECK();
+  const DeviceBuffer order = tile_order(counts, ids, tiles, p.bins.M, stream);
+  if (choose) {
+    choose_layout_kernel<<<1, 1, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles), max_count,
+                                              wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4), px2_flag);
+    GSW_KERNEL_CHECK();
+  }
+  const TileSchedule sched{order.as<int32_t>(), 0, choose ? px2_flag : nullptr};
+  if constexpr (kHasPx2) {
+    if (px2 || choose) contribution_kernel<T, CT, 2><<<grid, kTilePixels / 2, 0, stream>>>(p, cp, sched);
+    GSW_KERNEL_CHECK();
+  }
+  if (!px2) contribution_kernel<T, CT, 4><<<grid, kTilePixels / 4, 0, stream>>>(p, cp, sched);
+  GSW_KERNEL_CHECK();
+}
+
 template <typename T>
 void contribution(const RasterParams<T>& p, const ContributionParams<T>& cp) {
   cudaStream_t stream = current_stream();
+  const Variant variant = layout_variant("GSW_CUDA_CONTRIBUTION", false);
   GSW_CUDA_CHECK(
       cudaMemsetAsync(cp.contribution, 0, size_t(p.N) * cp.C * sizeof(T), stream));
   GSW_CUDA_CHECK(cudaMemsetAsync(cp.hits, 0, size_t(p.N) * sizeof(int32_t), stream));
   GSW_CUDA_CHECK(cudaMemsetAsync(cp.max_weight, 0, size_t(p.N) * sizeof(T), stream));
-  const int64_t tiles = num_tiles(p);
-  if (tiles <= 0 || p.N <= 0 || p.bins.M <= 0) return;
-  const unsigned grid = static_cast<unsigned>(tiles);
+  if (num_tiles(p) <= 0 || p.N <= 0 || p.bins.M <= 0) return;
   switch (cp.C) {
-    case 1: contribution_kernel<T, 1><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
-    case 3: contribution_kernel<T, 3><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
-    default: contribution_kernel<T, 0><<<grid, kContribBlock, 0, stream>>>(p, cp); break;
+    case 1: launch_contribution<T, 1>(p, cp, variant, stream); break;
+    case 3: launch_contribution<T, 3>(p, cp, variant, stream); break;
+    default: launch_contribution<T, 0>(p, cp, variant, stream); break;
   }
-  GSW_KERNEL_CHECK();
 }
 
 template void rasterize_forward<float>(const RasterParams<float>&);
