@@ -525,7 +525,8 @@ def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int
                          + " | ".join(f"{d[f'bitwise_repeats_{v}']}/5" for v in names) + " |")
     cv = [r for r in rows if "gsw_contribution_variants" in r]
     if cv:
-        names = [k[len("contrib_maxdiff_"):] for k in cv[0]["gsw_contribution_variants"] if k.startswith("contrib_maxdiff_")]
+        names = [k[len("contrib_maxdiff_"):] for k in cv[0]["gsw_contribution_variants"]
+                 if k.startswith("contrib_maxdiff_")]
         lines += ["", f"CUDA contribution layouts ({CONTRIBUTION_ENV}; ms, mean of two interleaved rounds; diff: largest "
                   f"difference of the values to {names[0]}, relative to their max abs):", "",
                   "| scene | N | size | M | " + " | ".join(f"contrib {v}" for v in names) + " | "

@@ -101,3 +101,15 @@ def scan_crawl(root: Path) -> list:
     with open_registry(root / "marks.sqlite") as reg:
         reg.add_many([dict(m, decoder_sha256=sha) for m in marks])
         return reg.list()
+
+
+class ReadsOnes(torch.nn.Module):
+    """A 32-bit decoder that reads every bit as 1 with logit 5: a message of ones always passes, a random one reads
+    about half its bits and never all of them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.bias = torch.nn.Parameter(torch.full((32,), 5.0))
+
+    def forward(self, ll: torch.Tensor) -> torch.Tensor:
+        return self.bias.expand(ll.shape[0], 32) + 0 * ll.mean()

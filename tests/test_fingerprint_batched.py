@@ -16,6 +16,7 @@ from gsw.mark.embed import EmbedConfig, embed
 from gsw.mark.loss import LossWeights, WatermarkLoss
 from gsw.mark.message import as_message
 from gsw.scenes import default_scene
+from helpers import ReadsOnes
 
 
 @pytest.mark.parametrize("lpips_net", [None, "alex"])  # with alex: LPIPS per sample in one batch
@@ -108,15 +109,7 @@ def test_a_refilled_slot_is_gsw_embed() -> None:
     assert abs(copies[2].psnr - sum(alone.psnr) / len(alone.psnr)) < 0.05
 
 
-class _Confident(torch.nn.Module):
-    """A decoder that reads every bit as 1 with logit 5 (a message of ones always passes)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.bias = torch.nn.Parameter(torch.full((32,), 5.0))
-
-    def forward(self, ll: torch.Tensor) -> torch.Tensor:
-        return self.bias.expand(ll.shape[0], 32) + 0 * ll.mean()
+_Confident = ReadsOnes
 
 
 def test_early_stopping_finishes_and_refills() -> None:

@@ -14,6 +14,7 @@ from gsw.mark.embed import EmbedConfig
 from gsw.mark.loss import LossWeights
 from gsw.registry import hash_model_file, open_registry, shipped_decoder_sha256
 from gsw.scenes import default_scene
+from helpers import ReadsOnes
 
 
 def _scene(seed: int = 0):
@@ -179,17 +180,6 @@ def test_without_ray(tmp_path, monkeypatch) -> None:
         _run(_scene(), ["d1"], tmp_path / "out", tmp_path / "r.sqlite", use_ray=True)
 
 
-class _ReadsOnes(torch.nn.Module):
-    """A decoder that reads every bit as 1: a drawn message reads about half its bits, never all of them."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.bias = torch.nn.Parameter(torch.full((32,), 5.0))
-
-    def forward(self, ll: torch.Tensor) -> torch.Tensor:
-        return self.bias.expand(ll.shape[0], 32) + 0 * ll.mean()
-
-
 def test_redrawn_messages_are_registered_as_chosen(tmp_path) -> None:
     import json
 
@@ -199,7 +189,7 @@ def test_redrawn_messages_are_registered_as_chosen(tmp_path) -> None:
 
     people = [Recipient("drawn"), Recipient("given", "0123abcd"), Recipient("keyed", key="k-secret")]
     rule = EarlyStop(min_steps=100, window=1, check_every=1, confirm=1.0, redraw=1, redraw_bits=1.0)
-    report = _run(_scene(), people, tmp_path / "out", tmp_path / "r.sqlite", decoder=_ReadsOnes(), early_stop=rule)
+    report = _run(_scene(), people, tmp_path / "out", tmp_path / "r.sqlite", decoder=ReadsOnes(), early_stop=rule)
     rep = {r.name: r for r in report.recipients}
     assert (rep["drawn"].redraws, rep["given"].redraws, rep["keyed"].redraws) == (1, 0, 0)
     with open_registry(tmp_path / "r.sqlite") as r:

@@ -208,7 +208,8 @@ class _Writer:
             self.reports[r.name] = RecipientReport(r.name, "embedded", str(self.folder.copy_path(r.name)), mark_id,
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
                                                    r.seconds, r.steps, r.stopped_early, r.refusals, r.redraws,
-                                                   r.redrawn_steps,                                                    self.arrived.get(r.name), r.worker_setup_s, r.worker_warm_s)
+                                                   r.redrawn_steps, self.arrived.get(r.name), r.worker_setup_s,
+                                                   r.worker_warm_s)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 
