@@ -92,6 +92,27 @@ def test_rerun_resumes(job, scene) -> None:
     assert report.runner == "none" and report.names("skipped") == NAMES
 
 
+def test_redrawn_messages_come_back_from_the_workers(cluster, scene, tmp_path) -> None:
+    """A message a Ray worker redraws (EarlyStop.redraw) reaches the driver's one writer and is registered as a
+    chosen message; a given message is never redrawn."""
+    from gsw.fingerprint.stopping import EarlyStop
+
+    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0),
+                      background=tuple(float(v) for v in scene.background))
+    # every copy ends below 100 % after one pass over 6 views: one new message each (a given one is kept)
+    rule = EarlyStop(min_steps=100, window=1, check_every=1, redraw=1, redraw_bits=1.0)
+    people = [Recipient("drawn1"), Recipient("drawn2"), Recipient("given", "0123abcd")]
+    kwargs = dict(config=cfg, batch_size=1, device="cpu", progress=False, early_stop=rule)
+    remote = gsw.fingerprint(scene.gaussians, scene.cameras, people, tmp_path / "ray", tmp_path / "ray.sqlite",
+                             use_ray=True, **kwargs)
+    assert remote.runner == "ray"
+    assert [r.redraws for r in remote.recipients] == [1, 1, 0]
+    with open_registry(tmp_path / "ray.sqlite") as reg:
+        marks = {m.label: m for m in reg.list()}
+    assert (marks["drawn1"].origin, marks["drawn2"].origin, marks["given"].origin) == ("chosen",) * 3
+    assert marks["given"].message_hex == "0123abcd"
+
+
 def test_killed_worker_task_is_retried(cluster, tmp_path) -> None:
     def dies_once(marker: str, payload: int) -> int:  # nested: shipped to the workers by value
         if not os.path.exists(marker):
