@@ -68,11 +68,25 @@ def test_stacked_parameters_start_from_the_model() -> None:
     assert all(float(m[0].abs().sum()) == 0 for m in params.exp_avg)
 
 
-def test_batch_matches_one_at_a_time() -> None:
+def _cpu_scene(epochs: int = 1, decoder: torch.nn.Module | None = None,
+               weights: LossWeights = LossWeights(lpips=0.0, message=1.0)):
+    """The 64x64 built-in scene with 3 views, a pool config of ``epochs`` passes without LPIPS, and its worker scene
+    on the CPU with ``decoder`` (default: the shipped one): (scene, config, worker scene)."""
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
+    cfg = pool_config(epochs=epochs, lpips_net=None, weights=weights, background=bg)
+    return scene, cfg, worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=decoder), "cpu")
+
+
+def _pool_scene(epochs: int, decoder: torch.nn.Module | None = None):
+    """:func:`_cpu_scene` with the default message weight and ``decoder`` (default :class:`ReadsOnes`, which reads
+    every bit as 1): (config, worker scene)."""
+    _, cfg, ws = _cpu_scene(epochs, decoder or ReadsOnes(), LossWeights(lpips=0.0))
+    return cfg, ws
+
+
+def test_batch_matches_one_at_a_time() -> None:
+    _, _, ws = _cpu_scene()
     messages = torch.stack([as_message("c0ffee42", 32), as_message("12345678", 32)])
     steps = []
     both = finetune_batch(ws, ["a", "b"], messages, on_step=steps.append)
@@ -86,13 +100,6 @@ def test_batch_matches_one_at_a_time() -> None:
     # while the two recipients' copies differ
     assert (both[0].gaussians.sh - both[1].gaussians.sh).abs().mean() > 1e-3
     assert all(0 <= r.min_bit_accuracy <= r.bit_accuracy <= 1 and r.min_psnr <= r.psnr for r in both)
-
-
-def _cpu_scene(n_cameras: int = 3):
-    scene = default_scene(width=64, height=64, n_cameras=n_cameras, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0, message=1.0), background=bg)
-    return scene, cfg, worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
 
 
 def test_a_refilled_slot_is_gsw_embed() -> None:
@@ -109,14 +116,8 @@ def test_a_refilled_slot_is_gsw_embed() -> None:
     assert abs(copies[2].psnr - sum(alone.psnr) / len(alone.psnr)) < 0.05
 
 
-_Confident = ReadsOnes
-
-
 def test_early_stopping_finishes_and_refills() -> None:
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    cfg, ws = _pool_scene(4)
     ones, zeros = torch.ones(32), torch.zeros(32)
     progress = []
     rule = EarlyStop(min_steps=4, window=3, margin=1.0, check_every=2)
@@ -130,13 +131,13 @@ def test_early_stopping_finishes_and_refills() -> None:
     assert strict[0].steps == 12 and not strict[0].stopped_early
 
 
-class _RightInBatches(_Confident):
+class _RightInBatches(ReadsOnes):
     """Reads bit 0 as 0 (logit -4) when it decodes a single image: the training steps of two slots pass,
     the score of a finished copy (one view at a time) has 31 of 32 bits of a message of ones."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.bias.data.fill_(4.0)  # other weights than _Confident's: another decoder for the worker-scene cache
+        self.bias.data.fill_(4.0)  # other weights than ReadsOnes': another decoder for the worker-scene cache
 
     def forward(self, ll: torch.Tensor) -> torch.Tensor:
         out = super().forward(ll)
@@ -146,10 +147,7 @@ class _RightInBatches(_Confident):
 def test_confirmation_on_the_embedding_views(monkeypatch) -> None:
     # the score decodes one view at a time (see _RightInBatches); gsw.mark.embed the module, not the function
     monkeypatch.setattr(sys.modules["gsw.mark.embed"], "SCORE_CHUNK", 1)
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_RightInBatches()), "cpu")
+    cfg, ws = _pool_scene(4, _RightInBatches())
     ones = torch.ones(2, 32)
     strict = EarlyStop(min_steps=4, window=2, check_every=2, confirm=1.0)
     refused = finetune_batch(ws, ["a", "b"], ones, stop=strict)
@@ -163,10 +161,7 @@ def test_confirmation_on_the_embedding_views(monkeypatch) -> None:
 
 
 def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    cfg, ws = _pool_scene(4)
     progress = []
     # min_steps above the cap: no early stop; "good" reads every bit (confirmed at the cap), "bad" none
     rule = EarlyStop(min_steps=100, window=1, check_every=2, confirm=0.9, extend=0.5)
@@ -181,13 +176,10 @@ def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
 def test_a_copy_below_redraw_bits_at_its_last_cap_gets_a_new_message() -> None:
     from gsw.mark.message import redrawn_message
 
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=4, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    cfg, ws = _pool_scene(4)
     ones, zeros = torch.ones(32), torch.zeros(32)
     progress = []
-    # _Confident reads every bit as 1: a message of zeros reads 0 %, a redrawn one about half its bits, never all
+    # ReadsOnes reads every bit as 1: a message of zeros reads 0 %, a redrawn one about half its bits, never all
     rule = EarlyStop(min_steps=100, window=1, check_every=2, confirm=0.9, redraw=2, redraw_bits=0.9)
     good, drawn, given = finetune_batch(ws, ["good", "drawn", "given"], torch.stack([ones, zeros, zeros]),
                                         progress.append, slots=2, stop=rule, redrawable=[True, True, False])
@@ -208,10 +200,7 @@ def test_a_copy_below_redraw_bits_at_its_last_cap_gets_a_new_message() -> None:
 
 
 def test_psnr_target_holds_back_and_steers_the_message_weight() -> None:
-    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
-    bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
-    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg, decoder=_Confident()), "cpu")
+    cfg, ws = _pool_scene(2)
     rule = EarlyStop(min_steps=1, window=1, check_every=1, psnr_target=200.0, adapt=2.0, max_factor=4.0)
     copy = finetune_batch(ws, ["x"], torch.ones(1, 32), stop=rule)[0]
     assert copy.steps == 6 and not copy.stopped_early  # the PSNR target is out of reach
