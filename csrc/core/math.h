@@ -317,18 +317,37 @@ GSW_HD T clamp_ratio(T r, T lim_neg, T lim_pos, bool& clamped) {
   return r < -lim_neg ? -lim_neg : (r > lim_pos ? lim_pos : r);
 }
 
+// The EWA Jacobian of the perspective map at a camera-space mean p, with x/z and y/z clamped to
+// the frustum limits: J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]]. Computed once per Gaussian and
+// shared by project_ewa and its VJP.
 template <typename T>
-GSW_HD Projection<T> project_ewa(const Camera<T>& cam, const Vec3<T>& p, const Mat3<T>& cov) {
+struct EwaJacobian {
+  T iz, u, v;              // 1/z and the clamped ratios
+  bool clamped_x, clamped_y;
+  T j00, j02, j11, j12;    // the non-zero entries of J
+};
+
+template <typename T>
+GSW_HD EwaJacobian<T> ewa_jacobian(const Camera<T>& cam, const Vec3<T>& p) {
   T lxn, lxp, lyn, lyp;
   frustum_limits(cam.fx, cam.cx, cam.width, lxn, lxp);
   frustum_limits(cam.fy, cam.cy, cam.height, lyn, lyp);
-  const T iz = T(1) / p.z;
-  bool cx_, cy_;
-  const T u = clamp_ratio(p.x * iz, lxn, lxp, cx_);
-  const T v = clamp_ratio(p.y * iz, lyn, lyp, cy_);
-  // J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]]
-  const T j00 = cam.fx * iz, j02 = -cam.fx * u * iz;
-  const T j11 = cam.fy * iz, j12 = -cam.fy * v * iz;
+  EwaJacobian<T> J;
+  J.iz = T(1) / p.z;
+  J.u = clamp_ratio(p.x * J.iz, lxn, lxp, J.clamped_x);
+  J.v = clamp_ratio(p.y * J.iz, lyn, lyp, J.clamped_y);
+  J.j00 = cam.fx * J.iz;
+  J.j02 = -cam.fx * J.u * J.iz;
+  J.j11 = cam.fy * J.iz;
+  J.j12 = -cam.fy * J.v * J.iz;
+  return J;
+}
+
+// Image-space mean and J cov J^T of a camera-space mean p and covariance cov (J = ewa_jacobian).
+template <typename T>
+GSW_HD Projection<T> project_ewa(const Camera<T>& cam, const Vec3<T>& p, const Mat3<T>& cov,
+                                 const EwaJacobian<T>& J) {
+  const T iz = J.iz, j00 = J.j00, j02 = J.j02, j11 = J.j11, j12 = J.j12;
   // cov2d = J cov J^T
   const auto& c = cov.m;
   const T r0[3] = {j00 * c[0][0] + j02 * c[2][0], j00 * c[0][1] + j02 * c[2][1],
@@ -343,19 +362,14 @@ GSW_HD Projection<T> project_ewa(const Camera<T>& cam, const Vec3<T>& p, const M
   out.mean2d.y = cam.fy * p.y * iz + cam.cy;
   return out;
 }
-// VJP of project_ewa: accumulates into v_p (camera-space mean) and v_cov (symmetric).
+// VJP of project_ewa (same J): accumulates into v_p (camera-space mean) and v_cov (symmetric).
 template <typename T>
 GSW_HD void project_ewa_vjp(const Camera<T>& cam, const Vec3<T>& p, const Mat3<T>& cov,
-                            const Vec2<T>& v_mean2d, const Sym2<T>& v_cov2d, Vec3<T>& v_p,
-                            Mat3<T>& v_cov) {
-  T lxn, lxp, lyn, lyp;
-  frustum_limits(cam.fx, cam.cx, cam.width, lxn, lxp);
-  frustum_limits(cam.fy, cam.cy, cam.height, lyn, lyp);
-  const T iz = T(1) / p.z;
-  bool clx, cly;
-  const T u = clamp_ratio(p.x * iz, lxn, lxp, clx);
-  const T v = clamp_ratio(p.y * iz, lyn, lyp, cly);
-  T J[2][3] = {{cam.fx * iz, T(0), -cam.fx * u * iz}, {T(0), cam.fy * iz, -cam.fy * v * iz}};
+                            const EwaJacobian<T>& Jac, const Vec2<T>& v_mean2d, const Sym2<T>& v_cov2d,
+                            Vec3<T>& v_p, Mat3<T>& v_cov) {
+  const T iz = Jac.iz, u = Jac.u, v = Jac.v;
+  const bool clx = Jac.clamped_x, cly = Jac.clamped_y;
+  const T J[2][3] = {{Jac.j00, T(0), Jac.j02}, {T(0), Jac.j11, Jac.j12}};
   // Full symmetric 2x2 cotangent G (off-diagonal carries half of v_b each).
   const T G[2][2] = {{v_cov2d.a, T(0.5) * v_cov2d.b}, {T(0.5) * v_cov2d.b, v_cov2d.c}};
   // v_cov += J^T G J

@@ -35,7 +35,7 @@ GSW_HD void project_gaussian(const ProjectParams<T>& p, int64_t i, int degree, c
   int radius = 0;
   if (pc.z > T(NEAR_PLANE)) {
     const Mat3<T> cov = cov_world_to_cam(cam, covariance_3d(p.quats + 4 * i, p.log_scales + 3 * i));
-    proj = project_ewa(cam, pc, cov);
+    proj = project_ewa(cam, pc, cov, ewa_jacobian(cam, pc));
     T det;
     if (conic_from_cov2d(proj.cov2d, conic, det)) {
       radius = footprint_radius(proj.cov2d, det, opacity);
@@ -109,15 +109,16 @@ GSW_HD Vec3<T> project_gaussian_vjp_geometry(const ProjectParams<T>& p, const Pr
   const Vec3<T> pc = world_to_cam(cam, load_vec3(p.means + 3 * i));
   const Mat3<T> cov = cov_world_to_cam(cam, covariance_3d(quat, log_scale));
   // The conic and the opacity are recomputed (as the forward did), not kept from the forward.
+  const EwaJacobian<T> J = ewa_jacobian(cam, pc);
   Sym2<T> conic;
   T det;
-  conic_from_cov2d(project_ewa(cam, pc, cov).cov2d, conic, det);
+  conic_from_cov2d(project_ewa(cam, pc, cov, J).cov2d, conic, det);
   const T* vc = g.v_conics + 3 * i;
   const Sym2<T> v_cov2d = conic_from_cov2d_vjp(conic, Sym2<T>{vc[0], vc[1], vc[2]});
   const Vec2<T> v_mean2d = {g.v_means2d[2 * i], g.v_means2d[2 * i + 1]};
   Vec3<T> v_pc = {T(0), T(0), g.v_depths[i]};
   Mat3<T> v_cov = mat3_zero<T>();
-  project_ewa_vjp(cam, pc, cov, v_mean2d, v_cov2d, v_pc, v_cov);
+  project_ewa_vjp(cam, pc, cov, J, v_mean2d, v_cov2d, v_pc, v_cov);
   T vq[4] = {T(0), T(0), T(0), T(0)};
   T vls[3] = {T(0), T(0), T(0)};
   covariance_3d_vjp(quat, log_scale, cov_world_to_cam_vjp(cam, v_cov), vq, vls);

@@ -627,9 +627,9 @@ __global__ void __launch_bounds__(kBlock)
 // The layout of the backward (counts: the tiles' visited splats) or the contribution (counts: their
 // intersections) for this render, in *px2: 1 (2 pixels per thread) when the densest tile's walk
 // (*max_count) is longer than kCriticalPathFactor x the total walk (offsets[tiles], the counts'
-// prefix sum) shared by `wave` resident 4-pixel blocks, else 0. The kernel is then as long as that tile's walk by one block,
-// whatever the other SMs do: twice its warps shorten it. Otherwise the GPU is filled and 4 pixels
-// per thread, the higher throughput, win.
+// prefix sum) shared by `wave` resident 4-pixel blocks, else 0. The kernel is then as long as that
+// tile's walk by one block, whatever the other SMs do: twice its warps shorten it. Otherwise the
+// GPU is filled and 4 pixels per thread, the higher throughput, win.
 __global__ void choose_layout_kernel(const int32_t* __restrict__ offsets, int tiles,
                                      const int32_t* __restrict__ max_count, int64_t wave, int32_t* __restrict__ px2) {
   *px2 = int64_t(*max_count) * wave > int64_t(kCriticalPathFactor) * offsets[tiles] ? 1 : 0;
@@ -794,12 +794,18 @@ Variant layout_variant(const char* name, bool atomic_allowed) {
                               " (or unset), not '" + e + "'");
 }
 
-// Resident 4-pixel blocks of `kernel` on the whole device: one wave (choose_layout_kernel).
-template <typename Kernel>
-int64_t wave_of(Kernel kernel, int threads) {
-  int device = 0, sms = 0, per_sm = 0;
+// Streaming multiprocessors of the current device.
+int device_sms() {
+  int device = 0, sms = 0;
   GSW_CUDA_CHECK(cudaGetDevice(&device));
   GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  return sms;
+}
+
+// Resident 4-pixel blocks of `kernel` on the whole device: one wave (choose_layout_kernel).
+template <typename Kernel>
+int64_t wave_of(Kernel kernel, int threads, int sms) {
+  int per_sm = 0;
   GSW_CUDA_CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, kernel, threads, 0));
   return int64_t(per_sm) * sms;
 }
@@ -884,12 +890,10 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   // in index order.
   const DeviceBuffer order_buf = tile_order(visited, ids, tiles, chunks.size() == 1 ? p.bins.M : 0, stream);
   const int32_t* order = chunks.size() == 1 ? order_buf.as<int32_t>() : nullptr;
-  int device = 0, sms = 0;
-  GSW_CUDA_CHECK(cudaGetDevice(&device));
-  GSW_CUDA_CHECK(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  const int sms = device_sms();
   if (choose) {  // from the whole image's counts, so every chunking walks a tile alike (the same bits)
     choose_layout_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), max_visited,
-                                              wave_of(backward_kernel<T, 4, false>, kTilePixels / 4), px2_flag);
+                                              wave_of(backward_kernel<T, 4, false>, kTilePixels / 4, sms), px2_flag);
     GSW_KERNEL_CHECK();
   }
   for (const auto& [c0, c1] : chunks) {
@@ -937,7 +941,8 @@ void launch_contribution(const RasterParams<T>& p, const ContributionParams<T>& 
   const DeviceBuffer order = tile_order(counts, ids, tiles, p.bins.M, stream);
   if (choose) {
     choose_layout_kernel<<<1, 1, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles), max_count,
-                                              wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4), px2_flag);
+                                              wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms()),
+                                              px2_flag);
     GSW_KERNEL_CHECK();
   }
   const TileSchedule sched{order.as<int32_t>(), 0, choose ? px2_flag : nullptr};
