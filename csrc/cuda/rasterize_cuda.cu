@@ -22,10 +22,12 @@
 // exponent. Each warp stores its results for a splat in its own shared-memory slot (plain stores:
 // shared-memory float atomics are compare-and-swap loops); after each batch, one thread per splat
 // adds up the warps' slots and adds the block's totals to the splat's outputs with one atomic per
-// value. The blocks start with the tiles that hold the most intersections (tile_order), and the
-// layout is chosen per render from those counts as the backward's is from its visited counts
-// (choose_layout_kernel): 2 pixels per thread when the densest tile sets the kernel's length.
-// GSW_CUDA_CONTRIBUTION=px4|px2 (A/B benchmarks only) forces one layout.
+// value. A trained model's few dense tiles would set the kernel's length (one block each), so a
+// tile longer than a chunk (about twice the mean share of one wave of blocks) is cut into chunks,
+// one block each, every chunk starting from its pixels' transmittance in front of it: the product
+// of the earlier chunks' own transmittances, walked first by chunk_prefix_kernel (TileChunks).
+// GSW_CUDA_CONTRIBUTION=px4|px2 (A/B benchmarks only) walks whole tiles, densest first, with 4 or
+// 2 pixels per thread instead.
 //
 // The backward walks each pixel back to front from its last blended splat (n_contrib), in
 // batches from the tile's largest n_contrib down (a warp starts at its own largest), recovering
@@ -137,7 +139,9 @@ struct PixelCtx {
   int rows;            // (px, py + i) is inside the image for i < rows
   int64_t pix;         // index of (px, py); (px, py + i) is pix + i * width
   int32_t start, end;  // the tile's range in the intersection list
+  int local0;          // tile-local index of (px, py): row * TILE_SIZE + column
   __device__ __forceinline__ bool inside(int i = 0) const { return i < rows; }
+  __device__ __forceinline__ int local(int i) const { return local0 + i * TILE_SIZE; }
 };
 
 template <int PX, typename T>
@@ -153,6 +157,7 @@ __device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p, int 
   c.pix = int64_t(c.py) * p.width + c.px;
   c.start = p.bins.tile_offsets[c.tile];
   c.end = p.bins.tile_offsets[c.tile + 1];
+  c.local0 = t / TILE_SIZE * PX * TILE_SIZE + t % TILE_SIZE;
   return c;
 }
 
@@ -162,11 +167,14 @@ __device__ __forceinline__ PixelCtx<PX> pixel_ctx(const RasterParams<T>& p, int 
 //   blend(slot, w):      called by every thread of a warp for each splat the warp visits, with
 //                        the weights w[i] = alpha T of this thread's pixels (0 when not blended);
 //   end_batch(n):        called by every thread of the block after the n splats of a batch.
-// On return `tr` holds the final transmittances and `last` 1 + the tile-list index of the last
-// blended splat (0 if none).
+// The walk covers the intersections [c.start, c.end): the whole tile, or a chunk of it. On entry
+// `tr` holds each pixel's transmittance in front of them (1 for a whole tile; a pixel with tr <
+// T_MIN has terminated before); on return the final transmittances and `last` 1 + the index
+// (from c.start) of the last blended splat (0 if none). Returns the pixels still blending (bit i:
+// pixel i; a pixel that terminated keeps the transmittance in front of the splat that ended it).
 template <int PX, typename T, typename Visitor>
-__device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const PixelCtx<PX>& c,
-                                              Visitor& vis, T (&tr)[PX], int32_t (&last)[PX]) {
+__device__ __forceinline__ unsigned traverse_tile(const RasterParams<T>& p, const PixelCtx<PX>& c,
+                                                  Visitor& vis, T (&tr)[PX], int32_t (&last)[PX]) {
   constexpr int kSplats = kTilePixels / PX;  // per batch: one per thread
   __shared__ SplatGeo<T> s_geo[kSplats];
   __shared__ uint32_t s_rows[kSplats];  // row_mask of each staged splat
@@ -174,13 +182,13 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
   const int lane = static_cast<int>(threadIdx.x & 31);
   const T pxc = T(c.px) + T(0.5);
   T pyc[PX];
+  unsigned live = 0;  // bit i: pixel i still blends (pixels outside never do)
 #pragma unroll
   for (int i = 0; i < PX; ++i) {
     pyc[i] = T(c.py + i) + T(0.5);
-    tr[i] = T(1);
     last[i] = 0;
+    if (c.inside(i) && tr[i] >= T(T_MIN)) live |= 1u << i;
   }
-  unsigned live = (1u << c.rows) - 1;  // bit i: pixel i still blends (pixels outside never do)
   for (int32_t b = c.start; b < c.end; b += kSplats) {
     // Also the barrier before the shared batch is overwritten.
     if (!__syncthreads_or(live != 0)) break;
@@ -230,6 +238,175 @@ __device__ __forceinline__ void traverse_tile(const RasterParams<T>& p, const Pi
     }
     vis.end_batch(n);
   }
+  return live;
+}
+
+// ------------------------------------------------------------------ tile schedules
+
+// The tiles of one backward_kernel or contribution_kernel launch: block b takes tile order[b] (or
+// tile0 + b without an order). With a layout flag (choose_layout_kernel's), the launch does nothing
+// unless the flag chose its pixels per thread: both layouts are launched, one returns at once.
+struct TileSchedule {
+  const int32_t* order = nullptr;
+  int tile0 = 0;
+  const int32_t* px2 = nullptr;
+  __device__ __forceinline__ bool skips(int px) const { return px2 != nullptr && (*px2 != 0) != (px == 2); }
+  __device__ __forceinline__ int tile() const {
+    return order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
+  }
+};
+
+// Pixels per thread of backward_kernel: 4 (fewer warps, each reading a splat for more pixels: the
+// higher throughput), or 2 for a render whose densest tile sets the kernel's length, when its walk
+// is more than kCriticalPathFactor times the busy tiles' mean share of one wave of 4-pixel blocks
+// (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's densest tiles visit 6-7x the
+// mean). The contribution cuts such tiles into chunks instead (TileChunks, chunk_size).
+constexpr int kCriticalPathFactor = 2;
+
+// ------------------------------------------------------------------ dense-tile chunks
+
+// A trained model's few dense tiles set the length of a kernel that walks each tile with one block
+// (BENCHMARKS.md 2k). The forward and the contribution cut every tile longer than a chunk into
+// chunks, one block each. A chunk starts from its pixels' transmittance in front of it: the product
+// of the earlier chunks' own transmittances, each walked from T = 1 by chunk_prefix_kernel first.
+
+// Chunk length: kCriticalPathFactor x the mean share of M intersections over one wave of `wave`
+// resident blocks, at least kMinChunk, in whole batches of 4-pixel blocks.
+constexpr int32_t kMinChunk = 256;
+constexpr int32_t kWholeTiles = 1 << 30;  // a chunk length no tile reaches (GSW_CUDA_FORWARD=tiles)
+inline int32_t chunk_size(int64_t M, int64_t wave) {
+  constexpr int64_t kSplats = kTilePixels / 4;
+  const int64_t share = (kCriticalPathFactor * M + wave - 1) / (wave > 0 ? wave : 1);
+  const int64_t size = share > kMinChunk ? share : kMinChunk;
+  return static_cast<int32_t>((size + kSplats - 1) / kSplats * kSplats);
+}
+
+// Tile j's intersection list is cut into offsets[j + 1] - offsets[j] >= 1 chunks of at most `size`
+// splats, one block each: block b walks chunk b - offsets[j] of the tile j with offsets[j] <= b <
+// offsets[j + 1]; blocks from offsets[tiles] on do nothing. The tiles in front of tile j have
+// slot0 = offsets[j] - j chunks beyond their first, so tile j's chunks k < n - 1 own the `prefix`
+// slots slot0 + k and its chunks k < n the slots 2 slot0 + k of a per-chunk buffer of 2 x (all
+// chunks - tiles) slots (n <= 2 (n - 1) for a cut tile), kTilePixels values each, indexed by
+// PixelCtx::local. A prefix slot holds the product of (1 - alpha) over the splats its pixel blends
+// in the chunk, walked from T = 1, or 0 where the pixel terminates in it. The product over the
+// chunks in front is then below T_MIN exactly when the pixel has terminated in front of the chunk
+// (transmittance only falls), and otherwise the transmittance a whole-tile walk reaches there, up
+// to rounding.
+template <typename T>
+struct TileChunks {
+  const int32_t* offsets = nullptr;  // nullptr: no chunks (one block per tile)
+  int tiles = 0;
+  int32_t size = 0;
+  T* prefix = nullptr;
+  struct Chunk {
+    int tile, k, n;  // chunk k of the tile's n
+    int64_t slot0;   // chunks of the tiles in front beyond their first
+  };
+  // This block's chunk; false for a block past the last.
+  __device__ __forceinline__ bool find(Chunk& ch) const {
+    const int32_t b = static_cast<int32_t>(blockIdx.x);
+    if (b >= offsets[tiles]) return false;
+    int lo = 0, n = tiles;  // the last j with offsets[j] <= b (then offsets[j + 1] > b)
+    while (n > 1) {
+      const int half = n >> 1;
+      lo = offsets[lo + half] <= b ? lo + half : lo;
+      n -= half;
+    }
+    ch = Chunk{lo, b - offsets[lo], offsets[lo + 1] - offsets[lo], int64_t(offsets[lo]) - lo};
+    return true;
+  }
+  // Narrows c to chunk ch of its tile.
+  template <int PX>
+  __device__ __forceinline__ void narrow(PixelCtx<PX>& c, const Chunk& ch) const {
+    c.start += ch.k * size;
+    c.end = min(c.end, c.start + size);
+  }
+  __device__ __forceinline__ T* prefix_slot(const Chunk& ch, int k) const {
+    return prefix + (ch.slot0 + k) * kTilePixels;
+  }
+  // The transmittance in front of chunk ch of tile-local pixel `local`: the product of the prefix
+  // slots of the chunks in front, in order.
+  __device__ __forceinline__ T front(const Chunk& ch, int local) const {
+    T tr = T(1);
+    for (int k = 0; k < ch.k; ++k) tr *= prefix_slot(ch, k)[local];
+    return tr;
+  }
+};
+
+// Chunks per tile (tile j: ceil(intersections / size), at least 1: an empty tile's block does
+// nothing; tile `tiles`: 0, for the prefix sum's total).
+__global__ void __launch_bounds__(kBlock)
+    chunk_count_kernel(const int32_t* __restrict__ tile_offsets, int tiles, int32_t size, int32_t* __restrict__ n) {
+  const int t = static_cast<int>(blockIdx.x * blockDim.x + threadIdx.x);
+  if (t <= tiles) {
+    const int32_t count = t < tiles ? tile_offsets[t + 1] - tile_offsets[t] : 0;
+    n[t] = t < tiles ? (count > 0 ? (count - 1) / size + 1 : 1) : 0;
+  }
+}
+
+// Walks nothing but the transmittance (traverse_tile's visitor for chunk_prefix_kernel).
+struct NoVisitor {
+  __device__ __forceinline__ void load(int, int32_t) {}
+  template <typename W>
+  __device__ __forceinline__ void blend(int, const W&) {}
+  __device__ __forceinline__ void end_batch(int) {}
+};
+
+// The prefix slot of every chunk but each tile's last (TileChunks), 4 pixels per thread.
+template <typename T>
+__global__ void __launch_bounds__(kTilePixels / 4) chunk_prefix_kernel(const RasterParams<T> p,
+                                                                       const TileChunks<T> chunks) {
+  typename TileChunks<T>::Chunk ch;
+  if (!chunks.find(ch) || ch.k == ch.n - 1) return;
+  PixelCtx<4> c = pixel_ctx<4>(p, ch.tile);
+  chunks.narrow(c, ch);
+  NoVisitor vis;
+  T tr[4] = {T(1), T(1), T(1), T(1)};
+  int32_t last[4];
+  const unsigned live = traverse_tile(p, c, vis, tr, last);
+  T* out = chunks.prefix_slot(ch, ch.k);
+#pragma unroll
+  for (int i = 0; i < 4; ++i) out[c.local(i)] = (live >> i & 1u) ? tr[i] : T(0);
+}
+
+// A render's chunks (TileChunks) of `size` splats: the chunk counts' prefix sum
+// and the prefix slots, computed on the device (no host synchronisation); `grid` blocks cover every
+// chunk, `extra` >= the chunks beyond each tile's first (their sum of ceil(n / size) - 1 is at most
+// M / size).
+template <typename T>
+struct ChunkPlan {
+  DeviceBuffer offsets, prefix;
+  TileChunks<T> chunks;
+  int64_t extra = 0;
+  unsigned grid = 0;
+};
+
+template <typename T>
+ChunkPlan<T> plan_chunks(const RasterParams<T>& p, int32_t size, cudaStream_t stream) {
+  const int64_t tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
+  const int64_t extra = p.bins.M / size;
+  ChunkPlan<T> plan{DeviceBuffer(sizeof(int32_t) * size_t(2 * (tiles + 1))),
+                    DeviceBuffer(sizeof(T) * size_t(extra) * kTilePixels)};
+  int32_t* counts = plan.offsets.template as<int32_t>();
+  int32_t* offsets = counts + tiles + 1;
+  chunk_count_kernel<<<blocks_for(tiles + 1, kBlock), kBlock, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles),
+                                                                          size, counts);
+  GSW_KERNEL_CHECK();
+  size_t scan_bytes = 0;
+  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, scan_bytes, counts, offsets, static_cast<int>(tiles + 1), stream));
+  {
+    DeviceBuffer temp(scan_bytes);
+    GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, counts, offsets,
+                                                 static_cast<int>(tiles + 1), stream));
+  }
+  plan.chunks = TileChunks<T>{offsets, static_cast<int>(tiles), size, plan.prefix.template as<T>()};
+  plan.extra = extra;
+  plan.grid = static_cast<unsigned>(tiles + extra);
+  if (extra > 0) {
+    chunk_prefix_kernel<T><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, plan.chunks);
+    GSW_KERNEL_CHECK();
+  }
+  return plan;
 }
 
 // ------------------------------------------------------------------ forward
@@ -255,46 +432,90 @@ struct ForwardVisitor {
   }
 };
 
+// A pixel's outputs from its colour and depth sums, final transmittance and n_contrib.
 template <typename T>
-__global__ void __launch_bounds__(kBlock) forward_kernel(const RasterParams<T> p) {
+__device__ __forceinline__ void store_pixel(const RasterParams<T>& p, int64_t pix, T r, T g, T b, T d, T tr,
+                                            int32_t last) {
+  const int64_t P = int64_t(p.width) * p.height;
+  p.image[pix] = r + tr * p.background[0];
+  p.image[P + pix] = g + tr * p.background[1];
+  p.image[2 * P + pix] = b + tr * p.background[2];
+  p.alpha[pix] = T(1) - tr;
+  p.depth[pix] = d;
+  p.final_T[pix] = tr;
+  p.n_contrib[pix] = last;
+}
+
+// One pixel's share of a chunk of a cut tile (TileChunks): its colour and depth sums, its
+// transmittance at the chunk's end (-1 when the pixel had terminated in front of the chunk) and 1 +
+// the tile-list index of its last splat blended in the chunk (0 if none).
+template <typename T>
+struct ChunkPixel {
+  T r, g, b, d, tr;
+  int32_t last;
+};
+
+// Resident forward blocks per SM the compiler must allow: float32 in 32 registers (as one block
+// per tile needed), float64 unbounded.
+template <typename T>
+constexpr int kForwardBlocksPerSM = sizeof(T) == 4 ? 8 : 1;
+
+// The forward on the chunks of `chunks`: a tile of one chunk stores its pixels; a chunk of a cut
+// tile stores its pixels' shares in its slot of `parts` for combine_chunks_kernel.
+template <typename T>
+__global__ void __launch_bounds__(kBlock, kForwardBlocksPerSM<T>)
+    forward_kernel(const RasterParams<T> p, const TileChunks<T> chunks, ChunkPixel<T>* __restrict__ parts) {
   __shared__ SplatColor<T> s_col[kBatch];
-  const PixelCtx<1> c = pixel_ctx<1>(p, blockIdx.x);
+  typename TileChunks<T>::Chunk ch;
+  if (!chunks.find(ch)) return;
+  PixelCtx<1> c = pixel_ctx<1>(p, ch.tile);
+  chunks.narrow(c, ch);
+  T tr[1] = {chunks.front(ch, c.local(0))};
+  const bool entered = tr[0] >= T(T_MIN);
   ForwardVisitor<T> vis{p, s_col};
-  T tr[1];
   int32_t last[1];
   traverse_tile(p, c, vis, tr, last);
   if (!c.inside()) return;
-  const int64_t P = int64_t(p.width) * p.height;
-  p.image[c.pix] = vis.r + tr[0] * p.background[0];
-  p.image[P + c.pix] = vis.g + tr[0] * p.background[1];
-  p.image[2 * P + c.pix] = vis.b + tr[0] * p.background[2];
-  p.alpha[c.pix] = T(1) - tr[0];
-  p.depth[c.pix] = vis.d;
-  p.final_T[c.pix] = tr[0];
-  p.n_contrib[c.pix] = last[0];
+  if (ch.n == 1) {
+    store_pixel(p, c.pix, vis.r, vis.g, vis.b, vis.d, tr[0], last[0]);
+    return;
+  }
+  parts[(2 * ch.slot0 + ch.k) * kTilePixels + c.local(0)] =
+      ChunkPixel<T>{vis.r, vis.g, vis.b, vis.d, entered ? tr[0] : T(-1), last[0] > 0 ? last[0] + ch.k * chunks.size : 0};
 }
 
-// ------------------------------------------------------------------ tile schedules
-
-// The tiles of one backward_kernel or contribution_kernel launch: block b takes tile order[b] (or
-// tile0 + b without an order). With a layout flag (choose_layout_kernel's), the launch does nothing
-// unless the flag chose its pixels per thread: both layouts are launched, one returns at once.
-struct TileSchedule {
-  const int32_t* order = nullptr;
-  int tile0 = 0;
-  const int32_t* px2 = nullptr;
-  __device__ __forceinline__ bool skips(int px) const { return px2 != nullptr && (*px2 != 0) != (px == 2); }
-  __device__ __forceinline__ int tile() const {
-    return order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
+// The pixels of every cut tile from its chunks' shares, summed in chunk order: block s takes the
+// tile whose first chunk beyond its first owns prefix slot s (TileChunks: the last tile j with
+// offsets[j] - j <= s, if that is its slot0), one thread per pixel.
+template <typename T>
+__global__ void __launch_bounds__(kBlock)
+    combine_chunks_kernel(const RasterParams<T> p, const TileChunks<T> chunks, const ChunkPixel<T>* __restrict__ parts) {
+  const int32_t* offsets = chunks.offsets;
+  const int32_t s = static_cast<int32_t>(blockIdx.x);
+  if (s >= offsets[chunks.tiles] - chunks.tiles) return;
+  int lo = 0, n = chunks.tiles;
+  while (n > 1) {
+    const int half = n >> 1;
+    lo = offsets[lo + half] - (lo + half) <= s ? lo + half : lo;
+    n -= half;
   }
-};
-
-// Pixels per thread of backward_kernel and contribution_kernel: 4 (fewer warps, each reading a splat
-// for more pixels: the higher throughput), or 2 for a render whose densest tile sets the kernel's
-// length, when its walk is more than kCriticalPathFactor times the busy tiles' mean share of one wave
-// of 4-pixel blocks (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's densest tiles
-// visit 6-7x the mean).
-constexpr int kCriticalPathFactor = 2;
+  const int64_t slot0 = int64_t(offsets[lo]) - lo;
+  if (slot0 != s) return;
+  const PixelCtx<1> c = pixel_ctx<1>(p, lo);
+  if (!c.inside()) return;
+  T r = T(0), g = T(0), b = T(0), d = T(0), tr = T(1);
+  int32_t last = 0;
+  const ChunkPixel<T>* q = parts + 2 * slot0 * kTilePixels + c.local(0);
+  for (int k = 0; k < offsets[lo + 1] - offsets[lo]; ++k, q += kTilePixels) {
+    r += q->r;
+    g += q->g;
+    b += q->b;
+    d += q->d;
+    if (q->tr >= T(0)) tr = q->tr;
+    if (q->last > 0) last = q->last;
+  }
+  store_pixel(p, c.pix, r, g, b, d, tr, last);
+}
 
 // ------------------------------------------------------------------ contribution
 
@@ -402,14 +623,29 @@ struct ContributionVisitor {
   }
 };
 
-// The contribution with PX pixels per thread on the tiles of `sched`.
+// The contribution with PX pixels per thread: on the chunks of `chunks` when it has offsets, else
+// on the tiles of `sched`.
 template <typename T, int CT, int PX>
 __global__ void __launch_bounds__(kTilePixels / PX)
-    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp, const TileSchedule sched) {
+    contribution_kernel(const RasterParams<T> p, const ContributionParams<T> cp, const TileSchedule sched,
+                        const TileChunks<T> chunks) {
   static_assert(contribution_shared_bytes<T, CT, PX>() <= 48 * 1024, "static shared memory is limited to 48 KiB");
   __shared__ ContributionShared<T, CT, PX> sh;
-  if (sched.skips(PX)) return;
-  const PixelCtx<PX> c = pixel_ctx<PX>(p, sched.tile());
+  T tr[PX];
+#pragma unroll
+  for (int i = 0; i < PX; ++i) tr[i] = T(1);
+  PixelCtx<PX> c;
+  if (chunks.offsets != nullptr) {
+    typename TileChunks<T>::Chunk ch;
+    if (!chunks.find(ch)) return;
+    c = pixel_ctx<PX>(p, ch.tile);
+    chunks.narrow(c, ch);
+#pragma unroll
+    for (int i = 0; i < PX; ++i) tr[i] = chunks.front(ch, c.local(i));
+  } else {
+    if (sched.skips(PX)) return;
+    c = pixel_ctx<PX>(p, sched.tile());
+  }
   const int64_t P = int64_t(p.width) * p.height;
   ContributionVisitor<T, CT, PX> vis{cp, P, c.pix, p.width, &sh};
   if constexpr (CT > 0) {
@@ -420,7 +656,6 @@ __global__ void __launch_bounds__(kTilePixels / PX)
         vis.wreg[i][ch] =
             c.inside(i) ? cp.weights[ch * P + c.pix + int64_t(i) * p.width] : T(0);
   }
-  T tr[PX];
   int32_t last[PX];
   traverse_tile(p, c, vis, tr, last);
 }
@@ -624,8 +859,7 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-// The layout of the backward (counts: the tiles' visited splats) or the contribution (counts: their
-// intersections) for this render, in *px2: 1 (2 pixels per thread) when the densest tile's walk
+// The layout of the backward for this render (counts: the tiles' visited splats), in *px2: 1 (2 pixels per thread) when the densest tile's walk
 // (*max_count) is longer than kCriticalPathFactor x the total walk (offsets[tiles], the counts'
 // prefix sum) shared by `wave` resident 4-pixel blocks, else 0. The kernel is then as long as that
 // tile's walk by one block, whatever the other SMs do: twice its warps shorten it. Otherwise the
@@ -635,19 +869,16 @@ __global__ void choose_layout_kernel(const int32_t* __restrict__ offsets, int ti
   *px2 = int64_t(*max_count) * wave > int64_t(kCriticalPathFactor) * offsets[tiles] ? 1 : 0;
 }
 
-// The contribution's tile counts: each tile's intersections in counts[tile], its index in ids[tile]
-// (the values tile_order sorts) and the largest count in *max_count (zeroed by the caller).
+// The tile counts of the contribution's whole-tile layouts: each tile's intersections in
+// counts[tile] and its index in ids[tile] (the values tile_order sorts).
 __global__ void __launch_bounds__(kBlock)
     tile_count_kernel(const int32_t* __restrict__ tile_offsets, int tiles, int32_t* __restrict__ counts,
-                      int32_t* __restrict__ ids, int32_t* __restrict__ max_count) {
+                      int32_t* __restrict__ ids) {
   const int t = static_cast<int>(blockIdx.x * blockDim.x + threadIdx.x);
-  const int32_t n = t < tiles ? tile_offsets[t + 1] - tile_offsets[t] : 0;
   if (t < tiles) {
-    counts[t] = n;
+    counts[t] = tile_offsets[t + 1] - tile_offsets[t];
     ids[t] = t;
   }
-  const int32_t warp_n = static_cast<int32_t>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n)));
-  if ((threadIdx.x & 31) == 0 && warp_n > 0) atomicMax(max_count, warp_n);
 }
 
 // The intersections of tiles [t0, t1) (a chunk of a chunked backward, added onto the stored sums)
@@ -780,9 +1011,17 @@ int64_t num_tiles(const RasterParams<T>& p) {
 // thread on every render) or "atomic" (px4 adding the tile totals with atomics: the former design,
 // not bitwise deterministic). float64 runs px4 for px2 and auto: px2's shared memory would not fit.
 // Anything else is an error.
-// GSW_CUDA_CONTRIBUTION chooses the contribution's layout alike: "auto" (default), "px4" or "px2"
-// (float64: px2 only where its shared memory fits, else px4).
+// GSW_CUDA_CONTRIBUTION chooses the contribution's: "auto" (default: dense tiles cut into chunks),
+// "px4" or "px2" (whole tiles; float64: px2 only where its shared memory fits, else px4).
+// GSW_CUDA_FORWARD: "auto" (default: dense tiles cut into chunks) or "tiles" (one block per tile).
 enum class Variant { kAtomic, kAuto, kPx2, kPx4 };
+
+bool forward_chunks() {
+  const char* e = std::getenv("GSW_CUDA_FORWARD");
+  if (e == nullptr || *e == '\0' || std::strcmp(e, "auto") == 0) return true;
+  if (std::strcmp(e, "tiles") == 0) return false;
+  throw std::invalid_argument(std::string("GSW_CUDA_FORWARD must be auto or tiles (or unset), not '") + e + "'");
+}
 
 Variant layout_variant(const char* name, bool atomic_allowed) {
   const char* e = std::getenv(name);
@@ -816,8 +1055,18 @@ template <typename T>
 void rasterize_forward(const RasterParams<T>& p) {
   const int64_t tiles = num_tiles(p);
   if (tiles <= 0) return;
-  forward_kernel<T><<<static_cast<unsigned>(tiles), kBlock, 0, current_stream()>>>(p);
+  cudaStream_t stream = current_stream();
+  const ChunkPlan<T> plan = plan_chunks(
+      p, forward_chunks() ? chunk_size(p.bins.M, wave_of(forward_kernel<T>, kBlock, device_sms())) : kWholeTiles,
+      stream);
+  DeviceBuffer parts(sizeof(ChunkPixel<T>) * size_t(2 * plan.extra) * kTilePixels);
+  forward_kernel<T><<<plan.grid, kBlock, 0, stream>>>(p, plan.chunks, parts.as<ChunkPixel<T>>());
   GSW_KERNEL_CHECK();
+  if (plan.extra > 0) {
+    combine_chunks_kernel<T><<<static_cast<unsigned>(plan.extra), kBlock, 0, stream>>>(p, plan.chunks,
+                                                                                       parts.as<ChunkPixel<T>>());
+    GSW_KERNEL_CHECK();
+  }
 }
 
 template <typename T>
@@ -918,39 +1167,39 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
 }
 
-// The contribution's launches for C = CT channels (0: any): the tiles in decreasing order of their
-// intersections (tile_order), with the layout `variant` asks for (auto: choose_layout_kernel's, from
-// those counts; px2 only where its shared memory fits).
+// The contribution's launches for C = CT channels (0: any). auto (the default): 4 pixels per thread,
+// tiles in index order, those longer than a chunk cut into chunks (TileChunks) of
+// chunk_size(M, wave) splats: no block walks much more than the mean share of one wave of blocks, so
+// a few dense tiles no longer set the kernel's length. px4 / px2 (A/B benchmarks): whole tiles with
+// that layout, densest first (tile_order; px2 only where its shared memory fits).
 template <typename T, int CT>
 void launch_contribution(const RasterParams<T>& p, const ContributionParams<T>& cp, Variant variant,
                          cudaStream_t stream) {
   const int64_t tiles = num_tiles(p);
+  if (variant == Variant::kAuto) {
+    const ChunkPlan<T> plan = plan_chunks(
+        p, chunk_size(p.bins.M, wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms())), stream);
+    contribution_kernel<T, CT, 4><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, cp, TileSchedule{}, plan.chunks);
+    GSW_KERNEL_CHECK();
+    return;
+  }
   const unsigned grid = static_cast<unsigned>(tiles);
-  constexpr bool kHasPx2 = contribution_shared_bytes<T, CT, 2>() <= 48 * 1024;
-  const bool px2 = kHasPx2 && variant == Variant::kPx2;
-  const bool choose = kHasPx2 && variant == Variant::kAuto;
-  DeviceBuffer buf(sizeof(int32_t) * size_t(2 * tiles + 2));  // counts, ids, the largest count, the layout flag
+  DeviceBuffer buf(sizeof(int32_t) * size_t(2 * tiles));  // counts, ids
   int32_t* counts = buf.as<int32_t>();
   int32_t* ids = counts + tiles;
-  int32_t* max_count = ids + tiles;
-  int32_t* px2_flag = max_count + 1;
-  GSW_CUDA_CHECK(cudaMemsetAsync(max_count, 0, sizeof(int32_t), stream));
   tile_count_kernel<<<blocks_for(tiles, kBlock), kBlock, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles),
-                                                                      counts, ids, max_count);
+                                                                      counts, ids);
   GSW_KERNEL_CHECK();
   const DeviceBuffer order = tile_order(counts, ids, tiles, p.bins.M, stream);
-  if (choose) {
-    choose_layout_kernel<<<1, 1, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles), max_count,
-                                              wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms()),
-                                              px2_flag);
-    GSW_KERNEL_CHECK();
+  const TileSchedule sched{order.as<int32_t>(), 0, nullptr};
+  if constexpr (contribution_shared_bytes<T, CT, 2>() <= 48 * 1024) {
+    if (variant == Variant::kPx2) {
+      contribution_kernel<T, CT, 2><<<grid, kTilePixels / 2, 0, stream>>>(p, cp, sched, TileChunks<T>{});
+      GSW_KERNEL_CHECK();
+      return;
+    }
   }
-  const TileSchedule sched{order.as<int32_t>(), 0, choose ? px2_flag : nullptr};
-  if constexpr (kHasPx2) {
-    if (px2 || choose) contribution_kernel<T, CT, 2><<<grid, kTilePixels / 2, 0, stream>>>(p, cp, sched);
-    GSW_KERNEL_CHECK();
-  }
-  if (!px2) contribution_kernel<T, CT, 4><<<grid, kTilePixels / 4, 0, stream>>>(p, cp, sched);
+  contribution_kernel<T, CT, 4><<<grid, kTilePixels / 4, 0, stream>>>(p, cp, sched, TileChunks<T>{});
   GSW_KERNEL_CHECK();
 }
 
