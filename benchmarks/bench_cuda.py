@@ -38,8 +38,7 @@ blend backward op alone on the same bins and the whole forward+backward, two int
 largest gradient difference to the first variant named (relative to each gradient tensor's largest value).
 
 `--contribution auto px4 px2` times the contribution's layouts (GSW_CUDA_CONTRIBUTION) alike, two interleaved
-rounds each, with the largest difference of the values to the first variant named; `--forward auto tiles` the
-forward's (GSW_CUDA_FORWARD: dense tiles cut into chunks, or one block per tile; the image's difference).
+rounds each, with the largest difference of the values to the first variant named.
 
     python benchmarks/bench_cuda.py --out benchmarks/results/cuda.json --md benchmarks/results/cuda.md
 """
@@ -69,8 +68,6 @@ BACKWARD_ENV = "GSW_CUDA_BACKWARD"  # read by the CUDA blend backward at every c
 BACKWARD_VARIANTS = ("atomic", "auto", "px2", "px4")
 CONTRIBUTION_ENV = "GSW_CUDA_CONTRIBUTION"  # read by the CUDA contribution at every call
 CONTRIBUTION_VARIANTS = ("auto", "px2", "px4")
-FORWARD_ENV = "GSW_CUDA_FORWARD"  # read by the CUDA forward at every call
-FORWARD_VARIANTS = ("auto", "tiles")
 
 
 def cuda_time(fn: Callable[[], object], reps: int, warmup: int,
@@ -369,22 +366,25 @@ def compare_backward_variants(g: Gaussians, cam: Camera, w_img: torch.Tensor, va
     return res
 
 
-def compare_env_variants(env: str, key: str, fn: Callable[[], torch.Tensor], variants: list[str], reps: int,
-                         warmup: int) -> dict[str, float]:
-    """``fn`` per setting of the switch ``env`` (two interleaved rounds, ms: ``{key}_{variant}``) and the largest
-    difference of its result to the first variant's (relative to their max abs: ``{key}_maxdiff_{variant}``)."""
+def compare_contribution_variants(g: Gaussians, cam: Camera, w_contrib: torch.Tensor, variants: list[str], reps: int,
+                                  warmup: int) -> dict[str, float]:
+    """The contribution per layout (two interleaved rounds, ms) and each one's largest difference of the values to
+    the first variant's (relative to their max abs)."""
+    def contrib():
+        return gsw.contribution(g, cam, w_contrib).values
+
     res: dict[str, float] = {}
     for rnd in range(2):
         for v in variants:
-            with env_setting(env, v):
-                res[f"{key}_{v}_{rnd}"] = cuda_time(fn, reps, warmup)
+            with env_setting(CONTRIBUTION_ENV, v):
+                res[f"contrib_{v}_{rnd}"] = cuda_time(contrib, reps, warmup)
     ref = None
     for v in variants:
-        res[f"{key}_{v}"] = (res[f"{key}_{v}_0"] + res[f"{key}_{v}_1"]) / 2
-        with env_setting(env, v):
-            values = fn()
+        res[f"contrib_{v}"] = (res[f"contrib_{v}_0"] + res[f"contrib_{v}_1"]) / 2
+        with env_setting(CONTRIBUTION_ENV, v):
+            values = contrib()
         ref = values if ref is None else ref
-        res[f"{key}_maxdiff_{v}"] = float((values - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
+        res[f"contrib_maxdiff_{v}"] = float((values - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
     return res
 
 
@@ -410,14 +410,8 @@ def bench_case(family: str, n: int, width: int, height: int, args: argparse.Name
         row["gsw_backward_variants"] = compare_backward_variants(g, cam, w_img, args.backward, args.reps,
                                                                  args.warmup)
     if args.contribution:
-        row["gsw_contribution_variants"] = compare_env_variants(
-            CONTRIBUTION_ENV, "contrib", lambda g=g: gsw.contribution(g, cam, w_contrib).values, args.contribution,
-            args.reps, args.warmup)
-    if args.forward:
-        with torch.no_grad():
-            row["gsw_forward_variants"] = compare_env_variants(
-                FORWARD_ENV, "fwd", lambda g=g: gsw.rasterize(g, cam, validate=False).image, args.forward, args.reps,
-                args.warmup)
+        row["gsw_contribution_variants"] = compare_contribution_variants(g, cam, w_contrib, args.contribution,
+                                                                         args.reps, args.warmup)
     if not args.no_gsplat:
         row.update(bench_gsplat(g, cam, w_img, args.reps, args.warmup, image))
         compare(row)
@@ -529,21 +523,19 @@ def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int
                          + " | ".join(f"{d[f'grad_maxdiff_{v}']:.1e}" for v in names[1:]) + " | "
                          + " | ".join(f"{d[f'fwdbwd_peak_mb_{v}']:.0f}" for v in names) + " | "
                          + " | ".join(f"{d[f'bitwise_repeats_{v}']}/5" for v in names) + " |")
-    for field, key, what in (("gsw_contribution_variants", "contrib", f"CUDA contribution layouts ({CONTRIBUTION_ENV}"),
-                             ("gsw_forward_variants", "fwd", f"CUDA forwards ({FORWARD_ENV}; no gradients")):
-        cv = [r for r in rows if field in r]
-        if not cv:
-            continue
-        names = [k[len(f"{key}_maxdiff_"):] for k in cv[0][field] if k.startswith(f"{key}_maxdiff_")]
-        lines += ["", f"{what}; ms, mean of two interleaved rounds; diff: largest difference of the result to "
-                  f"{names[0]}, relative to its max abs):", "",
-                  "| scene | N | size | M | " + " | ".join(f"{key} {v}" for v in names) + " | "
+    cv = [r for r in rows if "gsw_contribution_variants" in r]
+    if cv:
+        names = [k[len("contrib_maxdiff_"):] for k in cv[0]["gsw_contribution_variants"]
+                 if k.startswith("contrib_maxdiff_")]
+        lines += ["", f"CUDA contribution layouts ({CONTRIBUTION_ENV}; ms, mean of two interleaved rounds; diff: largest "
+                  f"difference of the values to {names[0]}, relative to their max abs):", "",
+                  "| scene | N | size | M | " + " | ".join(f"contrib {v}" for v in names) + " | "
                   + " | ".join(f"diff {v}" for v in names[1:]) + " |", "|---|---|---|---|" + "---|" * (2 * len(names) - 1)]
         for r in cv:
-            d = r[field]
+            d = r["gsw_contribution_variants"]
             lines.append(f"| {r['family']} | {r['N']:,} | {r['width']}x{r['height']} | {r['intersections']:,} | "
-                         + " | ".join(f"{d[f'{key}_{v}']:.3f}" for v in names) + " | "
-                         + " | ".join(f"{d[f'{key}_maxdiff_{v}']:.1e}" for v in names[1:]) + " |")
+                         + " | ".join(f"{d[f'contrib_{v}']:.3f}" for v in names) + " | "
+                         + " | ".join(f"{d[f'contrib_maxdiff_{v}']:.1e}" for v in names[1:]) + " |")
     diffs = [r for r in rows if "image_mean_abs_diff_vs_gsplat_unpacked" in r]
     if diffs:
         lines += ["", "Image difference gsw vs gsplat unpacked (mean / max abs): " + "; ".join(
@@ -568,8 +560,6 @@ def main() -> None:
                          "differences), e.g. atomic auto px2 px4")
     ap.add_argument("--contribution", nargs="+", choices=CONTRIBUTION_VARIANTS, default=[],
                     help="also time these CUDA contribution layouts (the first is the reference of the differences)")
-    ap.add_argument("--forward", nargs="+", choices=FORWARD_VARIANTS, default=[],
-                    help="also time these CUDA forwards (the first is the reference of the image differences)")
     ap.add_argument("--commit", default="", help="gsw commit to record")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)  # a CPU dry run of the script's logic
     ap.add_argument("--out", default="benchmarks/results/cuda.json")

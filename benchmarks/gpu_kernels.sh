@@ -65,7 +65,7 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
   bench)
     OUT=${2:?OUT} TAG=${3:?TAG}
     cat /tmp/gsplat_jit.log
-    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward atomic auto px4 --contribution auto px4 px2 --forward auto tiles \
+    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward atomic auto px4 --contribution auto px4 px2 \
       --ply build/gpu/ply/sh3_fixture/point_cloud.ply \
       --cases frustum:100000:800x800 heavy:100000:800x800 frustum:1000000:1920x1080 heavy:1000000:1920x1080 \
               frustum:3000000:1920x1080 heavy:3000000:1920x1080 frustum:1000000:3840x2160 heavy:1000000:3840x2160 \
@@ -84,7 +84,7 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
       bash "$0" lego_train "$2" "$3" || exit 1
       P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
     fi
-    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward auto px4 px2 --contribution auto px4 px2 --forward auto tiles --ply "$P" \
+    "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --backward auto px4 px2 --contribution auto px4 px2 --ply "$P" \
       --cases ply:0:800x800 ply:0:1600x1600 \
       --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -20
     ;;

@@ -266,14 +266,15 @@ constexpr int kCriticalPathFactor = 2;
 // ------------------------------------------------------------------ dense-tile chunks
 
 // A trained model's few dense tiles set the length of a kernel that walks each tile with one block
-// (BENCHMARKS.md 2k). The forward and the contribution cut every tile longer than a chunk into
-// chunks, one block each. A chunk starts from its pixels' transmittance in front of it: the product
-// of the earlier chunks' own transmittances, each walked from T = 1 by chunk_prefix_kernel first.
+// (BENCHMARKS.md 2k). The contribution cuts every tile longer than a chunk into chunks, one block
+// each. A chunk starts from its pixels' transmittance in front of it: the product of the earlier
+// chunks' own transmittances, each walked from T = 1 by chunk_prefix_kernel first. (The forward
+// cut alike was 9 % faster on a lego model at 800x800 but 33 % slower at 1600x1600, where a cut
+// tile's chunks behind its opaque front are walked from T = 1 too: BENCHMARKS.md 2o.)
 
 // Chunk length: kCriticalPathFactor x the mean share of M intersections over one wave of `wave`
 // resident blocks, at least kMinChunk, in whole batches of 4-pixel blocks.
 constexpr int32_t kMinChunk = 256;
-constexpr int32_t kWholeTiles = 1 << 30;  // a chunk length no tile reaches (GSW_CUDA_FORWARD=tiles)
 inline int32_t chunk_size(int64_t M, int64_t wave) {
   constexpr int64_t kSplats = kTilePixels / 4;
   const int64_t share = (kCriticalPathFactor * M + wave - 1) / (wave > 0 ? wave : 1);
@@ -285,13 +286,11 @@ inline int32_t chunk_size(int64_t M, int64_t wave) {
 // splats, one block each: block b walks chunk b - offsets[j] of the tile j with offsets[j] <= b <
 // offsets[j + 1]; blocks from offsets[tiles] on do nothing. The tiles in front of tile j have
 // slot0 = offsets[j] - j chunks beyond their first, so tile j's chunks k < n - 1 own the `prefix`
-// slots slot0 + k and its chunks k < n the slots 2 slot0 + k of a per-chunk buffer of 2 x (all
-// chunks - tiles) slots (n <= 2 (n - 1) for a cut tile), kTilePixels values each, indexed by
-// PixelCtx::local. A prefix slot holds the product of (1 - alpha) over the splats its pixel blends
-// in the chunk, walked from T = 1, or 0 where the pixel terminates in it. The product over the
-// chunks in front is then below T_MIN exactly when the pixel has terminated in front of the chunk
-// (transmittance only falls), and otherwise the transmittance a whole-tile walk reaches there, up
-// to rounding.
+// slots slot0 + k, kTilePixels values each, indexed by PixelCtx::local. A prefix slot holds the
+// product of (1 - alpha) over the splats its pixel blends in the chunk, walked from T = 1, or 0
+// where the pixel terminates in it. The product over the chunks in front is then below T_MIN
+// exactly when the pixel has terminated in front of the chunk (transmittance only falls), and
+// otherwise the transmittance a whole-tile walk reaches there, up to rounding.
 template <typename T>
 struct TileChunks {
   const int32_t* offsets = nullptr;  // nullptr: no chunks (one block per tile)
@@ -369,10 +368,9 @@ __global__ void __launch_bounds__(kTilePixels / 4) chunk_prefix_kernel(const Ras
   for (int i = 0; i < 4; ++i) out[c.local(i)] = (live >> i & 1u) ? tr[i] : T(0);
 }
 
-// A render's chunks (TileChunks) of `size` splats: the chunk counts' prefix sum
-// and the prefix slots, computed on the device (no host synchronisation); `grid` blocks cover every
-// chunk, `extra` >= the chunks beyond each tile's first (their sum of ceil(n / size) - 1 is at most
-// M / size).
+// A render's chunks (TileChunks) of `size` splats: the chunk counts' prefix sum and the prefix
+// slots, computed on the device (no host synchronisation); `grid` blocks cover every chunk, `extra`
+// >= the chunks beyond each tile's first (their sum of ceil(n / size) - 1 is at most M / size).
 template <typename T>
 struct ChunkPlan {
   DeviceBuffer offsets, prefix;
@@ -432,89 +430,23 @@ struct ForwardVisitor {
   }
 };
 
-// A pixel's outputs from its colour and depth sums, final transmittance and n_contrib.
 template <typename T>
-__device__ __forceinline__ void store_pixel(const RasterParams<T>& p, int64_t pix, T r, T g, T b, T d, T tr,
-                                            int32_t last) {
-  const int64_t P = int64_t(p.width) * p.height;
-  p.image[pix] = r + tr * p.background[0];
-  p.image[P + pix] = g + tr * p.background[1];
-  p.image[2 * P + pix] = b + tr * p.background[2];
-  p.alpha[pix] = T(1) - tr;
-  p.depth[pix] = d;
-  p.final_T[pix] = tr;
-  p.n_contrib[pix] = last;
-}
-
-// One pixel's share of a chunk of a cut tile (TileChunks): its colour and depth sums, its
-// transmittance at the chunk's end (-1 when the pixel had terminated in front of the chunk) and 1 +
-// the tile-list index of its last splat blended in the chunk (0 if none).
-template <typename T>
-struct ChunkPixel {
-  T r, g, b, d, tr;
-  int32_t last;
-};
-
-// Resident forward blocks per SM the compiler must allow: float32 in 32 registers (as one block
-// per tile needed), float64 unbounded.
-template <typename T>
-constexpr int kForwardBlocksPerSM = sizeof(T) == 4 ? 8 : 1;
-
-// The forward on the chunks of `chunks`: a tile of one chunk stores its pixels; a chunk of a cut
-// tile stores its pixels' shares in its slot of `parts` for combine_chunks_kernel.
-template <typename T>
-__global__ void __launch_bounds__(kBlock, kForwardBlocksPerSM<T>)
-    forward_kernel(const RasterParams<T> p, const TileChunks<T> chunks, ChunkPixel<T>* __restrict__ parts) {
+__global__ void __launch_bounds__(kBlock) forward_kernel(const RasterParams<T> p) {
   __shared__ SplatColor<T> s_col[kBatch];
-  typename TileChunks<T>::Chunk ch;
-  if (!chunks.find(ch)) return;
-  PixelCtx<1> c = pixel_ctx<1>(p, ch.tile);
-  chunks.narrow(c, ch);
-  T tr[1] = {chunks.front(ch, c.local(0))};
-  const bool entered = tr[0] >= T(T_MIN);
+  const PixelCtx<1> c = pixel_ctx<1>(p, blockIdx.x);
   ForwardVisitor<T> vis{p, s_col};
+  T tr[1] = {T(1)};
   int32_t last[1];
   traverse_tile(p, c, vis, tr, last);
   if (!c.inside()) return;
-  if (ch.n == 1) {
-    store_pixel(p, c.pix, vis.r, vis.g, vis.b, vis.d, tr[0], last[0]);
-    return;
-  }
-  parts[(2 * ch.slot0 + ch.k) * kTilePixels + c.local(0)] =
-      ChunkPixel<T>{vis.r, vis.g, vis.b, vis.d, entered ? tr[0] : T(-1), last[0] > 0 ? last[0] + ch.k * chunks.size : 0};
-}
-
-// The pixels of every cut tile from its chunks' shares, summed in chunk order: block s takes the
-// tile whose first chunk beyond its first owns prefix slot s (TileChunks: the last tile j with
-// offsets[j] - j <= s, if that is its slot0), one thread per pixel.
-template <typename T>
-__global__ void __launch_bounds__(kBlock)
-    combine_chunks_kernel(const RasterParams<T> p, const TileChunks<T> chunks, const ChunkPixel<T>* __restrict__ parts) {
-  const int32_t* offsets = chunks.offsets;
-  const int32_t s = static_cast<int32_t>(blockIdx.x);
-  if (s >= offsets[chunks.tiles] - chunks.tiles) return;
-  int lo = 0, n = chunks.tiles;
-  while (n > 1) {
-    const int half = n >> 1;
-    lo = offsets[lo + half] - (lo + half) <= s ? lo + half : lo;
-    n -= half;
-  }
-  const int64_t slot0 = int64_t(offsets[lo]) - lo;
-  if (slot0 != s) return;
-  const PixelCtx<1> c = pixel_ctx<1>(p, lo);
-  if (!c.inside()) return;
-  T r = T(0), g = T(0), b = T(0), d = T(0), tr = T(1);
-  int32_t last = 0;
-  const ChunkPixel<T>* q = parts + 2 * slot0 * kTilePixels + c.local(0);
-  for (int k = 0; k < offsets[lo + 1] - offsets[lo]; ++k, q += kTilePixels) {
-    r += q->r;
-    g += q->g;
-    b += q->b;
-    d += q->d;
-    if (q->tr >= T(0)) tr = q->tr;
-    if (q->last > 0) last = q->last;
-  }
-  store_pixel(p, c.pix, r, g, b, d, tr, last);
+  const int64_t P = int64_t(p.width) * p.height;
+  p.image[c.pix] = vis.r + tr[0] * p.background[0];
+  p.image[P + c.pix] = vis.g + tr[0] * p.background[1];
+  p.image[2 * P + c.pix] = vis.b + tr[0] * p.background[2];
+  p.alpha[c.pix] = T(1) - tr[0];
+  p.depth[c.pix] = vis.d;
+  p.final_T[c.pix] = tr[0];
+  p.n_contrib[c.pix] = last[0];
 }
 
 // ------------------------------------------------------------------ contribution
@@ -859,9 +791,10 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-// The layout of the backward for this render (counts: the tiles' visited splats), in *px2: 1 (2 pixels per thread) when the densest tile's walk
-// (*max_count) is longer than kCriticalPathFactor x the total walk (offsets[tiles], the counts'
-// prefix sum) shared by `wave` resident 4-pixel blocks, else 0. The kernel is then as long as that
+// The layout of the backward for this render (counts: the tiles' visited splats), in *px2: 1 (2
+// pixels per thread) when the densest tile's walk (*max_count) is longer than kCriticalPathFactor x
+// the total walk (offsets[tiles], the counts' prefix sum) shared by `wave` resident 4-pixel
+// blocks, else 0. The kernel is then as long as that
 // tile's walk by one block, whatever the other SMs do: twice its warps shorten it. Otherwise the
 // GPU is filled and 4 pixels per thread, the higher throughput, win.
 __global__ void choose_layout_kernel(const int32_t* __restrict__ offsets, int tiles,
@@ -1013,15 +946,7 @@ int64_t num_tiles(const RasterParams<T>& p) {
 // Anything else is an error.
 // GSW_CUDA_CONTRIBUTION chooses the contribution's: "auto" (default: dense tiles cut into chunks),
 // "px4" or "px2" (whole tiles; float64: px2 only where its shared memory fits, else px4).
-// GSW_CUDA_FORWARD: "auto" (default: dense tiles cut into chunks) or "tiles" (one block per tile).
 enum class Variant { kAtomic, kAuto, kPx2, kPx4 };
-
-bool forward_chunks() {
-  const char* e = std::getenv("GSW_CUDA_FORWARD");
-  if (e == nullptr || *e == '\0' || std::strcmp(e, "auto") == 0) return true;
-  if (std::strcmp(e, "tiles") == 0) return false;
-  throw std::invalid_argument(std::string("GSW_CUDA_FORWARD must be auto or tiles (or unset), not '") + e + "'");
-}
 
 Variant layout_variant(const char* name, bool atomic_allowed) {
   const char* e = std::getenv(name);
@@ -1055,18 +980,8 @@ template <typename T>
 void rasterize_forward(const RasterParams<T>& p) {
   const int64_t tiles = num_tiles(p);
   if (tiles <= 0) return;
-  cudaStream_t stream = current_stream();
-  const ChunkPlan<T> plan = plan_chunks(
-      p, forward_chunks() ? chunk_size(p.bins.M, wave_of(forward_kernel<T>, kBlock, device_sms())) : kWholeTiles,
-      stream);
-  DeviceBuffer parts(sizeof(ChunkPixel<T>) * size_t(2 * plan.extra) * kTilePixels);
-  forward_kernel<T><<<plan.grid, kBlock, 0, stream>>>(p, plan.chunks, parts.as<ChunkPixel<T>>());
+  forward_kernel<T><<<static_cast<unsigned>(tiles), kBlock, 0, current_stream()>>>(p);
   GSW_KERNEL_CHECK();
-  if (plan.extra > 0) {
-    combine_chunks_kernel<T><<<static_cast<unsigned>(plan.extra), kBlock, 0, stream>>>(p, plan.chunks,
-                                                                                       parts.as<ChunkPixel<T>>());
-    GSW_KERNEL_CHECK();
-  }
 }
 
 template <typename T>
