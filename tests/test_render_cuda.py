@@ -212,13 +212,9 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
 # ----------------------------------------------------------------------------------------- forward
 
 
-@pytest.mark.parametrize("variant", ["auto", "tiles"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", list(SCENES))
-def test_forward_matches_cpu(name: str, dtype: torch.dtype, variant: str, monkeypatch) -> None:
-    """Both forwards behind GSW_CUDA_FORWARD (csrc/cuda/rasterize_cuda.cu: dense tiles cut into chunks, the
-    default, or one block per tile) match the CPU's."""
-    monkeypatch.setenv("GSW_CUDA_FORWARD", variant)
+def test_forward_matches_cpu(name: str, dtype: torch.dtype) -> None:
     if name == "large_splats" and dtype == torch.float32:
         # Their ellipse boundaries cross most pixels, so some alpha lands within rounding of ALPHA_MIN and
         # flips between backends (a ~1/255 image difference); test_large_scene_1m_1080p_forward_agrees bounds
@@ -249,35 +245,6 @@ def test_forward_matches_cpu(name: str, dtype: torch.dtype, variant: str, monkey
             assert torch.equal(getattr(gpu.bins, field).cpu(), getattr(cpu.bins, field)), field
     else:
         assert (gpu.n_contrib.cpu() != cpu.n_contrib).float().mean() <= 1e-2
-
-
-@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-@pytest.mark.parametrize("name", ["dense_multi_batch", "dense_tiles", "frustum", "heavy"])
-def test_forward_chunks_match_whole_tiles(name: str, dtype: torch.dtype, monkeypatch) -> None:
-    """Dense tiles walked in chunks, each from the product of the transmittances of the chunks in front, give the
-    one-block-per-tile forward's outputs up to rounding (float64: the same n_contrib), the same bits on a rerun."""
-    g64, cam, bg, deg = SCENES[name]()
-    g = g64.to(dtype=dtype, device="cuda")
-    monkeypatch.setenv("GSW_CUDA_FORWARD", "tiles")
-    whole = _render(g, cam, bg, deg)
-    monkeypatch.setenv("GSW_CUDA_FORWARD", "auto")
-    chunked, again = _render(g, cam, bg, deg), _render(g, cam, bg, deg)
-    tol = FWD_ATOL if dtype == torch.float32 else 1e-12  # float32: a pixel may terminate one splat apart
-    for field in ("image", "alpha", "final_T", "depth"):
-        scale = max(1.0, float(getattr(whole, field).abs().max()))
-        assert _max_abs(getattr(chunked, field), getattr(whole, field)) <= tol * scale, field
-        assert torch.equal(getattr(again, field), getattr(chunked, field)), field
-    if dtype == torch.float64:
-        assert torch.equal(chunked.n_contrib, whole.n_contrib)
-    else:
-        assert (chunked.n_contrib != whole.n_contrib).float().mean() <= 1e-3
-
-
-def test_forward_variant_switch_rejects_unknown_names(monkeypatch) -> None:
-    monkeypatch.setenv("GSW_CUDA_FORWARD", "px4")
-    g64, cam, bg, deg = SCENES["random_sh1"]()
-    with pytest.raises((ValueError, RuntimeError), match="GSW_CUDA_FORWARD"):
-        _render(g64.to("cuda"), cam, bg, deg)
 
 
 # ----------------------------------------------------------------------------------------- gradients
