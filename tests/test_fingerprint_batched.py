@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from gsw.decoder.zoo import load_decoder
-from gsw.fingerprint.batched import SlotParams, batched_loss, finetune_batch, pool_config
+from gsw.fingerprint.batched import SlotParams, batched_loss, check_pool_config, finetune_batch, pool_config
 from gsw.fingerprint.shared import prepare_scene, worker_scene
 from gsw.fingerprint.stopping import PRESETS, EarlyStop
 from gsw.mark.embed import EmbedConfig, embed
@@ -277,15 +277,32 @@ def test_train_time_image_attacks_per_slot() -> None:
     assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-4
 
 
-@pytest.mark.parametrize("setting", [{"model_attacks": 0.5}, {"novel_views": 1.0}, {"render_scales": (0.5, 2.0)},
-                                     {"psnr_target": 37.0}])
+def test_sampled_viewpoints_per_slot_are_gsw_embeds() -> None:
+    """With EmbedConfig.novel_views a recipient's steps render sampled viewpoints (targets: the input model's renders
+    there), drawn from its own random state: a copy that ran in a refilled slot is gsw.embed's with that config."""
+    scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
+    bg = tuple(float(v) for v in scene.background)
+    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, novel_views=0.5)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
+    messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
+    copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2)
+    alone = embed(scene.gaussians, scene.cameras, message=messages[2], config=cfg, progress=False)
+    # the same steps as gsw.embed (Adam with eps 1e-15 amplifies float-order differences in a few elements)
+    assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-4
+    assert abs(copies[2].psnr - sum(alone.psnr) / len(alone.psnr)) < 0.05
+    without = dataclasses.replace(cfg, novel_views=0.0)
+    ws0 = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=without), "cpu")
+    other = finetune_batch(ws0, ["c"], messages[2:])[0]
+    assert (other.gaussians.sh - copies[2].gaussians.sh).abs().mean() > 1e-3  # the sampled views changed the copy
+
+
+@pytest.mark.parametrize("setting", [{"model_attacks": 0.5}, {"render_scales": (0.5, 2.0)}, {"psnr_target": 37.0}])
 def test_settings_the_pool_does_not_implement_are_refused(setting) -> None:
     scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
     with pytest.raises(ValueError, match=f"does not support EmbedConfig.{next(iter(setting))}"):
         prepare_scene(scene.gaussians, scene.cameras, config=pool_config(epochs=1, lpips_net=None,
                                                                          weights=LossWeights(lpips=0.0), **setting))
-    with pytest.raises(ValueError, match="novel_views"):  # the library default samples viewpoints
-        prepare_scene(scene.gaussians, scene.cameras, config=EmbedConfig())
+    check_pool_config(EmbedConfig())  # the library default (sampled viewpoints, frozen SH rest) is poolable
 
 
 def test_frozen_groups_stay_in_the_pool() -> None:

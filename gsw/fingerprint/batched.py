@@ -27,9 +27,11 @@ import torch
 from torch import Tensor
 from torch.autograd.profiler import record_function
 
+from gsw.camera import Camera
 from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
-from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, final_scores, paper_config
+from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, embedding_view_sampler, final_scores, paper_config
+from gsw.mark.views import ViewSampler
 
 __all__ = ["POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch",
            "pool_config"]
@@ -52,10 +54,9 @@ def check_pool_config(cfg: EmbedConfig) -> None:
     """Refuses the :class:`EmbedConfig` settings the pool does not implement (rather than ignoring them).
 
     Raises:
-        ValueError: sampled viewpoints, render-size changes, train-time model attacks or a PSNR target.
+        ValueError: render-size changes, train-time model attacks or a PSNR target.
     """
-    unsupported = [name for name, on in (("novel_views", cfg.novel_views > 0),
-                                         ("render_scales", tuple(cfg.render_scales) != (1.0, 1.0)),
+    unsupported = [name for name, on in (("render_scales", tuple(cfg.render_scales) != (1.0, 1.0)),
                                          ("model_attacks", cfg.model_attacks > 0),
                                          ("psnr_target", cfg.psnr_target is not None)) if on]
     if unsupported:
@@ -287,13 +288,16 @@ def _attack_layers(cfg: EmbedConfig) -> dict | None:
 
 @dataclass
 class _Slot:
-    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in."""
+    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in, and
+    with ``EmbedConfig.novel_views`` its own draws of sampled viewpoints (those of ``gsw.embed``'s ``_Views``)."""
 
     index: int
     rng: random.Random
     tgen: torch.Generator
     order: list[int] = field(default_factory=list)
     start: float = 0.0
+    view_rng: random.Random | None = None
+    sampler: ViewSampler | None = None
 
     def next_view(self, views: int) -> int:
         if not self.order:  # a new epoch: the shuffle of gsw.mark.embed
@@ -319,7 +323,9 @@ class _Pool:
         self.slots: list[_Slot | None] = [None] * k
         self.cap = cfg.epochs * len(scene.shared.cameras)
         self.caps = [self.cap] * k  # per slot: the cap, or the cap of an extension
-        self.uniform = len({(c.width, c.height) for c in scene.shared.cameras}) == 1
+        # sampled viewpoints, with the input model on the device for their targets (as gsw.embed's _Views)
+        self.sampler = embedding_view_sampler(scene.shared.original, scene.shared.cameras, cfg)
+        self.original = None if self.sampler is None else scene.shared.original.to(scene.device)
         self._cache: dict = {}
 
     def fill(self, j: int, index: int) -> None:
@@ -328,7 +334,8 @@ class _Pool:
         self.caps[j] = self.cap
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
-                              start=time.perf_counter())
+                              start=time.perf_counter(), view_rng=random.Random(seed + 1),
+                              sampler=None if self.sampler is None else self.sampler.reseeded(seed + 2))
 
     def redraw(self, index: int, steps: int) -> None:
         """Recipient ``index`` gets its next message (:func:`gsw.mark.message.redrawn_message`) after an attempt
@@ -364,21 +371,40 @@ class _Pool:
             return self.attacks[name](render.clamp(0, 1)[None], generator=slot.tgen)[0]
         return render
 
+    def _view(self, slot: _Slot) -> tuple[Camera, int | Tensor, Tensor]:
+        """A slot's camera at this step, its view for :meth:`WorkerScene.references` and the input model's render
+        there: the next embedding view or, with ``cfg.novel_views``, as often a sampled viewpoint (as ``gsw.embed``
+        draws them, from the recipient's own random state)."""
+        from gsw.render.rasterize import rasterize
+
+        cams = self.scene.shared.cameras
+        v = slot.next_view(len(cams))
+        if slot.sampler is None or slot.view_rng.random() >= self.cfg.novel_views:
+            return cams[v], v, self.scene.originals[v]
+        cam = slot.sampler.sample()
+        with torch.no_grad():
+            target = rasterize(self.original, cam, background=self.cfg.background, validate=False).image
+        return cam, target, target
+
     def step(self) -> None:
         """One optimisation step of every occupied slot."""
         from gsw.render.rasterize import rasterize
 
-        cams, originals, bg = self.scene.shared.cameras, self.scene.originals, self.cfg.background
+        bg = self.cfg.background
         slots = self.active()
-        views = [self.slots[j].next_view(len(cams)) for j in slots]
+        cams, views, targets = zip(*(self._view(self.slots[j]) for j in slots))
         with record_function("gsw.pool.render"):  # labels for torch.profiler (benchmarks/fingerprint_throughput.py)
-            renders = [rasterize(g, cams[v], background=bg, validate=False).image
-                       for g, v in zip(self.params.slot_models(slots), views)]
+            renders = [rasterize(g, cam, background=bg, validate=False).image
+                       for g, cam in zip(self.params.slot_models(slots), cams)]
             decoded = [self._decoder_input(self.slots[j], r) for j, r in zip(slots, renders)]
-        targets = [originals[v] for v in views]
-        # one batched pass when every view has the same size (attacked images may not: one pass per slot)
-        batched = self.uniform and self.attacks is None
-        groups = [list(range(len(slots)))] if batched else [[i] for i in range(len(slots))]
+        # one batched pass per image size (attacked images may differ: one pass per slot)
+        if self.attacks is None:
+            sizes: dict[tuple[int, ...], list[int]] = {}
+            for i, r in enumerate(renders):
+                sizes.setdefault(tuple(r.shape), []).append(i)
+            groups = list(sizes.values())
+        else:
+            groups = [[i] for i in range(len(slots))]
         total = 0.0
         with record_function("gsw.pool.loss"):
             for g in groups:

@@ -133,19 +133,23 @@ class WorkerScene:
     warm_s: float = 0.0
     _references: dict[int, References] = field(default_factory=dict, repr=False)
 
-    def references(self, views: Sequence[int]) -> References:
+    def references(self, views: Sequence[int | Tensor]) -> References:
         """The loss's :class:`~gsw.fingerprint.batched.References` of ``views``' original renders, stacked in the
         order given: their wavelet detail subbands and LPIPS features (:meth:`gsw.metrics.lpips.LPIPS.references`;
-        None without an LPIPS term).
+        None without an LPIPS term). A view is an embedding view's index, or a [3, H, W] original render of another
+        viewpoint (a sampled one, ``EmbedConfig.novel_views``), whose references are made for this call only.
 
-        Each view's are made once and kept while all views' fit in :data:`REFERENCE_BYTES` (800x800 with
-        AlexNet: ~33 MB per view); beyond that they are made again per call.
+        Each embedding view's are made once and kept while all views' fit in :data:`REFERENCE_BYTES` (800x800
+        with AlexNet: ~33 MB per view); beyond that they are made again per call.
         """
         per_view = []
         for v in views:
+            if isinstance(v, Tensor):
+                per_view.append(self._image_references(v))
+                continue
             refs = self._references.get(v)
             if refs is None:
-                refs = self._view_references(v)
+                refs = self._image_references(self.originals[v])
                 held = [t for level in refs.highs for t in level] + (refs.lpips or [])
                 if sum(t.numel() * t.element_size() for t in held) * len(self.originals) <= REFERENCE_BYTES:
                     self._references[v] = refs
@@ -155,12 +159,11 @@ class WorkerScene:
         return References(highs, lpips)
 
     @torch.no_grad()
-    def _view_references(self, v: int) -> References:
+    def _image_references(self, image: Tensor) -> References:
         from gsw.decoder.dwt import dwt2
 
-        image = self.originals[v][None]
         lpips = self.loss.lpips
-        return References(dwt2(image)[1], None if lpips is None else lpips.references(image))
+        return References(dwt2(image[None])[1], None if lpips is None else lpips.references(image[None]))
 
 
 #: Most bytes of :class:`~gsw.fingerprint.batched.References` a :class:`WorkerScene` keeps for all its views.

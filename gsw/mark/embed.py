@@ -351,6 +351,15 @@ class _Trainable:
         return Gaussians(self.means, self.log_scales, self.quats, self.logits, torch.cat([self.dc, self.rest], dim=1))
 
 
+def embedding_view_sampler(original: Gaussians, cameras: Sequence[Camera], cfg: EmbedConfig) -> ViewSampler | None:
+    """The sampler of a fine-tune's extra viewpoints (``cfg.novel_views``; None without): around ``original``'s
+    content, at the given cameras' image sizes (at most ``cfg.max_render_side``), seeded from ``cfg.seed``."""
+    if cfg.novel_views <= 0:
+        return None
+    return ViewSampler(original, cameras, ViewSamplerConfig(size_range=(1.0, 1.0), max_side=cfg.max_render_side),
+                       seed=cfg.seed + 2)
+
+
 class _Views:
     """Each step's camera and target: a given camera (its cached original render) or, with
     ``cfg.novel_views``, a sampled viewpoint; rescaled by ``cfg.render_scales`` (a fresh original render)."""
@@ -359,11 +368,7 @@ class _Views:
                  cfg: EmbedConfig) -> None:
         self.original, self.cameras, self.originals, self.cfg = original, list(cameras), list(originals), cfg
         self.rng = random.Random(cfg.seed + 1)
-        self.sampler = None
-        if cfg.novel_views > 0:
-            self.sampler = ViewSampler(original, cameras, ViewSamplerConfig(size_range=(1.0, 1.0),
-                                                                           max_side=cfg.max_render_side),
-                                       seed=cfg.seed + 2)
+        self.sampler = embedding_view_sampler(original, cameras, cfg)
 
     def __len__(self) -> int:
         return len(self.cameras)

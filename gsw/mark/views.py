@@ -32,6 +32,7 @@ Example:
 
 from __future__ import annotations
 
+import copy
 import math
 import random
 from dataclasses import dataclass
@@ -223,6 +224,13 @@ class ViewSampler:
             up, base = self.up, (self.rng.choice(self.cameras) if self.cameras else None)
         distance = max(distance, 1.05 * self.radius)
         return self._camera(direction, distance, up, base, mode)
+
+    def reseeded(self, seed: int) -> ViewSampler:
+        """This sampler (the same content bounds and cameras, computed once) drawing its own sequence from
+        ``seed``: what ``ViewSampler(gaussians, cameras, config, seed)`` would draw."""
+        other = copy.copy(self)
+        other.rng = random.Random(seed)
+        return other
 
     def sample_many(self, n: int) -> list[Camera]:
         """``n`` cameras (the next ``n`` of the sequence)."""
