@@ -74,6 +74,17 @@ def test_sampler_is_deterministic_under_a_seed():
     assert any(not torch.equal(x.viewmat, y.viewmat) for x, y in zip(a, c))
 
 
+def test_a_reseeded_sampler_draws_a_fresh_samplers_sequence():
+    g = _scene()
+    cams = orbit_cameras([3.0, -2.0, 1.0], 4.0, 6, width=64, height=64)
+    base = ViewSampler(g, cams, seed=1)
+    base.sample_many(3)  # the base's own draws do not move a reseeded copy's
+    a = base.reseeded(7).sample_many(10)
+    b = ViewSampler(g, cams, seed=7).sample_many(10)
+    assert all(torch.equal(x.viewmat, y.viewmat) and (x.fx, x.width, x.cx) == (y.fx, y.width, y.cx)
+               for x, y in zip(a, b))
+
+
 def test_config_rejects_bad_ranges():
     with pytest.raises(ValueError, match="size_range"):
         ViewSamplerConfig(size_range=(2.0, 1.0))
