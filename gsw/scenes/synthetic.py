@@ -136,6 +136,16 @@ def frustum_sigma_px(n: int, width: int, height: int, coverage: float = 4.0) -> 
     return math.sqrt(coverage * width * height / (math.pi * max(n, 1)))
 
 
+def _frustum_points(gen: torch.Generator, camera: Camera, z: Tensor) -> Tensor:
+    """World points at camera-space depths ``z`` [n] and uniform pixel positions (drawn from ``gen``): [n, 3]."""
+    n = z.shape[0]
+    u = _uniform(gen, (n,), 0.0, camera.width)
+    v = _uniform(gen, (n,), 0.0, camera.height)
+    cam_points = torch.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], dim=1)
+    c2w = camera.c2w.detach().to(device="cpu", dtype=_F64)
+    return cam_points @ c2w[:3, :3].T + c2w[:3, 3]
+
+
 def frustum_scene(
     n: int,
     camera: Camera,
@@ -175,11 +185,7 @@ def frustum_scene(
         raise ValueError(f"depth_range must satisfy 0 < near < far, got {depth_range}")
     gen = _generator(seed)
     z = (near**3 + _uniform(gen, (n,)) * (far**3 - near**3)) ** (1.0 / 3.0)
-    u = _uniform(gen, (n,), 0.0, camera.width)
-    v = _uniform(gen, (n,), 0.0, camera.height)
-    cam_points = torch.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], dim=1)
-    c2w = camera.c2w.detach().to(device="cpu", dtype=_F64)
-    means = cam_points @ c2w[:3, :3].T + c2w[:3, 3]
+    means = _frustum_points(gen, camera, z)
 
     sigma = frustum_sigma_px(n, camera.width, camera.height, coverage) / math.sqrt(camera.fx * camera.fy)
     log_scales = (torch.log(sigma * z) + _normal(gen, (n,), 0.3))[:, None] + _normal(gen, (n, 3), 0.3)
@@ -232,11 +238,7 @@ def heavy_scene(
         raise ValueError(f"depth_range must satisfy 0 < near < far, got {depth_range}")
     gen = _generator(seed)
     z = _uniform(gen, (n,), near, far)
-    u = _uniform(gen, (n,), 0.0, camera.width)
-    v = _uniform(gen, (n,), 0.0, camera.height)
-    cam_points = torch.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], dim=1)
-    c2w = camera.c2w.detach().to(device="cpu", dtype=_F64)
-    means = cam_points @ c2w[:3, :3].T + c2w[:3, 3]
+    means = _frustum_points(gen, camera, z)
     log_scales = (log_scale_mean + _normal(gen, (n,), log_scale_std) + torch.log(0.5 * z))[:, None].expand(n, 3)
     quats = _normal(gen, (n, 4))
     opacity_logits = _normal(gen, (n,), 2.0)
