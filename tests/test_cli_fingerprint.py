@@ -93,6 +93,28 @@ def test_bad_early_stop_setting(model_dir, tmp_path, capsys) -> None:
     assert not (tmp_path / "out").exists()
 
 
+def test_novel_views_reach_the_pool(model_dir, tmp_path, capsys, monkeypatch) -> None:
+    import gsw.fingerprint as fp
+
+    seen, real = {}, fp.fingerprint
+
+    def spy(*args, **kwargs):
+        seen["config"] = kwargs["config"]
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fp, "fingerprint", spy)
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "0.5") == 0
+    assert seen["config"].novel_views == 0.5
+    assert (tmp_path / "out" / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
+
+
+def test_novel_views_outside_0_1_are_refused(model_dir, tmp_path, capsys) -> None:
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "1.5") == 2
+    err = capsys.readouterr().err
+    assert "EmbedConfig.novel_views is a probability in [0, 1], got 1.5" in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "marks.sqlite").exists()  # nothing written
+
+
 def test_malformed_recipients_file(model_dir, tmp_path, capsys) -> None:
     assert _fingerprint(model_dir, tmp_path, "recipient,message\nalice,\nbob,00,extra\n") == 2
     err = capsys.readouterr().err

@@ -65,6 +65,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="LPIPS network of the loss (default %(default)s: the pool's measured setting)")
     fp.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
     fp.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
+    fp.add_argument("--novel-views", type=float, default=0.0, metavar="P",
+                    help="share of the steps rendered from a viewpoint sampled around the content instead of a "
+                         "camera (default %(default)s; 0.5 on a lego model: held-out bits of the worst copy "
+                         "98.6 %% instead of 93.5 %%, PSNR 37.4 instead of 37.9 dB, a third fewer copies per hour; "
+                         "BENCHMARKS.md, twelfth GPU round)")
     fp.add_argument("--message-weight", type=float, default=None, help="weight of the message loss")
     add_background_options(fp, "default: black")
     add_readout_option(fp)

@@ -26,8 +26,8 @@ from gsw.camera import Camera
 from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
 from gsw.fingerprint.stopping import EarlyStop
 from gsw.gaussians import Gaussians
-from gsw.fingerprint.batched import pool_config
-from gsw.mark.embed import EmbedConfig
+from gsw.fingerprint.batched import check_pool_config, pool_config
+from gsw.mark.embed import EmbedConfig, check_config
 
 __all__ = ["RecipientReport", "FingerprintReport", "fingerprint"]
 
@@ -254,8 +254,9 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         A :class:`FingerprintReport`.
 
     Raises:
-        ValueError: malformed recipients, an output folder of another scene, a recipient registered for another
-            decoder or model; nothing is written then.
+        ValueError: malformed recipients, settings the pool or :func:`gsw.mark.embed.check_config` refuses, an
+            output folder of another scene, a recipient registered for another decoder or model; nothing is written
+            then.
         gsw.fingerprint.run.BatchFailure: batches that failed on Ray after their retries (the rest is written).
     """
     from gsw.device import resolve_device
@@ -268,6 +269,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         raise ValueError(f"batch_size and task_size must be >= 1, got {batch_size}, {task_size}")
     log = log or ((lambda text: print(f"gsw fingerprint: {text}", file=sys.stderr)) if progress else (lambda _t: None))
     cfg = config or pool_config()
+    check_pool_config(cfg)
+    check_config(cfg, cameras)
     people = _recipients(recipients)
     dev = resolve_device(device if device is not None else "auto")
     dec_sha = mark_decoder_sha256(num_bits, decoder)

@@ -37,8 +37,8 @@ from gsw.metrics.image import psnr
 from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
-__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "embed", "paper_config",
-           "prepare_embedding"]
+__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "check_config", "embed",
+           "embedding_view_sampler", "paper_config", "prepare_embedding"]
 
 #: Fine-tuned parameter groups of :func:`embed` (:attr:`EmbedConfig.freeze` names; positions: ``lr_position``).
 PARAMETER_GROUPS: tuple[str, ...] = ("f_dc", "f_rest", "opacity", "scaling", "rotation")
@@ -217,7 +217,7 @@ def prepare_embedding(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bi
         ValueError: no cameras, a bad config, non-finite parameters or a decoder of another length.
     """
     cfg = config or EmbedConfig()
-    _check(cfg, cameras)
+    check_config(cfg, cameras)
     gaussians.check_finite()
     dec = load_decoder_for(num_bits, decoder, gaussians.device)
     timings: dict[str, float] = {}
@@ -296,8 +296,16 @@ def _stand_in_views(gaussians: Gaussians, cfg: EmbedConfig) -> list[Camera]:
     return [dataclasses.replace(c, name=f"sampled_{i:03d}") for i, c in enumerate(cams)]
 
 
-def _check(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
-    """Refuses no cameras, probabilities outside [0, 1], a negative model noise and bad view settings."""
+def check_config(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
+    """Refuses settings no fine-tune can run (before anything is computed or written).
+
+    Args:
+        cfg: the settings.
+        cameras: the embedding views.
+
+    Raises:
+        ValueError: no cameras, probabilities outside [0, 1], a negative model noise or bad view settings.
+    """
     if len(cameras) == 0:
         raise ValueError("embed needs at least one camera")
     lo, hi = cfg.render_scales
