@@ -302,7 +302,10 @@ def test_settings_the_pool_does_not_implement_are_refused(setting) -> None:
     with pytest.raises(ValueError, match=f"does not support EmbedConfig.{next(iter(setting))}"):
         prepare_scene(scene.gaussians, scene.cameras, config=pool_config(epochs=1, lpips_net=None,
                                                                          weights=LossWeights(lpips=0.0), **setting))
-    check_pool_config(EmbedConfig())  # the library default (sampled viewpoints, frozen SH rest) is poolable
+
+
+def test_the_library_default_is_poolable() -> None:
+    check_pool_config(EmbedConfig())  # sampled viewpoints and a frozen SH rest: both implemented by the pool
 
 
 def test_frozen_groups_stay_in_the_pool() -> None:
