@@ -14,8 +14,9 @@ its mean held-out bit accuracy is >= 99 % and its mean held-out PSNR >= 37 dB.
 A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (recipients), ``epochs`` (step
 cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
 :meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``), ``freeze`` (comma-separated parameter
-groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``) and ``views``
-(``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0). The JSON
+groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``), ``views``
+(``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0) and ``bank``
+(``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones). The JSON
 (``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
 ``--scan-only MARKS`` only times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of
 the unmarked model.
@@ -99,11 +100,11 @@ def parse_setting(text: str) -> dict:
     """A sweep setting (see the module docstring) as a dict with every key."""
     from gsw.fingerprint.stopping import EarlyStop
 
-    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", views=0.0, text=text)
+    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", views=0.0, bank=0, text=text)
     for token in text.split():
         key, sep, value = token.partition("=")
         if not sep or key not in out or key == "text":
-            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop freeze views)")
+            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop freeze views bank)")
         if key == "stop":
             out[key] = None if value == "none" else EarlyStop.parse(value)
         elif key in ("lpips", "freeze"):
@@ -174,7 +175,7 @@ def _summary(rows: list[dict]) -> dict:
 
 def setting_config(setting: dict, bg):
     """The pool's EmbedConfig of a sweep setting (its epochs, LPIPS term, message weight, frozen groups and share
-    of sampled viewpoints)."""
+    of sampled viewpoints and their bank)."""
     from gsw.fingerprint.batched import pool_config
     from gsw.mark.loss import LossWeights, lpips_weights
 
@@ -183,7 +184,7 @@ def setting_config(setting: dict, bg):
     frozen = tuple(name for name in setting.get("freeze", "").split(",") if name)
     extra = {"freeze": frozen, "mask": "none"} if frozen else {}  # the grid's freeze-rest: no exponential mask
     return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights,
-                       novel_views=setting["views"], **extra)
+                       novel_views=setting["views"], view_bank=setting["bank"], **extra)
 
 
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
@@ -222,7 +223,7 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,
                lpips=setting["lpips"], freeze=setting["freeze"], novel_views=setting["views"],
-               early_stop=None if setting["stop"] is None else vars(setting["stop"]),
+               view_bank=setting["bank"], early_stop=None if setting["stop"] is None else vars(setting["stop"]),
                setup_s=report.timings.get("setup"), finetune_s=fine, job_wall_s=wall,
                recipients_per_hour=3600 * len(rows) / fine,
                ms_per_recipient_step=1000 * fine / max(1, sum((r["steps"] or 0) + (r["redrawn_steps"] or 0)

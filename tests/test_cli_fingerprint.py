@@ -103,8 +103,8 @@ def test_novel_views_reach_the_pool(model_dir, tmp_path, capsys, monkeypatch) ->
         return real(*args, **kwargs)
 
     monkeypatch.setattr(fp, "fingerprint", spy)
-    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "0.5") == 0
-    assert seen["config"].novel_views == 0.5
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "0.5", "--view-bank", "3") == 0
+    assert seen["config"].novel_views == 0.5 and seen["config"].view_bank == 3
     assert (tmp_path / "out" / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
 
 
@@ -113,6 +113,12 @@ def test_novel_views_outside_0_1_are_refused(model_dir, tmp_path, capsys) -> Non
     err = capsys.readouterr().err
     assert "EmbedConfig.novel_views is a probability in [0, 1], got 1.5" in err
     assert not (tmp_path / "out").exists() and not (tmp_path / "marks.sqlite").exists()  # nothing written
+
+
+def test_a_negative_view_bank_is_refused(model_dir, tmp_path, capsys) -> None:
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "0.5", "--view-bank", "-1") == 2
+    assert "EmbedConfig.view_bank must be an integer >= 0, got -1" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_malformed_recipients_file(model_dir, tmp_path, capsys) -> None:

@@ -277,12 +277,15 @@ def test_train_time_image_attacks_per_slot() -> None:
     assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-4
 
 
-def test_sampled_viewpoints_per_slot_are_gsw_embeds() -> None:
+@pytest.mark.parametrize("bank", [0, 4])
+def test_sampled_viewpoints_per_slot_are_gsw_embeds(bank) -> None:
     """With EmbedConfig.novel_views a recipient's steps render sampled viewpoints (targets: the input model's renders
-    there), drawn from its own random state: a copy that ran in a refilled slot is gsw.embed's with that config."""
+    there), drawn from its own random state, fresh or from the job's bank (EmbedConfig.view_bank): a copy that ran in
+    a refilled slot is gsw.embed's with that config."""
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, novel_views=0.5)
+    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, novel_views=0.5,
+                      view_bank=bank)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
     copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2)
@@ -294,6 +297,31 @@ def test_sampled_viewpoints_per_slot_are_gsw_embeds() -> None:
     ws0 = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=without), "cpu")
     other = finetune_batch(ws0, ["c"], messages[2:])[0]
     assert (other.gaussians.sh - copies[2].gaussians.sh).abs().mean() > 1e-3  # the sampled views changed the copy
+    assert len(ws.bank) == bank
+
+
+def test_a_view_bank_renders_and_keeps_each_viewpoint_once(monkeypatch) -> None:
+    """The bank's viewpoints are the sampler's first draws; each one's original render and references are made on
+    first use and kept (within the reference budget), so the pool's sampled steps cost what an embedding view's do."""
+    import gsw.fingerprint.shared as shared
+    from gsw.mark.embed import embedding_view_sampler
+
+    scene = default_scene(width=48, height=48, n_cameras=2, detail=0.2)
+    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), novel_views=1.0, view_bank=3)
+    ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
+    fresh = embedding_view_sampler(scene.gaussians, scene.cameras, cfg).sample_many(3)
+    assert [torch.equal(a.viewmat, b.viewmat) for a, b in zip(ws.bank, fresh)] == [True] * 3
+    renders = []
+    real = ws.render_original
+    monkeypatch.setattr(ws, "render_original", lambda cam: renders.append(cam) or real(cam))
+    v = len(scene.cameras) + 1
+    first = ws.references([v, v]).highs[0][0]
+    again = ws.references([v]).highs[0][0]
+    assert len(renders) == 1 and ws.camera(v) is ws.bank[1] and torch.equal(first[1:], again)
+    monkeypatch.setattr(shared, "REFERENCE_BYTES", 0)  # over budget: made per call, never kept
+    ws.references([v + 1])
+    ws.references([v + 1])
+    assert v + 1 not in ws._references and len(renders) == 2  # the render is kept; the references are not
 
 
 @pytest.mark.parametrize("setting", [{"model_attacks": 0.5}, {"render_scales": (0.5, 2.0)}, {"psnr_target": 37.0}])

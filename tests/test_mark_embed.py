@@ -180,6 +180,27 @@ def test_step_views_are_sampled_rescaled_and_seeded(scene) -> None:
         assert ta.shape == (3, ca.height, ca.width) and float(ta.sum()) > 0  # a fresh original render
 
 
+def test_step_views_from_a_bank_are_its_viewpoints_rendered_once(scene, monkeypatch) -> None:
+    import importlib
+
+    embed_mod = importlib.import_module("gsw.mark.embed")  # the module (gsw.mark.embed is also the function)
+
+    originals = [torch.zeros(3, c.height, c.width) for c in scene.cameras]
+    cfg = _quick(scene, novel_views=1.0, view_bank=2, max_render_side=128)
+    views = embed_mod._Views(scene.gaussians, scene.cameras, originals, cfg)
+    assert len(views.bank) == 2
+    renders = []
+    real = embed_mod.rasterize
+    monkeypatch.setattr(embed_mod, "rasterize", lambda *a, **k: renders.append(a[1]) or real(*a, **k))
+    steps = [views.step(0) for _ in range(8)]
+    assert all(any(cam is b for b in views.bank) for cam, _ in steps)
+    assert len(renders) == len({id(cam) for cam, _ in steps}) == 2  # each bank viewpoint rendered once
+    same = [t for cam, t in steps if cam is steps[0][0]]
+    assert all(t is same[0] for t in same) and float(same[0].sum()) > 0
+    with pytest.raises(ValueError, match="view_bank must be an integer >= 0"):
+        embed_mod.check_config(_quick(scene, view_bank=-2), scene.cameras)
+
+
 def test_extract_reads_images_of_different_sizes_one_by_one() -> None:
     g = torch.Generator().manual_seed(0)
     a, b = torch.rand(3, 64, 64, generator=g), torch.rand(3, 96, 80, generator=g)

@@ -9,7 +9,6 @@
 // 64-bit (tile << 32 | depth) keys). Both sorts are stable, so each tile's list is in depth
 // order and equal depths keep the index order: the same bins as the CPU, bit for bit.
 #include <cub/device/device_radix_sort.cuh>
-#include <cub/device/device_scan.cuh>
 #include <algorithm>
 #include <type_traits>
 
@@ -256,12 +255,7 @@ void fill_bins(const BinParams<T>& p, int32_t* tile_offsets, int32_t* gauss_ids,
   int32_t* emit_at = counts;  // once the scan has read the counts
   counts_in_order_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, entry_offsets, counts);
   GSW_KERNEL_CHECK();
-  size_t scan_bytes = 0;
-  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, scan_bytes, counts, emit_offsets, N, stream));
-  {
-    DeviceBuffer temp(scan_bytes);
-    GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, counts, emit_offsets, N, stream));
-  }
+  exclusive_sum(counts, emit_offsets, N, stream);
   emit_at_kernel<<<blocks_for(N, kThreads), kThreads, 0, stream>>>(N, order, emit_offsets, emit_at);
   GSW_KERNEL_CHECK();
   // 3. (tile, entry) pairs in depth order, then a stable sort by tile.

@@ -7,6 +7,8 @@
 #include <c10/cuda/CUDAStream.h>
 #include <cuda_runtime.h>
 
+#include <cub/device/device_scan.cuh>
+
 #include <cstdint>
 
 #include "cuda/backend_cuda.h"
@@ -29,6 +31,15 @@ struct DeviceBuffer {
 
 #define GSW_CUDA_CHECK(expr) C10_CUDA_CHECK(expr)
 #define GSW_KERNEL_CHECK() C10_CUDA_KERNEL_LAUNCH_CHECK()
+
+// Exclusive prefix sum of n int32 values on `stream`: cub's scratch-size query, a scratch buffer from
+// the caching allocator, the scan. `in` and `out` may not alias.
+inline void exclusive_sum(const int32_t* in, int32_t* out, int n, cudaStream_t stream) {
+  size_t bytes = 0;
+  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, bytes, in, out, n, stream));
+  DeviceBuffer temp(bytes);
+  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), bytes, in, out, n, stream));
+}
 
 inline unsigned blocks_for(int64_t n, int threads) {
   return static_cast<unsigned>((n + threads - 1) / threads);

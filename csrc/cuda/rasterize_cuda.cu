@@ -61,7 +61,6 @@
 #include <vector>
 
 #include <cub/device/device_radix_sort.cuh>
-#include <cub/device/device_scan.cuh>
 
 #include "cuda/common.cuh"
 
@@ -390,13 +389,7 @@ ChunkPlan<T> plan_chunks(const RasterParams<T>& p, int32_t size, cudaStream_t st
   chunk_count_kernel<<<blocks_for(tiles + 1, kBlock), kBlock, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles),
                                                                           size, counts);
   GSW_KERNEL_CHECK();
-  size_t scan_bytes = 0;
-  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, scan_bytes, counts, offsets, static_cast<int>(tiles + 1), stream));
-  {
-    DeviceBuffer temp(scan_bytes);
-    GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, counts, offsets,
-                                                 static_cast<int>(tiles + 1), stream));
-  }
+  exclusive_sum(counts, offsets, static_cast<int>(tiles + 1), stream);
   plan.chunks = TileChunks<T>{offsets, static_cast<int>(tiles), size, plan.prefix.template as<T>()};
   plan.extra = extra;
   plan.grid = static_cast<unsigned>(tiles + extra);
@@ -1019,13 +1012,7 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     GSW_KERNEL_CHECK();
     return;
   }
-  size_t scan_bytes = 0;
-  GSW_CUDA_CHECK(cub::DeviceScan::ExclusiveSum(nullptr, scan_bytes, visited, offsets, static_cast<int>(tiles + 1), stream));
-  {
-    DeviceBuffer temp(scan_bytes);
-    GSW_CUDA_CHECK(
-        cub::DeviceScan::ExclusiveSum(temp.as<void>(), scan_bytes, visited, offsets, static_cast<int>(tiles + 1), stream));
-  }
+  exclusive_sum(visited, offsets, static_cast<int>(tiles + 1), stream);
   // Chunks [t0, t1) of whole tiles and the rows the record buffer needs. Records of all M
   // intersections up to kRecordsNoSyncBytes and the budget are one chunk, allocated without a host
   // synchronisation; otherwise the layout is read back first: the visited ones only, in chunks of

@@ -70,6 +70,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "camera (default %(default)s; 0.5 on a lego model: held-out bits of the worst copy "
                          "98.6 %% instead of 93.5 %%, PSNR 37.4 instead of 37.9 dB, a third fewer copies per hour; "
                          "BENCHMARKS.md, twelfth GPU round)")
+    fp.add_argument("--view-bank", type=int, default=0, metavar="B",
+                    help="with --novel-views: sample B viewpoints once per job and draw the steps' viewpoints from "
+                         "them, their original renders and loss references made once (default %(default)s: a fresh "
+                         "viewpoint per step)")
     fp.add_argument("--message-weight", type=float, default=None, help="weight of the message loss")
     add_background_options(fp, "default: black")
     add_readout_option(fp)

@@ -145,11 +145,13 @@ def embed_config(args: argparse.Namespace, base=None):
         weights = dataclasses.replace(weights, message=args.message_weight)
     scales = getattr(args, "render_scales", None)  # `gsw fingerprint` has no such option
     novel = getattr(args, "novel_views", None)  # `gsw embed` takes it from --recipe
+    bank = getattr(args, "view_bank", None)
     if scales is not None and scales[0] > scales[1]:
         raise ValueError(f"--render-scales LOW HIGH needs LOW <= HIGH, got {scales[0]:g} {scales[1]:g}")
     return dataclasses.replace(base, epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask or base.mask,
                                render_scales=base.render_scales if scales is None else tuple(scales),
                                novel_views=base.novel_views if novel is None else novel,
+                               view_bank=base.view_bank if bank is None else bank,
                                lpips_net=lpips_net, attacks=args.attacks,
                                model_attacks=args.model_attack_prob, psnr_target=args.psnr_target, seed=args.seed,
                                weights=weights,

@@ -30,7 +30,7 @@ from torch.autograd.profiler import record_function
 from gsw.camera import Camera
 from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
-from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, embedding_view_sampler, final_scores, paper_config
+from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, embedding_view_sampler, final_scores, paper_config, pick_view
 from gsw.mark.views import ViewSampler
 
 __all__ = ["POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch",
@@ -323,9 +323,9 @@ class _Pool:
         self.slots: list[_Slot | None] = [None] * k
         self.cap = cfg.epochs * len(scene.shared.cameras)
         self.caps = [self.cap] * k  # per slot: the cap, or the cap of an extension
-        # sampled viewpoints, with the input model on the device for their targets (as gsw.embed's _Views)
-        self.sampler = embedding_view_sampler(scene.shared.original, scene.shared.cameras, cfg)
-        self.original = None if self.sampler is None else scene.shared.original.to(scene.device)
+        # fresh sampled viewpoints (as gsw.embed's _Views); a bank's are the scene's
+        self.sampler = None if cfg.view_bank else embedding_view_sampler(scene.shared.original, scene.shared.cameras,
+                                                                         cfg)
         self._cache: dict = {}
 
     def fill(self, j: int, index: int) -> None:
@@ -374,17 +374,18 @@ class _Pool:
     def _view(self, slot: _Slot) -> tuple[Camera, int | Tensor, Tensor]:
         """A slot's camera at this step, its view for :meth:`WorkerScene.references` and the input model's render
         there: the next embedding view or, with ``cfg.novel_views``, as often a sampled viewpoint (as ``gsw.embed``
-        draws them, from the recipient's own random state)."""
-        from gsw.render.rasterize import rasterize
-
-        cams = self.scene.shared.cameras
-        v = slot.next_view(len(cams))
-        if slot.sampler is None or slot.view_rng.random() >= self.cfg.novel_views:
-            return cams[v], v, self.scene.originals[v]
-        cam = slot.sampler.sample()
-        with torch.no_grad():
-            target = rasterize(self.original, cam, background=self.cfg.background, validate=False).image
-        return cam, target, target
+        draws them, from the recipient's own random state): one of the job's bank (``cfg.view_bank``) or a fresh
+        one."""
+        scene = self.scene
+        v = slot.next_view(len(scene.shared.cameras))
+        b = pick_view(slot.view_rng, self.cfg, len(scene.bank))
+        if b == -1:
+            cam = slot.sampler.sample()
+            target = scene.render_original(cam)
+            return cam, target, target
+        if b is not None:
+            v = len(scene.shared.cameras) + b
+        return scene.camera(v), v, scene.original(v)
 
     def step(self) -> None:
         """One optimisation step of every occupied slot."""

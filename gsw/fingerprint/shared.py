@@ -21,7 +21,7 @@ from torch import Tensor
 from gsw.camera import Camera
 from gsw.fingerprint.batched import References, check_pool_config, pool_config
 from gsw.gaussians import Gaussians
-from gsw.mark.embed import EmbedConfig, prepare_embedding
+from gsw.mark.embed import EmbedConfig, embedding_view_bank, prepare_embedding
 from gsw.registry import mark_decoder_sha256
 
 __all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "warm_worker", "worker_scene"]
@@ -123,6 +123,8 @@ class WorkerScene:
         originals: per camera, the [3, H, W] render of the input model.
         loss: the watermark loss (decoder + LPIPS) on ``device``.
         warm_s: seconds :func:`warm_worker` took to make ``originals`` and ``loss`` (0: made with the scene).
+        bank: the job's bank of sampled viewpoints (``EmbedConfig.view_bank``,
+            :func:`gsw.mark.embed.embedding_view_bank`); view ``len(cameras) + b`` is bank viewpoint ``b``.
     """
 
     shared: SharedScene
@@ -131,15 +133,43 @@ class WorkerScene:
     originals: list[Tensor]
     loss: torch.nn.Module
     warm_s: float = 0.0
+    bank: list[Camera] = field(default_factory=list)
     _references: dict[int, References] = field(default_factory=dict, repr=False)
+    _held_bytes: int = field(default=0, repr=False)
+    _bank_originals: dict[int, Tensor] = field(default_factory=dict, repr=False)
+    _original_model: Gaussians | None = field(default=None, repr=False)
+
+    def camera(self, v: int) -> Camera:
+        """View ``v``'s camera: an embedding view, or beyond them a bank viewpoint."""
+        n = len(self.shared.cameras)
+        return self.shared.cameras[v] if v < n else self.bank[v - n]
+
+    def original(self, v: int) -> Tensor:
+        """[3, H, W] the input model's render of view ``v`` (a bank viewpoint's is made on first use and kept)."""
+        n = len(self.originals)
+        if v < n:
+            return self.originals[v]
+        if v not in self._bank_originals:
+            self._bank_originals[v] = self.render_original(self.bank[v - n])
+        return self._bank_originals[v]
+
+    @torch.no_grad()
+    def render_original(self, camera: Camera) -> Tensor:
+        """[3, H, W] the input model's render from ``camera`` (the target of a sampled step)."""
+        from gsw.render.rasterize import rasterize
+
+        if self._original_model is None:
+            self._original_model = self.shared.original.to(self.device)
+        return rasterize(self._original_model, camera, background=self.shared.config.background,
+                         validate=False).image
 
     def references(self, views: Sequence[int | Tensor]) -> References:
         """The loss's :class:`~gsw.fingerprint.batched.References` of ``views``' original renders, stacked in the
         order given: their wavelet detail subbands and LPIPS features (:meth:`gsw.metrics.lpips.LPIPS.references`;
-        None without an LPIPS term). A view is an embedding view's index, or a [3, H, W] original render of another
-        viewpoint (a sampled one, ``EmbedConfig.novel_views``), whose references are made for this call only.
+        None without an LPIPS term). A view is an index (:meth:`original`: an embedding view or a bank viewpoint),
+        or a [3, H, W] original render of a freshly sampled viewpoint, whose references are made for this call only.
 
-        Each embedding view's are made once and kept while all views' fit in :data:`REFERENCE_BYTES` (800x800
+        An indexed view's are made once and kept while the kept ones fit in :func:`reference_budget` (800x800
         with AlexNet: ~33 MB per view); beyond that they are made again per call.
         """
         per_view = []
@@ -149,10 +179,12 @@ class WorkerScene:
                 continue
             refs = self._references.get(v)
             if refs is None:
-                refs = self._image_references(self.originals[v])
+                refs = self._image_references(self.original(v))
                 held = [t for level in refs.highs for t in level] + (refs.lpips or [])
-                if sum(t.numel() * t.element_size() for t in held) * len(self.originals) <= REFERENCE_BYTES:
+                size = sum(t.numel() * t.element_size() for t in held)
+                if self._held_bytes + size <= reference_budget(self.device):
                     self._references[v] = refs
+                    self._held_bytes += size
             per_view.append(refs)
         highs = [tuple(torch.cat(bands) for bands in zip(*levels)) for levels in zip(*(r.highs for r in per_view))]
         lpips = None if per_view[0].lpips is None else [torch.cat(taps) for taps in zip(*(r.lpips for r in per_view))]
@@ -166,8 +198,17 @@ class WorkerScene:
         return References(dwt2(image[None])[1], None if lpips is None else lpips.references(image[None]))
 
 
-#: Most bytes of :class:`~gsw.fingerprint.batched.References` a :class:`WorkerScene` keeps for all its views.
-REFERENCE_BYTES = 4 << 30
+#: Most bytes of :class:`~gsw.fingerprint.batched.References` a :class:`WorkerScene` keeps for all its views (on a
+#: GPU at most an eighth of its memory).
+REFERENCE_BYTES = 16 << 30
+
+
+def reference_budget(device: torch.device) -> int:
+    """Bytes of references a :class:`WorkerScene` on ``device`` keeps: :data:`REFERENCE_BYTES`, on a GPU at most an
+    eighth of its memory (an H200: ~17 GB; a 24-GB GPU: 3 GB), on the CPU at most 4 GiB."""
+    if device.type == "cuda":
+        return min(REFERENCE_BYTES, torch.cuda.get_device_properties(device).total_memory // 8)
+    return min(REFERENCE_BYTES, 4 << 30)
 
 _CACHE: dict[tuple[str, str], WorkerScene] = {}
 #: Warmed parts (original renders, loss, seconds taken) by (job token, device), made before the job's scene exists.
@@ -228,5 +269,6 @@ def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene
         _WARM.clear()
         originals, loss, warm_s = warmed if warmed is not None else (
             *_parts(shared.original, shared.cameras, shared.config, shared.num_bits, shared.decoder, device), 0.0)
-        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss, warm_s)
+        bank = embedding_view_bank(shared.original, shared.cameras, shared.config)
+        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss, warm_s, bank)
     return _CACHE[key]

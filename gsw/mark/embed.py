@@ -38,7 +38,8 @@ from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
 __all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "check_config", "embed",
-           "embedding_view_sampler", "paper_config", "prepare_embedding"]
+           "embedding_view_bank", "embedding_view_sampler", "paper_config", "pick_view",
+           "prepare_embedding"]
 
 #: Fine-tuned parameter groups of :func:`embed` (:attr:`EmbedConfig.freeze` names; positions: ``lr_position``).
 PARAMETER_GROUPS: tuple[str, ...] = ("f_dc", "f_rest", "opacity", "scaling", "rotation")
@@ -83,6 +84,9 @@ class EmbedConfig:
             strengths, :func:`gsw.attacks.layers.matched_noise_layers`).
         novel_views: share of the steps rendered from a sampled viewpoint (:class:`gsw.mark.views.ViewSampler`
             around the content) instead of a given camera; its target is the original model's render there.
+        view_bank: 0: every such step samples a fresh viewpoint; ``B > 0``: ``B`` viewpoints are sampled once
+            (:func:`embedding_view_bank`, seeded) and each such step picks one of them, whose original render
+            (and, in the fingerprint pool, loss references) is made once instead of per step.
         render_scales: ``(smallest, largest)`` render-size factor (log-uniform) of every step's camera, at most
             ``max_render_side`` pixels per side (a random window of larger renders, :func:`gsw.mark.views.scale_camera`);
             ``(1, 1)``: the cameras' own size.
@@ -121,6 +125,7 @@ class EmbedConfig:
     model_attack_kinds: tuple[str, ...] = ("noise", "sh0")
     attack_ranges: str = "training"
     novel_views: float = 1.0
+    view_bank: int = 0
     render_scales: tuple[float, float] = (1.0, 1.0)
     max_render_side: int = 1024
     sampled_views: int = 48
@@ -323,6 +328,8 @@ def check_config(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
             raise ValueError(f"EmbedConfig.{name} is a probability in [0, 1], got {getattr(cfg, name)}")
     if cfg.model_noise < 0:
         raise ValueError(f"EmbedConfig.model_noise must be >= 0, got {cfg.model_noise}")
+    if isinstance(cfg.view_bank, bool) or not isinstance(cfg.view_bank, int) or cfg.view_bank < 0:
+        raise ValueError(f"EmbedConfig.view_bank must be an integer >= 0, got {cfg.view_bank!r}")
     if cfg.psnr_target is not None and not (math.isfinite(cfg.psnr_target) and cfg.psnr_target > 0):
         raise ValueError(f"EmbedConfig.psnr_target must be a positive PSNR in dB or None, got {cfg.psnr_target}")
     if not cfg.psnr_weight_range >= 1:
@@ -368,15 +375,34 @@ def embedding_view_sampler(original: Gaussians, cameras: Sequence[Camera], cfg: 
                        seed=cfg.seed + 2)
 
 
+def embedding_view_bank(original: Gaussians, cameras: Sequence[Camera], cfg: EmbedConfig) -> list[Camera]:
+    """The ``cfg.view_bank`` viewpoints sampled once for a fine-tune's sampled steps (empty without
+    ``cfg.novel_views`` or a bank): the first draws of :func:`embedding_view_sampler`."""
+    sampler = embedding_view_sampler(original, cameras, cfg)
+    return [] if sampler is None else sampler.sample_many(cfg.view_bank)
+
+
+def pick_view(rng: random.Random, cfg: EmbedConfig, bank_size: int) -> int | None:
+    """Which viewpoint a fine-tune step renders instead of its given camera, drawn from ``rng`` (the order of
+    draws is part of the seed's meaning): None for the given camera; else an index into the view bank, or -1
+    for a fresh sample (no bank)."""
+    if cfg.novel_views <= 0 or rng.random() >= cfg.novel_views:
+        return None
+    return rng.randrange(bank_size) if bank_size else -1
+
+
 class _Views:
     """Each step's camera and target: a given camera (its cached original render) or, with
-    ``cfg.novel_views``, a sampled viewpoint; rescaled by ``cfg.render_scales`` (a fresh original render)."""
+    ``cfg.novel_views``, a sampled viewpoint (a fresh one, or one of ``cfg.view_bank`` drawn once with its render
+    kept); rescaled by ``cfg.render_scales`` (a fresh original render)."""
 
     def __init__(self, original: Gaussians, cameras: Sequence[Camera], originals: Sequence[Tensor],
                  cfg: EmbedConfig) -> None:
         self.original, self.cameras, self.originals, self.cfg = original, list(cameras), list(originals), cfg
         self.rng = random.Random(cfg.seed + 1)
         self.sampler = embedding_view_sampler(original, cameras, cfg)
+        self.bank = embedding_view_bank(original, cameras, cfg)
+        self.bank_originals: dict[int, Tensor] = {}
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -384,8 +410,15 @@ class _Views:
     def step(self, v: int) -> tuple[Camera, Tensor]:
         """The camera and the original model's render for the step that would use given view ``v``."""
         cam, target = self.cameras[v], self.originals[v]
-        if self.sampler is not None and self.rng.random() < self.cfg.novel_views:
+        b = pick_view(self.rng, self.cfg, len(self.bank))
+        if b == -1:
             cam, target = self.sampler.sample(), None
+        elif b is not None:
+            if b not in self.bank_originals:
+                with torch.no_grad():
+                    self.bank_originals[b] = rasterize(self.original, self.bank[b], background=self.cfg.background,
+                                                       validate=False).image
+            cam, target = self.bank[b], self.bank_originals[b]
         lo, hi = self.cfg.render_scales
         if (lo, hi) != (1.0, 1.0):
             scale = math.exp(self.rng.uniform(math.log(lo), math.log(hi)))
