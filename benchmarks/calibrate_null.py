@@ -34,7 +34,6 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from gsw.decoder import KleinReadout

@@ -304,20 +304,20 @@ def test_a_view_bank_renders_and_keeps_each_viewpoint_once(monkeypatch) -> None:
     """The bank's viewpoints are the sampler's first draws; each one's original render and references are made on
     first use and kept (within the reference budget), so the pool's sampled steps cost what an embedding view's do."""
     import gsw.fingerprint.shared as shared
-    from gsw.mark.embed import embedding_view_sampler
+    from gsw.mark.embed import ViewBank, embedding_view_sampler
 
     scene = default_scene(width=48, height=48, n_cameras=2, detail=0.2)
     cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), novel_views=1.0, view_bank=3)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     fresh = embedding_view_sampler(scene.gaussians, scene.cameras, cfg).sample_many(3)
-    assert [torch.equal(a.viewmat, b.viewmat) for a, b in zip(ws.bank, fresh)] == [True] * 3
+    assert [torch.equal(a.viewmat, b.viewmat) for a, b in zip(ws.bank.cameras, fresh)] == [True] * 3
     renders = []
-    real = ws.render_original
-    monkeypatch.setattr(ws, "render_original", lambda cam: renders.append(cam) or real(cam))
+    real = ViewBank.render_camera
+    monkeypatch.setattr(ViewBank, "render_camera", lambda self, cam: renders.append(cam) or real(self, cam))
     v = len(scene.cameras) + 1
     first = ws.references([v, v]).highs[0][0]
     again = ws.references([v]).highs[0][0]
-    assert len(renders) == 1 and ws.camera(v) is ws.bank[1] and torch.equal(first[1:], again)
+    assert len(renders) == 1 and ws.camera(v) is ws.bank.cameras[1] and torch.equal(first[1:], again)
     monkeypatch.setattr(shared, "REFERENCE_BYTES", 0)  # over budget: made per call, never kept
     ws.references([v + 1])
     ws.references([v + 1])

@@ -181,24 +181,22 @@ def test_step_views_are_sampled_rescaled_and_seeded(scene) -> None:
 
 
 def test_step_views_from_a_bank_are_its_viewpoints_rendered_once(scene, monkeypatch) -> None:
-    import importlib
-
-    embed_mod = importlib.import_module("gsw.mark.embed")  # the module (gsw.mark.embed is also the function)
+    from gsw.mark.embed import ViewBank, _Views, check_config
 
     originals = [torch.zeros(3, c.height, c.width) for c in scene.cameras]
     cfg = _quick(scene, novel_views=1.0, view_bank=2, max_render_side=128)
-    views = embed_mod._Views(scene.gaussians, scene.cameras, originals, cfg)
+    views = _Views(scene.gaussians, scene.cameras, originals, cfg)
     assert len(views.bank) == 2
     renders = []
-    real = embed_mod.rasterize
-    monkeypatch.setattr(embed_mod, "rasterize", lambda *a, **k: renders.append(a[1]) or real(*a, **k))
+    real = ViewBank.render_camera
+    monkeypatch.setattr(ViewBank, "render_camera", lambda self, cam: renders.append(cam) or real(self, cam))
     steps = [views.step(0) for _ in range(8)]
-    assert all(any(cam is b for b in views.bank) for cam, _ in steps)
+    assert all(any(cam is b for b in views.bank.cameras) for cam, _ in steps)
     assert len(renders) == len({id(cam) for cam, _ in steps}) == 2  # each bank viewpoint rendered once
     same = [t for cam, t in steps if cam is steps[0][0]]
     assert all(t is same[0] for t in same) and float(same[0].sum()) > 0
     with pytest.raises(ValueError, match="view_bank must be an integer >= 0"):
-        embed_mod.check_config(_quick(scene, view_bank=-2), scene.cameras)
+        check_config(_quick(scene, view_bank=-2), scene.cameras)
 
 
 def test_extract_reads_images_of_different_sizes_one_by_one() -> None:

@@ -324,8 +324,7 @@ class _Pool:
         self.cap = cfg.epochs * len(scene.shared.cameras)
         self.caps = [self.cap] * k  # per slot: the cap, or the cap of an extension
         # fresh sampled viewpoints (as gsw.embed's _Views); a bank's are the scene's
-        self.sampler = None if cfg.view_bank else embedding_view_sampler(scene.shared.original, scene.shared.cameras,
-                                                                         cfg)
+        self.sampler = None if cfg.view_bank else embedding_view_sampler(scene.bank.original, scene.shared.cameras, cfg)
         self._cache: dict = {}
 
     def fill(self, j: int, index: int) -> None:
@@ -381,7 +380,7 @@ class _Pool:
         b = pick_view(slot.view_rng, self.cfg, len(scene.bank))
         if b == -1:
             cam = slot.sampler.sample()
-            target = scene.render_original(cam)
+            target = scene.bank.render_camera(cam)
             return cam, target, target
         if b is not None:
             v = len(scene.shared.cameras) + b

@@ -21,7 +21,7 @@ from torch import Tensor
 from gsw.camera import Camera
 from gsw.fingerprint.batched import References, check_pool_config, pool_config
 from gsw.gaussians import Gaussians
-from gsw.mark.embed import EmbedConfig, embedding_view_bank, prepare_embedding
+from gsw.mark.embed import EmbedConfig, ViewBank, prepare_embedding
 from gsw.registry import mark_decoder_sha256
 
 __all__ = ["SharedScene", "WorkerScene", "prepare_scene", "scene_hash", "warm_worker", "worker_scene"]
@@ -123,8 +123,8 @@ class WorkerScene:
         originals: per camera, the [3, H, W] render of the input model.
         loss: the watermark loss (decoder + LPIPS) on ``device``.
         warm_s: seconds :func:`warm_worker` took to make ``originals`` and ``loss`` (0: made with the scene).
-        bank: the job's bank of sampled viewpoints (``EmbedConfig.view_bank``,
-            :func:`gsw.mark.embed.embedding_view_bank`); view ``len(cameras) + b`` is bank viewpoint ``b``.
+        bank: the input model on ``device`` and the job's bank of sampled viewpoints (``EmbedConfig.view_bank``;
+            none without one); view ``len(cameras) + b`` is bank viewpoint ``b``.
     """
 
     shared: SharedScene
@@ -132,36 +132,20 @@ class WorkerScene:
     model: Gaussians
     originals: list[Tensor]
     loss: torch.nn.Module
+    bank: ViewBank
     warm_s: float = 0.0
-    bank: list[Camera] = field(default_factory=list)
     _references: dict[int, References] = field(default_factory=dict, repr=False)
     _held_bytes: int = field(default=0, repr=False)
-    _bank_originals: dict[int, Tensor] = field(default_factory=dict, repr=False)
-    _original_model: Gaussians | None = field(default=None, repr=False)
 
     def camera(self, v: int) -> Camera:
         """View ``v``'s camera: an embedding view, or beyond them a bank viewpoint."""
         n = len(self.shared.cameras)
-        return self.shared.cameras[v] if v < n else self.bank[v - n]
+        return self.shared.cameras[v] if v < n else self.bank.cameras[v - n]
 
     def original(self, v: int) -> Tensor:
         """[3, H, W] the input model's render of view ``v`` (a bank viewpoint's is made on first use and kept)."""
         n = len(self.originals)
-        if v < n:
-            return self.originals[v]
-        if v not in self._bank_originals:
-            self._bank_originals[v] = self.render_original(self.bank[v - n])
-        return self._bank_originals[v]
-
-    @torch.no_grad()
-    def render_original(self, camera: Camera) -> Tensor:
-        """[3, H, W] the input model's render from ``camera`` (the target of a sampled step)."""
-        from gsw.render.rasterize import rasterize
-
-        if self._original_model is None:
-            self._original_model = self.shared.original.to(self.device)
-        return rasterize(self._original_model, camera, background=self.shared.config.background,
-                         validate=False).image
+        return self.originals[v] if v < n else self.bank.render(v - n)
 
     def references(self, views: Sequence[int | Tensor]) -> References:
         """The loss's :class:`~gsw.fingerprint.batched.References` of ``views``' original renders, stacked in the
@@ -269,6 +253,6 @@ def worker_scene(shared: SharedScene, device: str | torch.device) -> WorkerScene
         _WARM.clear()
         originals, loss, warm_s = warmed if warmed is not None else (
             *_parts(shared.original, shared.cameras, shared.config, shared.num_bits, shared.decoder, device), 0.0)
-        bank = embedding_view_bank(shared.original, shared.cameras, shared.config)
-        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss, warm_s, bank)
+        bank = ViewBank(shared.original.to(device), shared.cameras, shared.config)
+        _CACHE[key] = WorkerScene(shared, device, shared.model.to(device), originals, loss, bank, warm_s)
     return _CACHE[key]

@@ -38,8 +38,7 @@ from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
 __all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "check_config", "embed",
-           "embedding_view_bank", "embedding_view_sampler", "paper_config", "pick_view",
-           "prepare_embedding"]
+           "ViewBank", "embedding_view_sampler", "paper_config", "pick_view", "prepare_embedding"]
 
 #: Fine-tuned parameter groups of :func:`embed` (:attr:`EmbedConfig.freeze` names; positions: ``lr_position``).
 PARAMETER_GROUPS: tuple[str, ...] = ("f_dc", "f_rest", "opacity", "scaling", "rotation")
@@ -85,7 +84,7 @@ class EmbedConfig:
         novel_views: share of the steps rendered from a sampled viewpoint (:class:`gsw.mark.views.ViewSampler`
             around the content) instead of a given camera; its target is the original model's render there.
         view_bank: 0: every such step samples a fresh viewpoint; ``B > 0``: ``B`` viewpoints are sampled once
-            (:func:`embedding_view_bank`, seeded) and each such step picks one of them, whose original render
+            (:class:`ViewBank`, seeded) and each such step picks one of them, whose original render
             (and, in the fingerprint pool, loss references) is made once instead of per step.
         render_scales: ``(smallest, largest)`` render-size factor (log-uniform) of every step's camera, at most
             ``max_render_side`` pixels per side (a random window of larger renders, :func:`gsw.mark.views.scale_camera`);
@@ -375,11 +374,40 @@ def embedding_view_sampler(original: Gaussians, cameras: Sequence[Camera], cfg: 
                        seed=cfg.seed + 2)
 
 
-def embedding_view_bank(original: Gaussians, cameras: Sequence[Camera], cfg: EmbedConfig) -> list[Camera]:
-    """The ``cfg.view_bank`` viewpoints sampled once for a fine-tune's sampled steps (empty without
-    ``cfg.novel_views`` or a bank): the first draws of :func:`embedding_view_sampler`."""
-    sampler = embedding_view_sampler(original, cameras, cfg)
-    return [] if sampler is None else sampler.sample_many(cfg.view_bank)
+class ViewBank:
+    """The ``cfg.view_bank`` viewpoints sampled once for a fine-tune's sampled steps (none without
+    ``cfg.novel_views`` or a bank: the first draws of :func:`embedding_view_sampler`), and the input model's render
+    of each, made on first use and kept.
+
+    Args:
+        original: the input model (its renders are the targets; on the fine-tune's device).
+        cameras: the given cameras (the sampler's sizes and poses).
+        cfg: the settings (``novel_views``, ``view_bank``, ``seed``, ``background``).
+
+    Attributes:
+        cameras: the bank's viewpoints.
+        original: the input model.
+    """
+
+    def __init__(self, original: Gaussians, cameras: Sequence[Camera], cfg: EmbedConfig) -> None:
+        sampler = embedding_view_sampler(original, cameras, cfg)
+        self.cameras: list[Camera] = [] if sampler is None else sampler.sample_many(cfg.view_bank)
+        self.original, self._background = original, cfg.background
+        self._renders: dict[int, Tensor] = {}
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def render(self, b: int) -> Tensor:
+        """[3, H, W] the input model's render of bank viewpoint ``b`` (made once)."""
+        if b not in self._renders:
+            self._renders[b] = self.render_camera(self.cameras[b])
+        return self._renders[b]
+
+    @torch.no_grad()
+    def render_camera(self, camera: Camera) -> Tensor:
+        """[3, H, W] the input model's render from any ``camera`` (a freshly sampled viewpoint's target)."""
+        return rasterize(self.original, camera, background=self._background, validate=False).image
 
 
 def pick_view(rng: random.Random, cfg: EmbedConfig, bank_size: int) -> int | None:
@@ -401,8 +429,7 @@ class _Views:
         self.original, self.cameras, self.originals, self.cfg = original, list(cameras), list(originals), cfg
         self.rng = random.Random(cfg.seed + 1)
         self.sampler = embedding_view_sampler(original, cameras, cfg)
-        self.bank = embedding_view_bank(original, cameras, cfg)
-        self.bank_originals: dict[int, Tensor] = {}
+        self.bank = ViewBank(original, cameras, cfg)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -414,18 +441,13 @@ class _Views:
         if b == -1:
             cam, target = self.sampler.sample(), None
         elif b is not None:
-            if b not in self.bank_originals:
-                with torch.no_grad():
-                    self.bank_originals[b] = rasterize(self.original, self.bank[b], background=self.cfg.background,
-                                                       validate=False).image
-            cam, target = self.bank[b], self.bank_originals[b]
+            cam, target = self.bank.cameras[b], self.bank.render(b)
         lo, hi = self.cfg.render_scales
         if (lo, hi) != (1.0, 1.0):
             scale = math.exp(self.rng.uniform(math.log(lo), math.log(hi)))
             cam, target = scale_camera(cam, scale, self.cfg.max_render_side, self.rng), None
         if target is None:
-            with torch.no_grad():
-                target = rasterize(self.original, cam, background=self.cfg.background, validate=False).image
+            target = self.bank.render_camera(cam)
         return cam, target
 
 
