@@ -173,6 +173,27 @@ def test_a_copy_failing_the_confirmation_at_the_cap_goes_on_once() -> None:
     assert rule.extension(12) == 6 and EarlyStop().extension(12) == 0
 
 
+@pytest.mark.parametrize("focus", [0.0, 1.0])
+def test_a_failed_confirmation_focuses_the_steps_on_the_views_read_wrong(monkeypatch, focus) -> None:
+    from gsw.fingerprint import batched
+
+    cfg, ws = _pool_scene(4)  # 3 views, cap 12; ReadsOnes passes every training step of a message of ones
+    views: list[int] = []
+    real_view = batched._Pool._view
+    monkeypatch.setattr(batched._Pool, "_view", lambda self, slot: views.append(int((r := real_view(self, slot))[1]))
+                        or r)
+    # the score reads one bit wrong on view 1 only: every early stop is refused (confirm=1)
+    monkeypatch.setattr(batched, "final_scores", lambda *a: (torch.tensor([1.0, 31 / 32, 1.0]), torch.full((3,), 50.0)))
+    rule = EarlyStop(min_steps=4, window=1, check_every=2, confirm=1.0, focus=focus)
+    copy = finetune_batch(ws, ["a"], torch.ones(1, 32), stop=rule)[0]
+    assert (copy.steps, copy.stopped_early) == (12, False) and copy.refusals >= 1
+    assert sorted(views[:3]) == [0, 1, 2]  # the first epoch: the shuffled order
+    if focus:
+        assert views[4:] == [1] * 8  # refused at step 4: from then on only the view read wrong
+    else:
+        assert sorted(views) == [0] * 4 + [1] * 4 + [2] * 4  # no focus: the shuffled epochs, as without a rule
+
+
 def test_a_copy_below_redraw_bits_at_its_last_cap_gets_a_new_message() -> None:
     from gsw.mark.message import redrawn_message
 
@@ -225,13 +246,14 @@ def test_early_stop_settings() -> None:
     assert (careful.min_steps, careful.confirm, careful.accuracy_window, careful.extend) == (384, 0.998, 32, 0.5)
     assert careful == EarlyStop.parse("quality,confirm=0.998,accuracy_window=32,min_steps=384")
     assert (EarlyStop.parse("careful,redraw=2").redraw, EarlyStop().redraw_bits) == (2, 0.995)
+    assert (EarlyStop.parse("careful,focus=0.5").focus, EarlyStop().focus) == (0.5, 0.0)
     for bad in ("redraw=-1", "redraw_bits=1.5", "redraw=0.5"):
         with pytest.raises(ValueError, match="redraw"):
             EarlyStop.parse(bad)
     assert EarlyStop.parse("throughput,extend=0.25") == EarlyStop.parse(PRESETS["throughput"] + ",extend=0.25")
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
-                       ("accuracy_window=8", "confirmation"), ("accuracy_window=1.5", "not a number"),
+                       ("accuracy_window=8", "confirmation"), ("focus=1.5", "focus"), ("accuracy_window=1.5", "not a number"),
                        ("fastest", "not a preset"), ("quality,bogus=1", "key=value")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)

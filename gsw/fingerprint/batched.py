@@ -288,8 +288,9 @@ def _attack_layers(cfg: EmbedConfig) -> dict | None:
 
 @dataclass
 class _Slot:
-    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in, and
-    with ``EmbedConfig.novel_views`` its own draws of sampled viewpoints (those of ``gsw.embed``'s ``_Views``)."""
+    """A recipient in a slot: its index in the job, its view order and attack random state, when it came in,
+    with ``EmbedConfig.novel_views`` its own draws of sampled viewpoints (those of ``gsw.embed``'s ``_Views``), and
+    with :attr:`EarlyStop.focus` the embedding views its last failed score read wrong (and their wrong-bit shares)."""
 
     index: int
     rng: random.Random
@@ -298,6 +299,9 @@ class _Slot:
     start: float = 0.0
     view_rng: random.Random | None = None
     sampler: ViewSampler | None = None
+    focus: list[int] = field(default_factory=list)
+    focus_weights: list[float] = field(default_factory=list)
+    focus_rng: random.Random | None = None
 
     def next_view(self, views: int) -> int:
         if not self.order:  # a new epoch: the shuffle of gsw.mark.embed
@@ -334,7 +338,20 @@ class _Pool:
         seed = self.cfg.seed
         self.slots[j] = _Slot(index, random.Random(seed), torch.Generator().manual_seed(seed),
                               start=time.perf_counter(), view_rng=random.Random(seed + 1),
-                              sampler=None if self.sampler is None else self.sampler.reseeded(seed + 2))
+                              sampler=None if self.sampler is None else self.sampler.reseeded(seed + 2),
+                              focus_rng=random.Random(seed + 3))
+
+    def refocus(self, j: int, accuracies: Tensor) -> None:
+        """Slot ``j``'s copy failed a confirmation with these [V] per-view bit accuracies on the embedding views:
+        with :attr:`EarlyStop.focus`, its later steps revisit the views it read wrong, weighted by their wrong
+        bits."""
+        rule = self.monitor.rule
+        if rule is None or rule.focus <= 0:
+            return
+        wrong = (1 - accuracies).tolist()
+        slot = self.slots[j]
+        slot.focus = [v for v, w in enumerate(wrong) if w > 0]
+        slot.focus_weights = [wrong[v] for v in slot.focus]
 
     def redraw(self, index: int, steps: int) -> None:
         """Recipient ``index`` gets its next message (:func:`gsw.mark.message.redrawn_message`) after an attempt
@@ -374,8 +391,11 @@ class _Pool:
         """A slot's camera at this step, its view for :meth:`WorkerScene.references` and the input model's render
         there: the next embedding view or, with ``cfg.novel_views``, as often a sampled viewpoint (as ``gsw.embed``
         draws them, from the recipient's own random state): one of the job's bank (``cfg.view_bank``) or a fresh
-        one."""
+        one; with :attr:`EarlyStop.focus`, as often one of the views its last failed score read wrong."""
         scene = self.scene
+        if slot.focus and slot.focus_rng.random() < self.monitor.rule.focus:
+            v = slot.focus_rng.choices(slot.focus, slot.focus_weights)[0]
+            return scene.camera(v), v, scene.original(v)
         v = slot.next_view(len(scene.shared.cameras))
         b = pick_view(slot.view_rng, self.cfg, len(scene.bank))
         if b == -1:
@@ -490,14 +510,17 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
     steps = pool.params.steps[j]
     with torch.no_grad():
         copy = pool.params.gaussians(j).detach().clone()
-    acc, acc_min, ps, ps_min = _score(pool.scene, copy, pool.messages[slot.index])
+    accs, psnrs = _score(pool.scene, copy, pool.messages[slot.index])
+    acc, acc_min, ps, ps_min = float(accs.mean()), float(accs.min()), float(psnrs.mean()), float(psnrs.min())
     rule = pool.monitor.rule
     if rule is not None and not rule.confirmed(acc, ps):
         if steps < pool.caps[j]:  # an early stop (before the cap or the extension's cap)
             pool.monitor.refuse(j)
+            pool.refocus(j, accs)
             return None
         if pool.caps[j] == pool.cap and rule.extension(pool.cap):
             pool.caps[j] = pool.cap + rule.extension(pool.cap)
+            pool.refocus(j, accs)
             return None
     if rule is not None and steps >= pool.caps[j] and pool.redrawable[slot.index] and rule.redraws(
             acc, pool.redraws[slot.index]):
@@ -512,8 +535,8 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
                                   message=pool.messages[slot.index].cpu() if redraws else None)
 
 
-def _score(scene, copy: Gaussians, target: Tensor) -> tuple[float, float, float, float]:
-    """(mean, worst) bit accuracy and (mean, worst) PSNR of one copy over the embedding views."""
-    acc, ps = (v.cpu() for v in final_scores(copy, scene.shared.cameras, scene.originals, scene.loss.decoder, target,
-                                             scene.shared.config.background))
-    return float(acc.mean()), float(acc.min()), float(ps.mean()), float(ps.min())
+def _score(scene, copy: Gaussians, target: Tensor) -> tuple[Tensor, Tensor]:
+    """[V] bit accuracies and [V] PSNRs (dB) of one copy on the embedding views (CPU)."""
+    acc, ps = final_scores(copy, scene.shared.cameras, scene.originals, scene.loss.decoder, target,
+                           scene.shared.config.background)
+    return acc.cpu(), ps.cpu()

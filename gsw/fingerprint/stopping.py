@@ -20,7 +20,10 @@ from a key) and that finishes at its last cap below ``redraw_bits`` on the embed
 recipient starts over from the input model with a new message (:func:`gsw.mark.message.redrawn_message`, derived
 from the old one, so as secret and as uniform before the choice), up to ``redraw`` times. Such a message is kept
 *because* it was embeddable, so it is registered as chosen and tested with the decoder's calibrated null model
-(:mod:`gsw.mark.evidence`), not the exact randomization test that needs a uniform message.
+(:mod:`gsw.mark.evidence`), not the exact randomization test that needs a uniform message. With ``focus``, a
+recipient whose copy fails a confirmation (an early stop refused, or the step cap reached) draws that share of its
+later steps from the embedding views its copy read a bit wrong on, weighted by their wrong bits, instead of its
+next shuffled view: the steps go where the bits are missing (the views are known from the score, at no cost).
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
@@ -79,6 +82,8 @@ class EarlyStop:
         redraw: new messages a recipient may get (0: none; only for messages gsw drew): see the module docstring.
         redraw_bits: a copy finished at its last cap below this mean bit accuracy on the embedding views is
             redrawn (while ``redraw`` allows).
+        focus: share in [0, 1] of a recipient's steps after a failed confirmation that revisit the embedding
+            views its copy read wrong (see the module docstring); 0: every step takes the next shuffled view.
     """
 
     min_steps: int = 100
@@ -93,6 +98,7 @@ class EarlyStop:
     accuracy_window: int = 0
     redraw: int = 0
     redraw_bits: float = 0.995
+    focus: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -108,6 +114,8 @@ class EarlyStop:
         if self.redraw < 0 or not 0.0 <= self.redraw_bits <= 1.0:
             raise ValueError("EarlyStop.redraw must be >= 0 and redraw_bits a bit accuracy in [0, 1], got "
                              f"redraw={self.redraw}, redraw_bits={self.redraw_bits}")
+        if not 0.0 <= self.focus <= 1.0:
+            raise ValueError(f"EarlyStop.focus is a share of the steps in [0, 1], got {self.focus}")
         if self.margin < 0:
             raise ValueError(f"EarlyStop.margin must be >= 0, got {self.margin}")
         if self.adapt < 1 or self.max_factor < 1:
