@@ -247,13 +247,15 @@ def test_early_stop_settings() -> None:
     assert careful == EarlyStop.parse("quality,confirm=0.998,accuracy_window=32,min_steps=384")
     assert (EarlyStop.parse("careful,redraw=2").redraw, EarlyStop().redraw_bits) == (2, 0.995)
     assert (EarlyStop.parse("careful,focus=0.5").focus, EarlyStop().focus) == (0.5, 0.0)
+    assert EarlyStop.parse("focused") == dataclasses.replace(careful, focus=1.0)
     for bad in ("redraw=-1", "redraw_bits=1.5", "redraw=0.5"):
         with pytest.raises(ValueError, match="redraw"):
             EarlyStop.parse(bad)
     assert EarlyStop.parse("throughput,extend=0.25") == EarlyStop.parse(PRESETS["throughput"] + ",extend=0.25")
     for bad, match in [("windw=3", "key=value"), ("margin=x", "not a number"), ("window=0", "window"),
                        ("adapt=1.5", "psnr_target"), ("confirm=99", "confirm"), ("extend=-1", "extend"),
-                       ("accuracy_window=8", "confirmation"), ("focus=1.5", "focus"), ("accuracy_window=1.5", "not a number"),
+                       ("accuracy_window=8", "confirmation"), ("focus=1.5", "focus"),
+                       ("accuracy_window=1.5", "not a number"),
                        ("fastest", "not a preset"), ("quality,bogus=1", "key=value")]:
         with pytest.raises(ValueError, match=match):
             EarlyStop.parse(bad)
