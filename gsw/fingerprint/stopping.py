@@ -53,13 +53,12 @@ _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "red
 #: ``throughput``: 1,268-1,295 per GPU-hour, 13-14 of 16 meeting both; ``focused`` (``careful`` whose steps after a
 #: failed confirmation all revisit the views read wrong, ``focus=1``): 1,374 and 1,405 per GPU-hour on two models
 #: where ``careful`` ran 1,194 and 1,097, 62 of 64 copies meeting both for each ("Fourteenth GPU round").
+_CAREFUL = "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,accuracy_window=32"
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
-    "careful": "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,"
-               "accuracy_window=32",
+    "careful": _CAREFUL,
     "throughput": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99",
-    "focused": "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,"
-               "accuracy_window=32,focus=1",
+    "focused": _CAREFUL + ",focus=1",
 }
 
 
