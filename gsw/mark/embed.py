@@ -426,7 +426,7 @@ class _Views:
 
     def __init__(self, original: Gaussians, cameras: Sequence[Camera], originals: Sequence[Tensor],
                  cfg: EmbedConfig) -> None:
-        self.original, self.cameras, self.originals, self.cfg = original, list(cameras), list(originals), cfg
+        self.cameras, self.originals, self.cfg = list(cameras), list(originals), cfg
         self.rng = random.Random(cfg.seed + 1)
         self.sampler = embedding_view_sampler(original, cameras, cfg)
         self.bank = ViewBank(original, cameras, cfg)
