@@ -22,7 +22,7 @@ from helpers import ReadsOnes
 @pytest.mark.parametrize("lpips_net", [None, "alex"])  # with alex: LPIPS per sample in one batch
 def test_batched_loss_is_the_sum_of_the_single_losses(lpips_net) -> None:
     torch.manual_seed(0)
-    weights = LossWeights(lpips=0.0) if lpips_net is None else LossWeights()
+    weights = LossWeights(lpips=0.0) if lpips_net is None else LossWeights(mse=5.0)  # with and without MSE
     loss = WatermarkLoss(load_decoder(32), weights, lpips_net)
     renders = torch.rand(3, 3, 64, 64, requires_grad=True)
     original = torch.rand(3, 64, 64)

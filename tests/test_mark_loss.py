@@ -51,12 +51,13 @@ class _MeanDecoder(torch.nn.Module):
 
 
 def test_watermark_loss_total_is_the_weighted_sum() -> None:
-    w = LossWeights(l1=1.0, lpips=0.0, subband=0.3, message=0.2)
+    w = LossWeights(l1=1.0, lpips=0.0, subband=0.3, message=0.2, mse=7.0)
     fn = WatermarkLoss(_MeanDecoder(), w, lpips_net=None, logit_scale=2.0)
     x, y, msg = _image(1), _image(2), torch.tensor([1.0, 0.0])
     total, terms, logits = fn(x, y, msg)
-    assert set(terms) == {"l1", "subband", "message"} and logits.shape == (2,)
-    expect = terms["l1"] + 0.3 * terms["subband"] + 0.2 * terms["message"]
+    assert set(terms) == {"l1", "mse", "subband", "message"} and logits.shape == (2,)
+    assert abs(terms["mse"] - float((x - y).square().mean())) < 1e-7
+    expect = terms["l1"] + 7.0 * terms["mse"] + 0.3 * terms["subband"] + 0.2 * terms["message"]
     assert abs(float(total) - expect) < 1e-5
     assert abs(terms["message"] - float(message_loss(logits[None], msg, 2.0))) < 1e-6
 

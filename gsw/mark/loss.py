@@ -1,7 +1,8 @@
 """The 3D-GSW fine-tuning objective.
 
-`L = w_l1 * L1(I_w, I_o) + w_lpips * LPIPS(I_w, I_o) + w_sub * sum_{l=1,2} sum_{S in LH,HL,HH} L1(S_l, S_l^o)
- + w_msg * BCE(D(LL_2(I_w)), M)` with defaults 1, 0.2, 0.3, 0.15 (paper: 0.4 for the message term), where `I_o` is the render of
+`L = w_l1 * L1(I_w, I_o) + w_mse * MSE(I_w, I_o) + w_lpips * LPIPS(I_w, I_o)
+ + w_sub * sum_{l=1,2} sum_{S in LH,HL,HH} L1(S_l, S_l^o) + w_msg * BCE(D(LL_2(I_w)), M)` with defaults 1, 0, 0.2, 0.3,
+0.15 (paper: no MSE term, 0.4 for the message term), where `I_o` is the render of
 the original model, `S_l` the wavelet subbands of the project's DWT (:mod:`gsw.decoder.dwt`) and `D`
 the frozen decoder (logits; bit = logit > 0).
 """
@@ -24,6 +25,7 @@ class LossWeights:
     lpips: float = 0.2
     subband: float = 0.3
     message: float = 0.15  # paper: 0.4 (BENCHMARKS.md §6a: the weight that keeps >= 35 dB)
+    mse: float = 0.0  # not in the paper: a squared-error term, the error PSNR measures (BENCHMARKS.md §9j)
 
 
 def lpips_weights(net: str | None, weights: LossWeights | None = None) -> LossWeights:
@@ -113,13 +115,13 @@ class WatermarkLoss(nn.Module):
         x, y = render.unsqueeze(0), original.unsqueeze(0)
         decoded = x if decoder_input is None else decoder_input.unsqueeze(0)
         logits = self.decoder(ll_subband(decoded))
-        terms = {"l1": (x - y).abs().mean(), "subband": subband_l1(x, y),
+        terms = {"l1": (x - y).abs().mean(), "mse": (x - y).square().mean(), "subband": subband_l1(x, y),
                  "message": message_loss(logits, message, self.logit_scale)}
         if self.lpips is not None:
             terms["lpips"] = self.lpips(x, y).mean()
         w_msg = w.message if message_weight is None else message_weight
-        total = (w.l1 * terms["l1"] + w.subband * terms["subband"] + w_msg * terms["message"]
-                 + (w.lpips * terms["lpips"] if "lpips" in terms else 0.0))
+        total = (w.l1 * terms["l1"] + w.mse * terms["mse"] + w.subband * terms["subband"]
+                 + w_msg * terms["message"] + (w.lpips * terms["lpips"] if "lpips" in terms else 0.0))
         return total, {k: float(v.detach()) for k, v in terms.items()}, logits[0]
 
 
