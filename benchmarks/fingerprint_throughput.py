@@ -16,7 +16,8 @@ cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
 :meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``), ``freeze`` (comma-separated parameter
 groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``), ``views``
 (``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0) and ``bank``
-(``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones). The JSON
+(``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones), ``l1`` / ``mse``
+(``LossWeights.l1`` / ``.mse``, defaults 1 / 0) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0, default 1). The JSON
 (``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
 ``--scan-only MARKS`` only times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of
 the unmarked model.
@@ -100,17 +101,19 @@ def parse_setting(text: str) -> dict:
     """A sweep setting (see the module docstring) as a dict with every key."""
     from gsw.fingerprint.stopping import EarlyStop
 
-    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", views=0.0, bank=0, text=text)
+    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", views=0.0, bank=0, l1=1.0, mse=0.0,
+               fgd=1, text=text)
     for token in text.split():
         key, sep, value = token.partition("=")
         if not sep or key not in out or key == "text":
-            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: k n epochs mw lpips stop freeze views bank)")
+            keys = " ".join(k for k in out if k != "text")
+            raise SystemExit(f"--setting {text!r}: bad token {token!r} (keys: {keys})")
         if key == "stop":
             out[key] = None if value == "none" else EarlyStop.parse(value)
         elif key in ("lpips", "freeze"):
             out[key] = value
         else:
-            out[key] = float(value) if key in ("mw", "views") else int(value)
+            out[key] = float(value) if key in ("mw", "views", "l1", "mse") else int(value)
     return out
 
 
@@ -176,15 +179,19 @@ def _summary(rows: list[dict]) -> dict:
 def setting_config(setting: dict, bg):
     """The pool's EmbedConfig of a sweep setting (its epochs, LPIPS term, message weight, frozen groups and share
     of sampled viewpoints and their bank)."""
+    from dataclasses import replace
+
     from gsw.fingerprint.batched import pool_config
     from gsw.mark.loss import LossWeights, lpips_weights
 
     lp = None if setting["lpips"] == "none" else setting["lpips"]
-    weights = lpips_weights(lp, LossWeights() if setting["mw"] is None else LossWeights(message=setting["mw"]))
+    weights = LossWeights(l1=setting.get("l1", 1.0), mse=setting.get("mse", 0.0))
+    weights = lpips_weights(lp, weights if setting["mw"] is None else replace(weights, message=setting["mw"]))
     frozen = tuple(name for name in setting.get("freeze", "").split(",") if name)
     extra = {"freeze": frozen, "mask": "none"} if frozen else {}  # the grid's freeze-rest: no exponential mask
     return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights,
-                       novel_views=setting["views"], view_bank=setting["bank"], **extra)
+                       novel_views=setting["views"], view_bank=setting["bank"], fgd=bool(setting.get("fgd", 1)),
+                       **extra)
 
 
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:
