@@ -228,6 +228,14 @@ def test_embed_robustness_flags_reach_the_config() -> None:
     assert default.background == (1.0, 1.0, 1.0)
 
 
+def test_fgd_is_the_recipes_unless_asked() -> None:
+    def cfg(*extra: str):
+        return embed_config(build_parser().parse_args(["embed", "in", "--output", "out", *extra]))
+
+    assert not cfg().fgd and cfg("--recipe", "paper").fgd  # the library default has none; the paper's recipe has it
+    assert cfg("--fgd").fgd and not cfg("--recipe", "paper", "--no-fgd").fgd
+
+
 def test_embed_render_scales_reach_the_config_and_are_checked(capsys) -> None:
     args = build_parser().parse_args(["embed", "in", "--output", "out", "--render-scales", "0.5", "1"])
     assert embed_config(args).render_scales == (0.5, 1.0)

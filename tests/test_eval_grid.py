@@ -47,7 +47,7 @@ def _differences(cfg: EmbedConfig) -> dict[str, object]:
 
 def test_methods_are_the_intended_embedder_configurations() -> None:
     expected = {
-        "default": {"freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
+        "default": {"fgd": False, "freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
         "3d-gsw": {},
         "paper": {},
         "freeze-rest": {"freeze": ("f_rest",), "mask": "none"},

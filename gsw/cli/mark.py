@@ -69,7 +69,8 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
                           "the mark also reads at other sizes (e.g. 0.5 1; with --epochs 32 for a PLY without "
                           "cameras, BENCHMARKS.md 9g; default: the recipe's, 1 1)")
     emb.add_argument("--lpips", choices=["vgg", "alex", "none"], default="vgg")
-    emb.add_argument("--no-fgd", action="store_true", help="skip frequency-guided densification")
+    emb.add_argument("--fgd", action=argparse.BooleanOptionalAction, default=None,
+                     help="frequency-guided densification before the fine-tune (default: the recipe's: off, paper: on)")
     emb.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
     emb.add_argument("--model-attack-prob", type=float, default=0.0,
                      help="train-time model-attack probability (parameter noise / SH degree 0)")
@@ -148,7 +149,8 @@ def embed_config(args: argparse.Namespace, base=None):
     bank = getattr(args, "view_bank", None)
     if scales is not None and scales[0] > scales[1]:
         raise ValueError(f"--render-scales LOW HIGH needs LOW <= HIGH, got {scales[0]:g} {scales[1]:g}")
-    return dataclasses.replace(base, epochs=args.epochs, fgd=not args.no_fgd, mask=args.mask or base.mask,
+    return dataclasses.replace(base, epochs=args.epochs, fgd=base.fgd if args.fgd is None else args.fgd,
+                               mask=args.mask or base.mask,
                                render_scales=base.render_scales if scales is None else tuple(scales),
                                novel_views=base.novel_views if novel is None else novel,
                                view_bank=base.view_bank if bank is None else bank,

@@ -1,9 +1,9 @@
 """`gsw.embed`: the 3D-GSW watermark into a trained 3DGS model (reading it: :mod:`gsw.mark.detect`).
 
-Pipeline of :func:`embed`: render the original model from every training view (the targets), FGD
-phase 1 (prune) and phase 2 (split), then fine-tune the SH colours, opacities, scales and rotations
-(positions frozen by default) with Adam, one shuffled view per step, against
-:class:`~gsw.mark.loss.WatermarkLoss`, with the gradient mask applied to the updates
+Pipeline of :func:`embed`: render the original model from every training view (the targets), optionally
+FGD phase 1 (prune) and phase 2 (split) (``EmbedConfig.fgd``: the paper's recipe; off by default), then
+fine-tune the SH colours, opacities, scales and rotations (positions frozen by default) with Adam, one
+shuffled view per step, against :class:`~gsw.mark.loss.WatermarkLoss`, with the gradient mask applied to the updates
 (:mod:`gsw.mark.mask`). Optional train-time attack sampling decodes an attacked copy of the
 render (noise, crop, JPEG, blur, rotation, scaling) to harden the watermark; train-time model distortions
 (:mod:`gsw.attacks.distort`: parameter noise, SH degree 0, straight-through ``.splat`` / ``.spz`` / 8-bit
@@ -48,12 +48,12 @@ PARAMETER_GROUPS: tuple[str, ...] = ("f_dc", "f_rest", "opacity", "scaling", "ro
 class EmbedConfig:
     """Settings of :func:`embed`.
 
-    Defaults: the grid method ``freeze-rest+views`` (BENCHMARKS.md §9d-9e): the view-dependent SH colours
-    (``f_rest``) stay fixed and the others are updated without the exponential mask, so the mark lives where
-    SH-degree-0 viewers and ``.splat`` / ``.spz`` exports keep it, and every step renders a fresh viewpoint
+    Defaults: the grid method ``freeze-rest+views`` (BENCHMARKS.md §9d-9e) without FGD (§9j): the view-dependent
+    SH colours (``f_rest``) stay fixed and the others are updated without the exponential mask, so the mark lives
+    where SH-degree-0 viewers and ``.splat`` / ``.spz`` exports keep it, and every step renders a fresh viewpoint
     sampled around the content, so the mark reaches viewpoints no camera saw; learning rates of the official
     code except the SH colours (f_dc x2, f_rest x8, measured best with the shipped decoders, §6). The paper's
-    recipe (given cameras only, exponential mask, every group trained): :func:`paper_config`.
+    recipe (FGD, given cameras only, exponential mask, every group trained): :func:`paper_config`.
 
     Attributes:
         epochs: passes over the shuffled training views.
@@ -66,7 +66,9 @@ class EmbedConfig:
         logit_scale: factor on the decoder logits inside the message BCE (the official code: 10).
         lpips_net: "vgg", "alex" or None (no LPIPS term; set weights.lpips = 0).
         mask: "exp" (3D-GSW), "stega" (StegaNeRF-style) or "none".
-        fgd: run FGD (prune + split) before fine-tuning.
+        fgd: run FGD (prune + split) before fine-tuning (off by default: its split changes the renders of a
+            trained model before the fine-tune begins and has cost 0.6-1.1 dB at equal bit accuracy wherever
+            it was measured, BENCHMARKS.md §7a and §9j; the paper's recipe keeps it).
         prune_threshold: FGD phase-1 threshold on the normalised contribution (:func:`gsw.mark.fgd.fgd_prune`).
         top_percent: FGD phase-2 share of patches (percent).
         split_quantile: FGD phase-2 low-contribution quantile that is split.
@@ -114,7 +116,7 @@ class EmbedConfig:
     logit_scale: float = 1.0
     lpips_net: str | None = "vgg"
     mask: str = "none"
-    fgd: bool = True
+    fgd: bool = False
     prune_threshold: float = PRUNE_THRESHOLD
     top_percent: float = TOP_PERCENT
     split_quantile: float = 0.5
@@ -135,10 +137,10 @@ class EmbedConfig:
     seed: int = 0
 
 
-#: The paper's recipe as :class:`EmbedConfig` overrides: given cameras only, the exponential gradient mask,
+#: The paper's recipe as :class:`EmbedConfig` overrides: FGD, given cameras only, the exponential gradient mask,
 #: every parameter group trained, no train-time attacks, a fixed message weight.
-PAPER_RECIPE: dict = {"freeze": (), "mask": "exp", "novel_views": 0.0, "render_scales": (1.0, 1.0), "attacks": 0.0,
-                      "model_attacks": 0.0, "psnr_target": None}
+PAPER_RECIPE: dict = {"fgd": True, "freeze": (), "mask": "exp", "novel_views": 0.0, "render_scales": (1.0, 1.0),
+                      "attacks": 0.0, "model_attacks": 0.0, "psnr_target": None}
 
 
 def paper_config(**overrides) -> EmbedConfig:

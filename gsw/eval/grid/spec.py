@@ -23,7 +23,7 @@ __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "Gri
 #: half of them (``EmbedConfig.model_attacks``). ``3d-gsw`` / ``paper`` and every method derived from them pin
 #: the paper-faithful recipe (:data:`gsw.mark.embed.PAPER_RECIPE`: given cameras only, exponential mask, no
 #: train-time attacks) whatever the defaults; ``default`` is the library's default (``EmbedConfig()``, which is
-#: ``freeze-rest+views``); ``wild`` (issue 23) trains on sampled viewpoints and render
+#: ``freeze-rest+views`` without FGD); ``wild`` (issue 23) trains on sampled viewpoints and render
 #: sizes, with image attacks up to the evaluation's strengths and every model distortion (parameter noise,
 #: SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports). ``freeze-rest`` keeps the SH rest coefficients fixed
 #: and updates the others without the exponential mask, so the mark lives where SH-degree-0 viewers and ``.splat``
