@@ -7,7 +7,7 @@ the fine-tune has begun, and the fine-tune must spend steps (and, at a PSNR targ
 it.
 
 Usage:
-    python benchmarks/fgd_split_cost.py --size 256 --out benchmarks/results/fgd_split_cost.json
+    python benchmarks/fgd_split_cost.py --size 256 --out benchmarks/results/fgd_split_cost_builtin256.json
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
                 for cam, ref in zip(scene.eval_cameras, originals)]
 
     pruned, prune = fgd_prune(g, scene.cameras, None, background=bg)
-    split, report = fgd_split(pruned, scene.cameras, background=bg)
+    split, _ = fgd_split(pruned, scene.cameras, background=bg)
     after = held_out_psnr(split)
     out = dict(scene="builtin", size=args.size, gaussians=len(g), pruned=prune.num_removed,
                after_fgd=len(split), held_out_views=len(after), psnr_mean=sum(after) / len(after),
