@@ -73,6 +73,8 @@ def parse_args() -> argparse.Namespace:
     ap.add_argument("--work", type=Path, default=ROOT / "build" / "robust_wild_png",
                     help="where WebP photos are converted to PNG (with --train-seconds)")
     ap.add_argument("--size", type=int, default=256, help="built-in scene render size")
+    ap.add_argument("--downscale", type=float, default=1.0,
+                    help="lego from --model / --data: image and camera size divisor (4: the 200x200 CPU model)")
     ap.add_argument("--methods", nargs="*", default=["paper", "wild"])
     ap.add_argument("--variant", nargs=3, action="append", default=[], metavar=("LABEL", "METHOD", "JSON"),
                     help="a further row: METHOD with EmbedConfig overrides JSON (after --embed), named LABEL; "
@@ -120,7 +122,7 @@ def _scene(args, dev):
     if args.model.suffix == ".spz":
         return (load_spz(args.model).to(dev), load_inria_cameras(args.cameras), load_inria_cameras(args.eval_cameras),
                 white)
-    s = load_grid_scene(args.model, args.data, white=True)
+    s = load_grid_scene(args.model, args.data, white=True, downscale=args.downscale)
     g = s.gaussians
     if args.prepare is not None:
         args.prepare.mkdir(parents=True, exist_ok=True)

@@ -67,8 +67,9 @@ class EmbedConfig:
         lpips_net: "vgg", "alex" or None (no LPIPS term; set weights.lpips = 0).
         mask: "exp" (3D-GSW), "stega" (StegaNeRF-style) or "none".
         fgd: run FGD (prune + split) before fine-tuning (off by default: its split changes the renders of a
-            trained model before the fine-tune begins and has cost 0.6-1.1 dB at equal bit accuracy wherever
-            it was measured, BENCHMARKS.md §7a and §9j; the paper's recipe keeps it).
+            trained model before the fine-tune begins and adds ~28 % Gaussians; without it 0.6-1.1 dB more at
+            equal bits on the built-in scene and lego 800x800, 0.2 dB less on a 200x200 lego model, BENCHMARKS.md
+            §7a, §9j; the paper's recipe keeps it).
         prune_threshold: FGD phase-1 threshold on the normalised contribution (:func:`gsw.mark.fgd.fgd_prune`).
         top_percent: FGD phase-2 share of patches (percent).
         split_quantile: FGD phase-2 low-contribution quantile that is split.
