@@ -1,5 +1,5 @@
 """What FGD alone costs in invisibility: PSNR of the FGD-densified model (prune + split, before any fine-tuning)
-against the input model, on the held-out views of the built-in scene (issue #23, BENCHMARKS.md §9j).
+against the input model, on the held-out views of the built-in scene or a trained model (issue #23, BENCHMARKS.md §9j).
 
 The split (:func:`gsw.mark.fgd.split_gaussians`) replaces each chosen Gaussian by two moment-matched children; on
 a scene of nearly opaque Gaussians their composite is not the parent's footprint, so the render changes before
@@ -8,6 +8,8 @@ it.
 
 Usage:
     python benchmarks/fgd_split_cost.py --size 256 --out benchmarks/results/fgd_split_cost_builtin256.json
+    python benchmarks/fgd_split_cost.py --model build/train_lego/train_lego_model --data ../shared/data/lego \
+        --downscale 4 --eval-views 13 --out benchmarks/results/fgd_split_cost_lego200.json
 """
 
 from __future__ import annotations
@@ -26,17 +28,24 @@ ROOT = Path(__file__).resolve().parents[1]
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=256, help="built-in scene render size")
-    ap.add_argument("--views", type=int, default=24, help="embedding views (FGD's views)")
+    ap.add_argument("--views", type=int, default=24, help="built-in scene: embedding views (FGD's views)")
+    ap.add_argument("--model", type=Path, default=None, help="an INRIA model folder instead of the built-in scene")
+    ap.add_argument("--data", type=Path, default=None, help="with --model: its dataset (train / test splits)")
+    ap.add_argument("--downscale", type=float, default=1.0, help="with --model: image and camera size divisor")
+    ap.add_argument("--eval-views", type=int, default=None, help="with --model: the first this many test views")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the result")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
     import gsw
-    from gsw.eval.grid import default_grid_scene
+    from gsw.eval.grid import default_grid_scene, load_grid_scene
     from gsw.mark.fgd import fgd_prune, fgd_split
     from gsw.metrics.image import psnr
     from gsw.render.rasterize import rasterize
 
-    scene = default_grid_scene(size=args.size, views=args.views)
+    if args.model is None:
+        scene = default_grid_scene(size=args.size, views=args.views)
+    else:
+        scene = load_grid_scene(args.model, args.data, downscale=args.downscale, white=True, eval_views=args.eval_views)
     g, bg = scene.gaussians, scene.background
     originals = [rasterize(g, cam, background=bg).image.clamp(0, 1) for cam in scene.eval_cameras]
 
@@ -47,7 +56,9 @@ def main(argv: list[str] | None = None) -> int:
     pruned, prune = fgd_prune(g, scene.cameras, None, background=bg)
     split, _ = fgd_split(pruned, scene.cameras, background=bg)
     after = held_out_psnr(split)
-    out = dict(scene="builtin", size=args.size, gaussians=len(g), pruned=prune.num_removed,
+    cam = scene.cameras[0]
+    out = dict(scene="builtin" if args.model is None else str(args.model), size=[cam.width, cam.height],
+               embedding_views=len(scene.cameras), gaussians=len(g), pruned=prune.num_removed,
                after_fgd=len(split), held_out_views=len(after), psnr_mean=sum(after) / len(after),
                psnr_min=min(after), opacity_quartiles=torch.quantile(g.opacities.float(), torch.tensor(
                    [0.25, 0.5, 0.75])).tolist(),

@@ -13,9 +13,10 @@ Departures from the official code, on purpose (see GUIDE section 2):
 * Phase 2 uses a true 2-D DFT over (height, width) of each 16x16 patch and channel, and tracks
   Gaussians by their actual contribution to the selected patches (the contribution kernel with a
   patch mask), not by their projected centre.
-* Split is appearance-preserving (moment-matched children along the longest axis, see
+* Split is deterministic and moment-matched (children along the longest axis, see
   :func:`split_gaussians`), not 3DGS' random sampling with scales / 1.6: positions stay frozen
-  during fine-tuning, so nothing would repair a visibly changed render.
+  during fine-tuning, so nothing would repair a visibly changed render. It still changes the renders
+  (36.7-39.7 dB against the input on the models measured, BENCHMARKS.md §9j).
 
 This module imports the rasterizer (it needs the compiled extension).
 """
@@ -166,13 +167,15 @@ def high_frequency_scores(image: Tensor, patch: int = PATCH_SIZE) -> Tensor:
 
 
 def split_gaussians(gaussians: Gaussians, mask: Tensor) -> Gaussians:
-    """Appearance-preserving split: each selected Gaussian becomes two along its longest axis.
+    """Moment-matched split: each selected Gaussian becomes two along its longest axis.
 
     The children sit at `mean +- s/2 * a` (`a` the longest principal axis, `s` its standard
     deviation) with that axis' standard deviation reduced to `s * sqrt(3)/2`, so the pair has the
     parent's mean and covariance (moment matching); other axes, rotation and SH are copied, and
-    each child's opacity is `1 - sqrt(1 - o)` so that the two overlapping children composite to
-    the parent's opacity at its centre. Deterministic. (3DGS instead samples the children from the
+    each child's opacity is `1 - sqrt(1 - o)`, what two coincident children need to composite to
+    the parent's opacity. Displaced as they are, they composite to ~0.85 of the parent's alpha at its
+    centre and their footprints add up to ~13 % less than a faint parent's, so the split changes the
+    renders (BENCHMARKS.md §9j). Deterministic. (3DGS instead samples the children from the
     parent and divides all scales by 1.6, which visibly changes a trained model's renders; the
     official 3D-GSW code also keeps the parent.)
 
