@@ -33,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=None, help="with --model: its dataset (train / test splits)")
     ap.add_argument("--downscale", type=float, default=1.0, help="with --model: image and camera size divisor")
     ap.add_argument("--eval-views", type=int, default=None, help="with --model: the first this many test views")
+    ap.add_argument("--opacity-rule", default="coincident", help="the split children's opacity rule "
+                    "(gsw.mark.fgd.SPLIT_OPACITY_RULES)")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the result")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT))
@@ -54,14 +56,14 @@ def main(argv: list[str] | None = None) -> int:
                 for cam, ref in zip(scene.eval_cameras, originals)]
 
     pruned, prune = fgd_prune(g, scene.cameras, None, background=bg)
-    split, _ = fgd_split(pruned, scene.cameras, background=bg)
+    split, _ = fgd_split(pruned, scene.cameras, background=bg, opacity_rule=args.opacity_rule)
     after = held_out_psnr(split)
     cam = scene.cameras[0]
     out = dict(scene="builtin" if args.model is None else str(args.model), size=[cam.width, cam.height],
-               embedding_views=len(scene.cameras), gaussians=len(g), pruned=prune.num_removed,
-               after_fgd=len(split), held_out_views=len(after), psnr_mean=sum(after) / len(after),
-               psnr_min=min(after), opacity_quartiles=torch.quantile(g.opacities.float(), torch.tensor(
-                   [0.25, 0.5, 0.75])).tolist(),
+               opacity_rule=args.opacity_rule, embedding_views=len(scene.cameras), gaussians=len(g),
+               pruned=prune.num_removed, after_fgd=len(split), held_out_views=len(after),
+               psnr_mean=sum(after) / len(after), psnr_min=min(after),
+               opacity_quartiles=torch.quantile(g.opacities.float(), torch.tensor([0.25, 0.5, 0.75])).tolist(),
                machine=dict(torch=torch.__version__, python=platform.python_version(), gsw=gsw.__version__,
                             cpu=platform.processor() or platform.machine()))
     print(json.dumps(out))

@@ -157,7 +157,8 @@ def test_embed_with_novel_views_render_scales_and_export_distortions(scene) -> N
     assert len(res.history) == len(scene.cameras) and res.cameras == list(scene.cameras)
     assert all(torch.isfinite(torch.tensor(h["loss"])) for h in res.history)
     for bad, match in (({"novel_views": 1.5}, "novel_views"), ({"render_scales": (2.0, 1.0)}, "render_scales"),
-                       ({"attack_ranges": "strong"}, "attack_ranges"), ({"model_attack_kinds": ("blur",)}, "kinds")):
+                       ({"attack_ranges": "strong"}, "attack_ranges"), ({"model_attack_kinds": ("blur",)}, "kinds"),
+                       ({"split_opacity": "mass"}, "split_opacity")):
         with pytest.raises(ValueError, match=match):
             embed(scene.gaussians, scene.cameras, config=_quick(scene, **bad), progress=False)
 

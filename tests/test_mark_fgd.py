@@ -107,12 +107,29 @@ def test_split_gaussians_moment_matches_the_parent() -> None:
     mixture = cov(a) + d.unsqueeze(2) * d.unsqueeze(1)
     assert torch.allclose(mixture, cov(parents), atol=1e-6)
     assert torch.equal(a.sh, parents.sh) and torch.equal(b.quats, parents.quats)
-    # Two overlapping children composite to the parent's opacity.
+    # Two coincident children would composite to the parent's opacity (the default rule).
     assert torch.allclose(1 - (1 - a.opacities) ** 2, parents.opacities, atol=1e-5)
     # Renders change little (unlike 3DGS' random split).
     cam = _cams(1, 64)[0]
     diff = (rasterize(out, cam).image - rasterize(g, cam).image).abs().mean()
     assert diff < 0.02
+
+
+def test_footprint_rule_keeps_a_faint_parents_footprint() -> None:
+    # one faint, elongated Gaussian seen face-on: the footprint rule's pair renders closer to it than the default's
+    g = Gaussians(means=torch.zeros(1, 3), log_scales=torch.log(torch.tensor([[0.3, 0.08, 0.08]])),
+                  quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]), opacity_logits=torch.logit(torch.tensor([0.05])),
+                  sh=torch.full((1, 1, 3), 1.0))
+    cam = Camera.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 0.9, 64, 64)
+    mask = torch.ones(1, dtype=torch.bool)
+    ref = rasterize(g, cam).image
+    err = {rule: float((rasterize(split_gaussians(g, mask, rule), cam).image - ref).abs().sum() / ref.sum())
+           for rule in ("coincident", "footprint")}
+    assert err["footprint"] < 0.5 * err["coincident"] and err["coincident"] > 0.05
+    faint = split_gaussians(g, mask, "footprint").opacities
+    assert torch.allclose(faint, torch.full((2,), 1 - 0.95 ** (1 / math.sqrt(3))), atol=1e-6)
+    with pytest.raises(ValueError, match="opacity_rule"):
+        split_gaussians(g, mask, "mass")
 
 
 def test_fgd_split_selects_candidates_and_is_deterministic() -> None:

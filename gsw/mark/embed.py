@@ -28,7 +28,8 @@ from torch import Tensor
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
 from gsw.mark.detect import load_decoder_for
-from gsw.mark.fgd import PRUNE_THRESHOLD, TOP_PERCENT, PruneReport, SplitReport, fgd_prune, fgd_split
+from gsw.mark.fgd import (PRUNE_THRESHOLD, SPLIT_OPACITY_RULES, TOP_PERCENT, PruneReport, SplitReport, fgd_prune,
+                          fgd_split)
 from gsw.mark.loss import LossWeights, WatermarkLoss, WeightControl
 from gsw.mark.mask import UpdateMask
 from gsw.mark.message import MessageLike, as_message, message_to_hex
@@ -73,6 +74,8 @@ class EmbedConfig:
         prune_threshold: FGD phase-1 threshold on the normalised contribution (:func:`gsw.mark.fgd.fgd_prune`).
         top_percent: FGD phase-2 share of patches (percent).
         split_quantile: FGD phase-2 low-contribution quantile that is split.
+        split_opacity: the split children's opacity rule, ``"coincident"`` or ``"footprint"``
+            (:func:`gsw.mark.fgd.split_gaussians`; BENCHMARKS.md §9j).
         attacks: train-time attack sampling: probability of decoding an attacked render.
         model_attacks: train-time model-attack sampling: probability of decoding the render of a perturbed
             copy of the model instead (Gaussian noise of std ``model_noise`` on every raw parameter but
@@ -121,6 +124,7 @@ class EmbedConfig:
     prune_threshold: float = PRUNE_THRESHOLD
     top_percent: float = TOP_PERCENT
     split_quantile: float = 0.5
+    split_opacity: str = "coincident"
     attacks: float = 0.0
     model_attacks: float = 0.0
     model_noise: float = 0.1
@@ -238,7 +242,7 @@ def prepare_embedding(gaussians: Gaussians, cameras: Sequence[Camera], *, num_bi
     if cfg.fgd:
         model, prune = fgd_prune(model, cameras, images, threshold=cfg.prune_threshold, background=cfg.background)
         model, split = fgd_split(model, cameras, top_percent=cfg.top_percent, low_quantile=cfg.split_quantile,
-                                 background=cfg.background)
+                                 background=cfg.background, opacity_rule=cfg.split_opacity)
     timings["fgd"] = time.perf_counter() - t0
     return EmbedSetup(model, originals, dec, prune, split, timings)
 
@@ -320,6 +324,8 @@ def check_config(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
         raise ValueError(f"EmbedConfig.render_scales must satisfy 0 < low <= high, got {cfg.render_scales}")
     if cfg.attack_ranges not in ("training", "matched"):
         raise ValueError(f"EmbedConfig.attack_ranges must be 'training' or 'matched', got {cfg.attack_ranges!r}")
+    if cfg.split_opacity not in SPLIT_OPACITY_RULES:
+        raise ValueError(f"EmbedConfig.split_opacity must be one of {SPLIT_OPACITY_RULES}, got {cfg.split_opacity!r}")
     from gsw.attacks.distort import DISTORTIONS
 
     if not cfg.model_attack_kinds or set(cfg.model_attack_kinds) - set(DISTORTIONS):

@@ -166,26 +166,39 @@ def high_frequency_scores(image: Tensor, patch: int = PATCH_SIZE) -> Tensor:
     return (spectrum * q).mean(dim=(-3, -2, -1))
 
 
-def split_gaussians(gaussians: Gaussians, mask: Tensor) -> Gaussians:
+#: Opacity rules of :func:`split_gaussians`.
+SPLIT_OPACITY_RULES = ("coincident", "footprint")
+
+
+def split_gaussians(gaussians: Gaussians, mask: Tensor, opacity_rule: str = "coincident") -> Gaussians:
     """Moment-matched split: each selected Gaussian becomes two along its longest axis.
 
     The children sit at `mean +- s/2 * a` (`a` the longest principal axis, `s` its standard
     deviation) with that axis' standard deviation reduced to `s * sqrt(3)/2`, so the pair has the
     parent's mean and covariance (moment matching); other axes, rotation and SH are copied, and
-    each child's opacity is `1 - sqrt(1 - o)`, what two coincident children need to composite to
-    the parent's opacity. Displaced as they are, they composite to ~0.85 of the parent's alpha at its
-    centre and their footprints add up to ~13 % less than a faint parent's, so the split changes the
-    renders (BENCHMARKS.md §9j). Deterministic. (3DGS instead samples the children from the
+    each child's opacity is, with ``opacity_rule``:
+
+    * ``"coincident"`` (FGD as measured before BENCHMARKS.md §9j): `1 - sqrt(1 - o)`, what two coincident
+      children need to composite to the parent's opacity. Displaced as they are, they composite to ~0.85
+      of the parent's alpha at its centre and their footprints add up to ~13 % less than a faint parent's,
+      so the split changes the renders (§9j);
+    * ``"footprint"``: `1 - (1 - o)^(1 / sqrt(3))`, which is `o / sqrt(3)` for a faint parent: the two
+      children's footprints (each `sqrt(3)/2` of the parent's along the axis) add up to the parent's.
+
+    Deterministic. (3DGS instead samples the children from the
     parent and divides all scales by 1.6, which visibly changes a trained model's renders; the
     official 3D-GSW code also keeps the parent.)
 
     Args:
         gaussians: the model.
         mask: [N] bool, Gaussians to split.
+        opacity_rule: one of :data:`SPLIT_OPACITY_RULES` (above).
 
     Returns:
         The model with the selected Gaussians replaced by their children (N + mask.sum()).
     """
+    if opacity_rule not in SPLIT_OPACITY_RULES:
+        raise ValueError(f"opacity_rule must be one of {SPLIT_OPACITY_RULES}, got {opacity_rule!r}")
     parents = gaussians[mask]
     if len(parents) == 0:
         return gaussians.clone()
@@ -203,7 +216,9 @@ def split_gaussians(gaussians: Gaussians, mask: Tensor) -> Gaussians:
     log_scales = parents.log_scales.clone()
     log_scales[rows, axis] += 0.5 * math.log(0.75)  # s * sqrt(3)/2
     opacity = parents.opacities
-    child_opacity = (1 - torch.sqrt((1 - opacity).clamp_min(0))).clamp(1e-6, 1 - 1e-6)
+    clear = (1 - opacity).clamp_min(0)  # the parent's transmittance at its centre
+    kept = torch.sqrt(clear) if opacity_rule == "coincident" else clear ** (1 / math.sqrt(3))
+    child_opacity = (1 - kept).clamp(1e-6, 1 - 1e-6)
     children = Gaussians(
         means=torch.cat([parents.means + offset, parents.means - offset]),
         log_scales=log_scales.repeat(2, 1),
@@ -217,7 +232,8 @@ def split_gaussians(gaussians: Gaussians, mask: Tensor) -> Gaussians:
 @torch.no_grad()
 def fgd_split(gaussians: Gaussians, cameras: Sequence[Camera], *, top_percent: float = TOP_PERCENT,
               low_quantile: float = 0.5, patch: int = PATCH_SIZE,
-              background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[Gaussians, SplitReport]:
+              background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+              opacity_rule: str = "coincident") -> tuple[Gaussians, SplitReport]:
     """FGD phase 2: splits the low-contribution Gaussians of the most high-frequency patches.
 
     For every view: render, score 16x16 patches with :func:`high_frequency_scores`, keep the top
@@ -233,6 +249,7 @@ def fgd_split(gaussians: Gaussians, cameras: Sequence[Camera], *, top_percent: f
         low_quantile: candidates at or below this contribution quantile are split.
         patch: patch size.
         background: background colour of the renders.
+        opacity_rule: the children's opacity (:func:`split_gaussians`).
 
     Returns:
         The densified model and a :class:`SplitReport`.
@@ -260,6 +277,6 @@ def fgd_split(gaussians: Gaussians, cameras: Sequence[Camera], *, top_percent: f
     if candidates.any():
         cut = torch.quantile(total[candidates].double(), low_quantile).to(total.dtype)
         split = candidates & (total <= cut)
-    out = split_gaussians(gaussians, split)
+    out = split_gaussians(gaussians, split, opacity_rule)
     return out, SplitReport(num_before=n, num_candidates=int(candidates.sum()),
                             num_split=int(split.sum()), patches_per_view=per_view)
