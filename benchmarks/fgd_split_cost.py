@@ -37,11 +37,11 @@ def main(argv: list[str] | None = None) -> int:
                     "(gsw.mark.fgd.SPLIT_OPACITY_RULES)")
     ap.add_argument("--out", type=Path, default=None, help="JSON file for the result")
     args = ap.parse_args(argv)
-    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(ROOT / "benchmarks"))
     import gsw
+    from fingerprint_throughput import held_out_scores  # beside this script
     from gsw.eval.grid import default_grid_scene, load_grid_scene
     from gsw.mark.fgd import fgd_prune, fgd_split
-    from gsw.metrics.image import psnr
     from gsw.render.rasterize import rasterize
 
     if args.model is None:
@@ -51,13 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     g, bg = scene.gaussians, scene.background
     originals = [rasterize(g, cam, background=bg).image.clamp(0, 1) for cam in scene.eval_cameras]
 
-    def held_out_psnr(model) -> list[float]:
-        return [float(psnr(rasterize(model, cam, background=bg).image.clamp(0, 1), ref))
-                for cam, ref in zip(scene.eval_cameras, originals)]
-
     pruned, prune = fgd_prune(g, scene.cameras, None, background=bg)
     split, _ = fgd_split(pruned, scene.cameras, background=bg, opacity_rule=args.opacity_rule)
-    after = held_out_psnr(split)
+    _, after = held_out_scores(split, originals, scene.eval_cameras, bg)
     cam = scene.cameras[0]
     out = dict(scene="builtin" if args.model is None else str(args.model), size=[cam.width, cam.height],
                opacity_rule=args.opacity_rule, embedding_views=len(scene.cameras), gaussians=len(g),

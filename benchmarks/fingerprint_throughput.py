@@ -185,12 +185,12 @@ def setting_config(setting: dict, bg):
     from gsw.mark.loss import LossWeights, lpips_weights
 
     lp = None if setting["lpips"] == "none" else setting["lpips"]
-    weights = LossWeights(l1=setting.get("l1", 1.0), mse=setting.get("mse", 0.0))
+    weights = LossWeights(l1=setting["l1"], mse=setting["mse"])
     weights = lpips_weights(lp, weights if setting["mw"] is None else replace(weights, message=setting["mw"]))
     frozen = tuple(name for name in setting.get("freeze", "").split(",") if name)
     extra = {"freeze": frozen, "mask": "none"} if frozen else {}  # the grid's freeze-rest: no exponential mask
     return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights,
-                       novel_views=setting["views"], view_bank=setting["bank"], fgd=bool(setting.get("fgd", 1)),
+                       novel_views=setting["views"], view_bank=setting["bank"], fgd=bool(setting["fgd"]),
                        **extra)
 
 

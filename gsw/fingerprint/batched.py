@@ -221,7 +221,9 @@ def batched_loss(loss: torch.nn.Module, renders: Tensor, original: Tensor, messa
         logits = loss.decoder(ll if decoded is None else ll_subband(decoded))
         details = [band - ref for level, refs in zip(highs, references.highs) for band, ref in zip(level, refs)]
     # per recipient: the terms of WatermarkLoss
-    per = w.l1 * diff.abs().mean(dim=(1, 2, 3)) + w.mse * diff.square().mean(dim=(1, 2, 3))
+    per = w.l1 * diff.abs().mean(dim=(1, 2, 3))
+    if w.mse:  # opt-in: no extra pass over the K renders otherwise
+        per = per + w.mse * diff.square().mean(dim=(1, 2, 3))
     per = per + w.subband * sum(d.abs().mean(dim=(1, 2, 3)) for d in details)
     bce = F.binary_cross_entropy_with_logits(logits * loss.logit_scale, messages.to(logits),
                                              reduction="none").mean(dim=1)

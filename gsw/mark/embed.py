@@ -28,7 +28,7 @@ from torch import Tensor
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians
 from gsw.mark.detect import load_decoder_for
-from gsw.mark.fgd import (PRUNE_THRESHOLD, SPLIT_OPACITY_RULES, TOP_PERCENT, PruneReport, SplitReport, fgd_prune,
+from gsw.mark.fgd import (PRUNE_THRESHOLD, TOP_PERCENT, PruneReport, SplitReport, check_opacity_rule, fgd_prune,
                           fgd_split)
 from gsw.mark.loss import LossWeights, WatermarkLoss, WeightControl
 from gsw.mark.mask import UpdateMask
@@ -324,8 +324,7 @@ def check_config(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
         raise ValueError(f"EmbedConfig.render_scales must satisfy 0 < low <= high, got {cfg.render_scales}")
     if cfg.attack_ranges not in ("training", "matched"):
         raise ValueError(f"EmbedConfig.attack_ranges must be 'training' or 'matched', got {cfg.attack_ranges!r}")
-    if cfg.split_opacity not in SPLIT_OPACITY_RULES:
-        raise ValueError(f"EmbedConfig.split_opacity must be one of {SPLIT_OPACITY_RULES}, got {cfg.split_opacity!r}")
+    check_opacity_rule(cfg.split_opacity, "EmbedConfig.split_opacity")
     from gsw.attacks.distort import DISTORTIONS
 
     if not cfg.model_attack_kinds or set(cfg.model_attack_kinds) - set(DISTORTIONS):

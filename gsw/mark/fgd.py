@@ -170,6 +170,12 @@ def high_frequency_scores(image: Tensor, patch: int = PATCH_SIZE) -> Tensor:
 SPLIT_OPACITY_RULES = ("coincident", "footprint")
 
 
+def check_opacity_rule(rule: str, name: str = "opacity_rule") -> None:
+    """Raises ValueError naming ``name`` unless ``rule`` is one of :data:`SPLIT_OPACITY_RULES`."""
+    if rule not in SPLIT_OPACITY_RULES:
+        raise ValueError(f"{name} must be one of {SPLIT_OPACITY_RULES}, got {rule!r}")
+
+
 def split_gaussians(gaussians: Gaussians, mask: Tensor, opacity_rule: str = "coincident") -> Gaussians:
     """Moment-matched split: each selected Gaussian becomes two along its longest axis.
 
@@ -197,8 +203,7 @@ def split_gaussians(gaussians: Gaussians, mask: Tensor, opacity_rule: str = "coi
     Returns:
         The model with the selected Gaussians replaced by their children (N + mask.sum()).
     """
-    if opacity_rule not in SPLIT_OPACITY_RULES:
-        raise ValueError(f"opacity_rule must be one of {SPLIT_OPACITY_RULES}, got {opacity_rule!r}")
+    check_opacity_rule(opacity_rule)
     parents = gaussians[mask]
     if len(parents) == 0:
         return gaussians.clone()
