@@ -32,7 +32,7 @@ csrc/core/params.h: by default `kRecordsBudgetMiB`, 256 MiB, of csrc/core/consta
 tile of the radius rectangles (`_rect`: the rule before it, on the same splats), which is the before/after of
 that change.
 
-`--backward atomic auto px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
+`--backward atomic auto cut px2 px4` compares the CUDA blend backward's variants (the benchmarking switch
 GSW_CUDA_BACKWARD of csrc/cuda/rasterize_cuda.cu, set in this process around each call): per variant the
 blend backward op alone on the same bins and the whole forward+backward, two interleaved rounds, and the
 largest gradient difference to the first variant named (relative to each gradient tensor's largest value).
@@ -65,7 +65,7 @@ from gsw.scenes import frustum_scene, heavy_scene
 
 GSPLAT_MODES = {"packed": True, "unpacked": False}
 BACKWARD_ENV = "GSW_CUDA_BACKWARD"  # read by the CUDA blend backward at every call
-BACKWARD_VARIANTS = ("atomic", "auto", "px2", "px4")
+BACKWARD_VARIANTS = ("atomic", "auto", "cut", "px2", "px4")
 CONTRIBUTION_ENV = "GSW_CUDA_CONTRIBUTION"  # read by the CUDA contribution at every call
 CONTRIBUTION_VARIANTS = ("auto", "px2", "px4")
 

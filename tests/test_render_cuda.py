@@ -296,23 +296,31 @@ def _assert_gradients_match_cpu(name: str, dtype: torch.dtype) -> None:
         assert torch.isfinite(gpu[key]).all(), key
 
 
-@pytest.mark.parametrize("variant", ["auto", "px2", "px4", "atomic"])
+# The blend backward's variants (GSW_CUDA_BACKWARD) and, for "cut", chunk lengths (GSW_CUDA_CHUNK): "64" cuts
+# every tile longer than one batch (most tiles of these scenes), "" is the default length.
+BACKWARD_VARIANTS = [("auto", ""), ("cut", ""), ("cut", "64"), ("px2", ""), ("px4", ""), ("atomic", "")]
+
+
+@pytest.mark.parametrize("variant,chunk", BACKWARD_VARIANTS, ids=[f"{v}{c}" for v, c in BACKWARD_VARIANTS])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "size_17x33", "large_splats", "dense_tiles"])
-def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str, monkeypatch) -> None:
+def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str, chunk: str, monkeypatch) -> None:
     """Each blend backward behind the benchmarking switch GSW_CUDA_BACKWARD (csrc/cuda/rasterize_cuda.cu) gives
-    the CPU's gradients (float64 runs px4 for px2 and auto)."""
+    the CPU's gradients (float64 runs px4 for px2 and auto), "cut" also with its tiles cut into chunks of 64
+    splats."""
     monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+    monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
     _assert_gradients_match_cpu(name, dtype)
 
 
-@pytest.mark.parametrize("variant", ["auto", "px2", "px4"])
+@pytest.mark.parametrize("variant,chunk", BACKWARD_VARIANTS[:-1], ids=[f"{v}{c}" for v, c in BACKWARD_VARIANTS[:-1]])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "dense_tiles"])
-def test_backward_is_bitwise_deterministic(name: str, variant: str, monkeypatch) -> None:
+def test_backward_is_bitwise_deterministic(name: str, variant: str, chunk: str, monkeypatch) -> None:
     """The blend backward stores one record per intersection and sums them per Gaussian in a fixed order (no float
     atomics): the same inputs give the same gradient bits on every call, also for splats spanning many tiles (which
-    the atomic variant sums in whatever order the tiles finish)."""
+    the atomic variant sums in whatever order the tiles finish) and for tiles cut into chunks."""
     monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+    monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
     g64, cam, bg, deg = SCENES[name]()
     g = g64.to(dtype=torch.float32, device="cuda")
     w = _weights(cam, torch.float32)
@@ -364,6 +372,40 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
         assert any(not torch.equal(auto[k], other[k]) for k in ref), expected
 
 
+def test_cut_backward_is_px4_where_no_tile_is_cut(monkeypatch) -> None:
+    """The "cut" blend backward cuts a tile's visited splats into chunks only where they are longer than a chunk;
+    a tile of one chunk is walked as px4 walks it: with chunks longer than every tile the gradients are px4's bits,
+    with chunks of 64 splats they differ from px4's only by rounding (the chunks start from the checkpoints'
+    transmittance products instead of dividing back from T_final)."""
+    g64, cam, bg, deg = SCENES["dense_tiles"]()
+    g = g64.to(dtype=torch.float32, device="cuda")
+    w = _weights(cam, torch.float32)
+    assert int(_tile_visited(_render(g, cam, bg, deg).n_contrib).max()) > 64  # some tile is cut at 64
+
+    def grads(variant: str, chunk: str) -> dict:
+        monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+        monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
+        return _grads(g, cam, bg, deg, w)
+
+    px4, whole, cut = grads("px4", ""), grads("cut", str(1 << 20)), grads("cut", "64")
+    assert all(torch.equal(whole[k], px4[k]) for k in px4)
+    assert any(not torch.equal(cut[k], px4[k]) for k in px4)
+    for key, ref in px4.items():
+        assert _rel(cut[key], ref) <= 1e-5, key
+
+
+@pytest.mark.parametrize("chunk", ["0", "100", "-64", "x"])
+def test_chunk_switch_rejects_bad_lengths(chunk: str, monkeypatch) -> None:
+    monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
+    monkeypatch.setenv("GSW_CUDA_BACKWARD", "cut")
+    g64, cam, bg, deg = SCENES["dense_multi_batch"]()
+    g = g64.to(dtype=torch.float32, device="cuda")
+    with pytest.raises((ValueError, RuntimeError), match="GSW_CUDA_CHUNK"):
+        _grads(g, cam, bg, deg, _weights(cam, torch.float32))
+    with pytest.raises((ValueError, RuntimeError), match="GSW_CUDA_CHUNK"):
+        contribution(g, cam, torch.rand(3, cam.height, cam.width, device="cuda"))
+
+
 def test_backward_records_only_visited_splats(monkeypatch) -> None:
     """Above 64 MiB of records the blend backward allocates records only for the splats in front of each tile's
     last blended one (csrc/core/params.h BlendRecords): on a heavy scene at 1080p in float64 (2M intersections,
@@ -413,13 +455,19 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
         assert _rel(chunked[key], ref) <= GRAD_RTOL, key
 
 
+@pytest.mark.parametrize("variant,chunk", [("auto", ""), ("cut", "64")], ids=["auto", "cut64"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "large_splats", "frustum", "dense_tiles"])
-def test_chunked_backward_matches_one_pass(name: str, dtype: torch.dtype, monkeypatch) -> None:
+def test_chunked_backward_matches_one_pass(name: str, dtype: torch.dtype, variant: str, chunk: str,
+                                           monkeypatch) -> None:
     """Records over the budget (GSW_BLEND_RECORDS_MIB) are made and reduced a chunk of tiles at a time
     (csrc/core/params.h BlendRecords): Gaussians with at most 32 intersections (summed by one thread in intersection
     order) get the one-pass gradients bit for bit, the others (a warp's sums per chunk) to rounding; the chunked
-    gradients repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats)."""
+    gradients repeat bit for bit and match the CPU's (the memory: test_backward_records_only_visited_splats). Also
+    with the tiles' visited splats cut into chunks of 64 ("cut", GSW_CUDA_CHUNK): each chunk of tiles walks the
+    same cuts."""
+    monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+    monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
     g64, cam, bg, deg = SCENES[name]()
     g = g64.to(dtype=dtype, device="cuda")
     w = _weights(cam, dtype)
@@ -513,7 +561,7 @@ def test_ellipse_bins_match_cpu_on_the_same_splats(dtype: torch.dtype) -> None:
 # ----------------------------------------------------------------------------------------- contribution
 
 
-@pytest.mark.parametrize("variant", ["auto", "px4", "px2"])
+@pytest.mark.parametrize("variant", ["auto", "auto64", "px4", "px2"])
 @pytest.mark.parametrize("channels", [1, 3, 5])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 @pytest.mark.parametrize("name", ["random_sh1", "flat_huge_zero_opacity", "size_17x33", "dense_multi_batch",
@@ -521,8 +569,9 @@ def test_ellipse_bins_match_cpu_on_the_same_splats(dtype: torch.dtype) -> None:
 def test_contribution_matches_cpu(name: str, dtype: torch.dtype, channels: int, variant: str, monkeypatch) -> None:
     """Each layout of the contribution behind GSW_CUDA_CONTRIBUTION (csrc/cuda/rasterize_cuda.cu: 4 or 2 pixels
     per thread, or chosen per render, the default; tiles in decreasing order of their intersections) matches the
-    CPU's."""
-    monkeypatch.setenv("GSW_CUDA_CONTRIBUTION", variant)
+    CPU's; auto64 cuts tiles into chunks of 64 splats (GSW_CUDA_CHUNK)."""
+    monkeypatch.setenv("GSW_CUDA_CONTRIBUTION", variant.removesuffix("64"))
+    monkeypatch.setenv("GSW_CUDA_CHUNK", "64" if variant.endswith("64") else "")
     g64, cam, _, _ = SCENES[name]()
     g = g64.to(dtype=dtype)
     weights = torch.rand(channels, cam.height, cam.width, generator=torch.Generator().manual_seed(2),

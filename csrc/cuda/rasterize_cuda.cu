@@ -51,9 +51,17 @@
 // as on the CPU. The blocks start with the tiles that visit the most splats (tile_order). When the
 // densest tile's walk is longer than the time the busy tiles' total work keeps the GPU filled (a
 // trained model's few dense tiles; any small image), every tile is walked with 2 pixels per thread
-// instead of 4: twice the warps per tile (choose_layout_kernel). GSW_CUDA_BACKWARD=atomic (A/B
-// benchmarks only) adds the tile totals to the gradients with one atomic per value instead: no
-// scratch, not bitwise deterministic.
+// instead of 4: twice the warps per tile (choose_layout_kernel). GSW_CUDA_BACKWARD (A/B benchmarks
+// only): "cut" cuts a tile whose visited splats are longer than a chunk into chunks, one 4-pixel
+// block each: back_checkpoint_kernel first walks every chunk of such a tile front to back from
+// T = 1 (its transmittance product and the colour and depth it adds, per pixel), and the block of
+// chunk k starts each pixel that blends past the chunk from those (the transmittance in front of
+// the chunk's end and the colour and depth behind it) instead of from T_final; a chunk's records
+// are its own splats' rows, so the per-Gaussian sums are unchanged, and a tile of one chunk is
+// walked as px4 walks it (BENCHMARKS.md 2r: faster on a lego model at 800x800, slower at
+// 1600x1600, so not the default). "px4" / "px2" walk whole tiles with that layout; "atomic" adds the
+// tile totals to the gradients with one atomic per value instead: no scratch, not bitwise
+// deterministic.
 #include <cstdlib>
 #include <cstring>
 #include <stdexcept>
@@ -255,11 +263,12 @@ struct TileSchedule {
   }
 };
 
-// Pixels per thread of backward_kernel: 4 (fewer warps, each reading a splat for more pixels: the
-// higher throughput), or 2 for a render whose densest tile sets the kernel's length, when its walk
-// is more than kCriticalPathFactor times the busy tiles' mean share of one wave of 4-pixel blocks
-// (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's densest tiles visit 6-7x the
-// mean). The contribution cuts such tiles into chunks instead (TileChunks, chunk_size).
+// Pixels per thread of the whole-tile backward_kernel (the default): 4 (fewer warps, each reading a
+// splat for more pixels: the higher throughput), or 2 for a render whose densest tile sets the
+// kernel's length, when its walk is more than kCriticalPathFactor times the busy tiles' mean share
+// of one wave of 4-pixel blocks (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's
+// densest tiles visit 6-7x the mean). The contribution (and the "cut" backward) cuts such tiles into
+// chunks instead (TileChunks, chunk_size).
 constexpr int kCriticalPathFactor = 2;
 
 // ------------------------------------------------------------------ dense-tile chunks
@@ -273,38 +282,52 @@ constexpr int kCriticalPathFactor = 2;
 
 // Chunk length: kCriticalPathFactor x the mean share of M intersections over one wave of `wave`
 // resident blocks, at least kMinChunk, in whole batches of 4-pixel blocks.
+// GSW_CUDA_CHUNK=N (tests and A/B benchmarks; read at every call) sets the length instead: a positive
+// multiple of the 4-pixel batch (64 splats).
 constexpr int32_t kMinChunk = 256;
 inline int32_t chunk_size(int64_t M, int64_t wave) {
   constexpr int64_t kSplats = kTilePixels / 4;
+  if (const char* e = std::getenv("GSW_CUDA_CHUNK"); e != nullptr && *e != '\0') {
+    char* end = nullptr;
+    const long n = std::strtol(e, &end, 10);
+    if (*end != '\0' || n <= 0 || n % kSplats != 0 || n > (1L << 30))
+      throw std::invalid_argument(std::string("GSW_CUDA_CHUNK must be a positive multiple of ") +
+                                  std::to_string(kSplats) + " (splats per chunk), not '" + e + "'");
+    return static_cast<int32_t>(n);
+  }
   const int64_t share = (kCriticalPathFactor * M + wave - 1) / (wave > 0 ? wave : 1);
   const int64_t size = share > kMinChunk ? share : kMinChunk;
   return static_cast<int32_t>((size + kSplats - 1) / kSplats * kSplats);
 }
 
-// Tile j's intersection list is cut into offsets[j + 1] - offsets[j] >= 1 chunks of at most `size`
-// splats, one block each: block b walks chunk b - offsets[j] of the tile j with offsets[j] <= b <
-// offsets[j + 1]; blocks from offsets[tiles] on do nothing. The tiles in front of tile j have
-// slot0 = offsets[j] - j chunks beyond their first, so tile j's chunks k < n - 1 own the `prefix`
-// slots slot0 + k, kTilePixels values each, indexed by PixelCtx::local. A prefix slot holds the
-// product of (1 - alpha) over the splats its pixel blends in the chunk, walked from T = 1, or 0
-// where the pixel terminates in it. The product over the chunks in front is then below T_MIN
-// exactly when the pixel has terminated in front of the chunk (transmittance only falls), and
-// otherwise the transmittance a whole-tile walk reaches there, up to rounding.
+// Tile j's splat list (its intersections, or the blend backward's visited splats) is cut into
+// offsets[j + 1] - offsets[j] >= 1 chunks of at most `size` splats, one block each: block b walks
+// chunk offsets[t0] + b - offsets[j] of the tile j with offsets[j] <= offsets[t0] + b <
+// offsets[j + 1], for the tiles [t0, t1) of the launch; blocks past chunk offsets[t1] do nothing.
+// The tiles in front of tile j have slot0 = offsets[j] - j chunks beyond their first, so tile j's
+// chunks k < n - 1 own the slots slot0 + k, kTilePixels values each (indexed by PixelCtx::local) in
+// `prefix` and, for the blend backward, 4 x kTilePixels in `colour`.
+// The contribution's prefix slot holds the product of (1 - alpha) over the splats its pixel blends
+// in the chunk, walked from T = 1, or 0 where the pixel terminates in it. The product over the
+// chunks in front is then below T_MIN exactly when the pixel has terminated in front of the chunk
+// (transmittance only falls), and otherwise the transmittance a whole-tile walk reaches there, up
+// to rounding. The blend backward's are back_checkpoint_kernel's.
 template <typename T>
 struct TileChunks {
   const int32_t* offsets = nullptr;  // nullptr: no chunks (one block per tile)
-  int tiles = 0;
+  int t0 = 0, t1 = 0;
   int32_t size = 0;
   T* prefix = nullptr;
+  T* colour = nullptr;
   struct Chunk {
     int tile, k, n;  // chunk k of the tile's n
     int64_t slot0;   // chunks of the tiles in front beyond their first
   };
   // This block's chunk; false for a block past the last.
   __device__ __forceinline__ bool find(Chunk& ch) const {
-    const int32_t b = static_cast<int32_t>(blockIdx.x);
-    if (b >= offsets[tiles]) return false;
-    int lo = 0, n = tiles;  // the last j with offsets[j] <= b (then offsets[j + 1] > b)
+    const int32_t b = offsets[t0] + static_cast<int32_t>(blockIdx.x);
+    if (b >= offsets[t1]) return false;
+    int lo = t0, n = t1 - t0;  // the last j with offsets[j] <= b (then offsets[j + 1] > b)
     while (n > 1) {
       const int half = n >> 1;
       lo = offsets[lo + half] <= b ? lo + half : lo;
@@ -313,7 +336,7 @@ struct TileChunks {
     ch = Chunk{lo, b - offsets[lo], offsets[lo + 1] - offsets[lo], int64_t(offsets[lo]) - lo};
     return true;
   }
-  // Narrows c to chunk ch of its tile.
+  // Narrows c to chunk ch of its tile's intersections.
   template <int PX>
   __device__ __forceinline__ void narrow(PixelCtx<PX>& c, const Chunk& ch) const {
     c.start += ch.k * size;
@@ -322,11 +345,14 @@ struct TileChunks {
   __device__ __forceinline__ T* prefix_slot(const Chunk& ch, int k) const {
     return prefix + (ch.slot0 + k) * kTilePixels;
   }
-  // The transmittance in front of chunk ch of tile-local pixel `local`: the product of the prefix
-  // slots of the chunks in front, in order.
-  __device__ __forceinline__ T front(const Chunk& ch, int local) const {
+  __device__ __forceinline__ T* colour_slot(const Chunk& ch, int k, int channel) const {
+    return colour + ((ch.slot0 + k) * 4 + channel) * kTilePixels;
+  }
+  // The transmittance in front of chunk k of ch's tile at tile-local pixel `local`: the product of
+  // the prefix slots of the chunks in front, in order.
+  __device__ __forceinline__ T front(const Chunk& ch, int k, int local) const {
     T tr = T(1);
-    for (int k = 0; k < ch.k; ++k) tr *= prefix_slot(ch, k)[local];
+    for (int m = 0; m < k; ++m) tr *= prefix_slot(ch, m)[local];
     return tr;
   }
 };
@@ -367,9 +393,78 @@ __global__ void __launch_bounds__(kTilePixels / 4) chunk_prefix_kernel(const Ras
   for (int i = 0; i < 4; ++i) out[c.local(i)] = (live >> i & 1u) ? tr[i] : T(0);
 }
 
-// A render's chunks (TileChunks) of `size` splats: the chunk counts' prefix sum and the prefix
-// slots, computed on the device (no host synchronisation); `grid` blocks cover every chunk, `extra`
-// >= the chunks beyond each tile's first (their sum of ceil(n / size) - 1 is at most M / size).
+// The blend backward's checkpoints (TileChunks over each tile's visited splats, BlendRecords): for
+// chunk m of a tile cut into n > 1 chunks and each pixel, the splats of the chunk it blended (in
+// front of its n_contrib, alpha > 0: the forward's) walked front to back from T = 1: the product of
+// their (1 - alpha) in prefix slot m (m < n - 1), and the colour and depth they add, per unit of
+// the transmittance in front of the chunk, in colour slot m - 1 (m > 0). The backward of chunk k
+// starts its pixels that blend past the chunk from these (BackPixel resume): no block walks more
+// than one chunk, and nothing behind a pixel's last blended splat is walked. 4 pixels per thread.
+template <typename T>
+__global__ void __launch_bounds__(kTilePixels / 4)
+    back_checkpoint_kernel(const RasterParams<T> p, const int32_t* __restrict__ visited, const TileChunks<T> chunks) {
+  constexpr int PX = 4, kThreads = kTilePixels / PX;
+  __shared__ SplatGeo<T> s_geo[kThreads];
+  __shared__ SplatColor<T> s_col[kThreads];
+  typename TileChunks<T>::Chunk ch;
+  if (!chunks.find(ch) || ch.n == 1) return;
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, ch.tile);
+  const int j0 = ch.k * chunks.size, j1 = min(visited[ch.tile], j0 + chunks.size);
+  const int t = static_cast<int>(threadIdx.x);
+  const T pxc = T(c.px) + T(0.5);
+  T pyc[PX], tr[PX], acc[PX][4];
+  int n[PX], n_max = 0;
+#pragma unroll
+  for (int i = 0; i < PX; ++i) {
+    pyc[i] = T(c.py + i) + T(0.5);
+    n[i] = c.inside(i) ? p.n_contrib[c.pix + int64_t(i) * p.width] : 0;
+    n_max = max(n_max, n[i]);
+    tr[i] = T(1);
+#pragma unroll
+    for (int q = 0; q < 4; ++q) acc[i][q] = T(0);
+  }
+  const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
+  for (int lo = j0; lo < j1; lo += kThreads) {
+    __syncthreads();  // the previous batch is consumed
+    if (lo + t < j1) {
+      const int32_t gid = p.bins.gauss_ids[c.start + lo + t];
+      s_geo[t] = load_geo(p, gid);
+      s_col[t] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2], p.depths[gid]};
+    }
+    __syncthreads();
+    const int hi = min(min(j1, warp_n), lo + kThreads);
+    for (int j = lo; j < hi; ++j) {
+      const SplatGeo<T> s = s_geo[j - lo];
+      const SplatColor<T> col = s_col[j - lo];
+#pragma unroll
+      for (int i = 0; i < PX; ++i) {
+        const T a = j < n[i] ? alpha_at(s, pxc, pyc[i]) : T(0);
+        if (a > T(0)) {
+          const T w = a * tr[i];
+          acc[i][0] += w * col.r;
+          acc[i][1] += w * col.g;
+          acc[i][2] += w * col.b;
+          acc[i][3] += w * col.depth;
+          tr[i] *= T(1) - a;
+        }
+      }
+    }
+  }
+#pragma unroll
+  for (int i = 0; i < PX; ++i) {
+    if (ch.k < ch.n - 1) chunks.prefix_slot(ch, ch.k)[c.local(i)] = tr[i];
+    if (ch.k > 0)
+#pragma unroll
+      for (int q = 0; q < 4; ++q) chunks.colour_slot(ch, ch.k - 1, q)[c.local(i)] = acc[i][q];
+  }
+}
+
+// A render's chunks (TileChunks) of `size` splats of the tile lists whose prefix sum is
+// `tile_offsets` (total <= `bound` splats): the chunk counts' prefix sum and `values` prefix
+// values per pixel and slot (1: the contribution's transmittances; 5: the blend backward's
+// checkpoints, transmittance then colour and depth), computed on the device (no host
+// synchronisation); `grid` blocks cover every chunk, `extra` >= the chunks beyond each tile's first
+// (their sum of ceil(n / size) - 1 is at most bound / size). The slots are not filled here.
 template <typename T>
 struct ChunkPlan {
   DeviceBuffer offsets, prefix;
@@ -379,24 +474,22 @@ struct ChunkPlan {
 };
 
 template <typename T>
-ChunkPlan<T> plan_chunks(const RasterParams<T>& p, int32_t size, cudaStream_t stream) {
-  const int64_t tiles = int64_t(p.bins.tiles_x) * p.bins.tiles_y;
-  const int64_t extra = p.bins.M / size;
+ChunkPlan<T> plan_chunks(const int32_t* tile_offsets, int64_t tiles, int64_t bound, int32_t size, int values,
+                         cudaStream_t stream) {
+  const int64_t extra = bound / size;
   ChunkPlan<T> plan{DeviceBuffer(sizeof(int32_t) * size_t(2 * (tiles + 1))),
-                    DeviceBuffer(sizeof(T) * size_t(extra) * kTilePixels)};
+                    DeviceBuffer(sizeof(T) * size_t(extra) * kTilePixels * values)};
   int32_t* counts = plan.offsets.template as<int32_t>();
   int32_t* offsets = counts + tiles + 1;
-  chunk_count_kernel<<<blocks_for(tiles + 1, kBlock), kBlock, 0, stream>>>(p.bins.tile_offsets, static_cast<int>(tiles),
+  chunk_count_kernel<<<blocks_for(tiles + 1, kBlock), kBlock, 0, stream>>>(tile_offsets, static_cast<int>(tiles),
                                                                           size, counts);
   GSW_KERNEL_CHECK();
   exclusive_sum(counts, offsets, static_cast<int>(tiles + 1), stream);
-  plan.chunks = TileChunks<T>{offsets, static_cast<int>(tiles), size, plan.prefix.template as<T>()};
+  T* prefix = plan.prefix.template as<T>();
+  plan.chunks = TileChunks<T>{offsets, 0, static_cast<int>(tiles), size, prefix,
+                              values > 1 ? prefix + size_t(extra) * kTilePixels : nullptr};
   plan.extra = extra;
   plan.grid = static_cast<unsigned>(tiles + extra);
-  if (extra > 0) {
-    chunk_prefix_kernel<T><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, plan.chunks);
-    GSW_KERNEL_CHECK();
-  }
   return plan;
 }
 
@@ -566,7 +659,7 @@ __global__ void __launch_bounds__(kTilePixels / PX)
     c = pixel_ctx<PX>(p, ch.tile);
     chunks.narrow(c, ch);
 #pragma unroll
-    for (int i = 0; i < PX; ++i) tr[i] = chunks.front(ch, c.local(i));
+    for (int i = 0; i < PX; ++i) tr[i] = chunks.front(ch, ch.k, c.local(i));
   } else {
     if (sched.skips(PX)) return;
     c = pixel_ctx<PX>(p, sched.tile());
@@ -714,35 +807,74 @@ __device__ __forceinline__ void flush_splat(const RasterGradParams<T>& g,
   }
 }
 
-// Blend backward with PX vertically adjacent pixels per thread (see the file comment) on the tiles
-// of `sched`. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
-// layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
-template <typename T, int PX, bool Atomic>
-__global__ void __launch_bounds__(kTilePixels / PX)
+// Resident blocks per SM that the float chunked backward is compiled for: those of the whole-tile
+// 4-pixel kernel (at most 102 registers; without the bound the chunk bookkeeping takes 115).
+constexpr int kCutBlocksPerSM = 10;
+
+// Starts pixel q of chunk ch (of its tile's visited splats, ending at j1) where it blends past the
+// chunk: from the transmittance in front of splat j1 (the product of the checkpoints' transmittances
+// of the chunks up to ch) and the colour and depth behind it (the later chunks' checkpoints, back to
+// front: behind = colour_m + (1 - alpha)-product_m x behind). A pixel whose last blended splat lies
+// in the chunk starts as in a whole-tile walk (T_final, nothing behind).
+template <typename T>
+__device__ __forceinline__ void resume(const TileChunks<T>& chunks, const typename TileChunks<T>::Chunk& ch, int j1,
+                                       int local, BackPixel<T>& q) {
+  if (q.n <= j1) return;
+  q.st.tr = chunks.front(ch, ch.k + 1, local);
+  T behind[4] = {T(0), T(0), T(0), T(0)};
+  for (int m = ch.n - 1; m > ch.k; --m) {
+    const T keep = m < ch.n - 1 ? chunks.prefix_slot(ch, m)[local] : T(0);
+#pragma unroll
+    for (int c = 0; c < 4; ++c) behind[c] = chunks.colour_slot(ch, m - 1, c)[local] + keep * behind[c];
+  }
+#pragma unroll
+  for (int c = 0; c < 4; ++c) q.st.behind[c] = behind[c];
+}
+
+// Blend backward with PX vertically adjacent pixels per thread (see the file comment): on the
+// chunks of `chunks` (Cut; back_checkpoint_kernel first), else on the whole tiles of `sched`. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's
+// rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
+template <typename T, int PX, bool Atomic, bool Cut = false>
+__global__ void __launch_bounds__(kTilePixels / PX, Cut && sizeof(T) == 4 ? kCutBlocksPerSM : 1)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                    T* __restrict__ records, const TileSchedule sched) {
+                    T* __restrict__ records, const TileSchedule sched, const TileChunks<T> chunks) {
   using Shared = BackwardShared<T, PX>;
   static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
   __shared__ Shared sh;
-  if (sched.skips(PX)) return;
-  const PixelCtx<PX> c = pixel_ctx<PX>(p, sched.tile());
+  typename TileChunks<T>::Chunk ch{};
+  int tile;
+  if constexpr (Cut) {
+    if (!chunks.find(ch)) return;
+    tile = ch.tile;
+  } else {
+    if (sched.skips(PX)) return;
+    tile = sched.tile();
+  }
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, tile);
   const T pxc = T(c.px) + T(0.5);
+  // The splats [j0, j1) of the tile's list: its visited ones, or one chunk of them.
+  int j0 = 0, j1 = layout.visited[c.tile];
+  if constexpr (Cut) {
+    j0 = ch.k * chunks.size;
+    j1 = min(j1, j0 + chunks.size);
+  }
   BackPixel<T> px[PX];
   int n_max = 0;
 #pragma unroll
   for (int i = 0; i < PX; ++i) {
     px[i] = load_back_pixel(p, g, c, i);
+    if constexpr (Cut)
+      if (ch.n > 1) resume(chunks, ch, j1, c.local(i), px[i]);
     n_max = max(n_max, static_cast<int>(px[i].n));
   }
-  // The block walks the batches from the tile's largest n_contrib down; a warp visits only the
-  // splats in front of its own largest.
+  // The block walks the batches from j1 down; a warp visits only the splats in front of its own
+  // largest n_contrib.
   const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
-  const int max_n = layout.visited[c.tile];
   T* const tile_records = Atomic ? nullptr : records + int64_t(kBlendGrads) * (layout.offsets[c.tile] - layout.row0);
   const int t = static_cast<int>(threadIdx.x);
-  for (int hi = max_n; hi > 0; hi -= kThreads) {
-    const int lo = hi > kThreads ? hi - kThreads : 0;
+  for (int hi = j1; hi > j0; hi -= kThreads) {
+    const int lo = hi - kThreads > j0 ? hi - kThreads : j0;
     __syncthreads();  // the previous batch is consumed and flushed
     if (lo + t < hi) {
       const int32_t gid = p.bins.gauss_ids[c.start + lo + t];
@@ -932,22 +1064,24 @@ int64_t num_tiles(const RasterParams<T>& p) {
 }
 
 // Which blend backward runs: a benchmarking switch, read at every call from the environment
-// variable GSW_CUDA_BACKWARD: "auto" (the default, also when unset or empty: 2 or 4 pixels per
-// thread as choose_layout_kernel decides), "px4" / "px2" (backward_kernel with 4 / 2 pixels per
-// thread on every render) or "atomic" (px4 adding the tile totals with atomics: the former design,
-// not bitwise deterministic). float64 runs px4 for px2 and auto: px2's shared memory would not fit.
+// variable GSW_CUDA_BACKWARD: "auto" (the default, also when unset or empty: whole tiles, 2 or 4
+// pixels per thread as choose_layout_kernel decides), "cut" (4 pixels per thread, tiles longer than
+// a chunk cut into chunks), "px4" / "px2" (whole tiles, 4 / 2 pixels per thread on every render) or
+// "atomic" (px4 adding the tile totals with atomics: the former design, not bitwise deterministic).
+// float64 runs px4 for px2 and auto: px2's shared memory would not fit.
 // Anything else is an error.
 // GSW_CUDA_CONTRIBUTION chooses the contribution's: "auto" (default: dense tiles cut into chunks),
 // "px4" or "px2" (whole tiles; float64: px2 only where its shared memory fits, else px4).
-enum class Variant { kAtomic, kAuto, kPx2, kPx4 };
+enum class Variant { kAtomic, kAuto, kCut, kPx2, kPx4 };
 
-Variant layout_variant(const char* name, bool atomic_allowed) {
+Variant layout_variant(const char* name, bool backward) {
   const char* e = std::getenv(name);
   if (e == nullptr || *e == '\0' || std::strcmp(e, "auto") == 0) return Variant::kAuto;
   if (std::strcmp(e, "px4") == 0) return Variant::kPx4;
   if (std::strcmp(e, "px2") == 0) return Variant::kPx2;
-  if (atomic_allowed && std::strcmp(e, "atomic") == 0) return Variant::kAtomic;
-  throw std::invalid_argument(std::string(name) + " must be auto, px4, px2" + (atomic_allowed ? " or atomic" : "") +
+  if (backward && std::strcmp(e, "cut") == 0) return Variant::kCut;
+  if (backward && std::strcmp(e, "atomic") == 0) return Variant::kAtomic;
+  throw std::invalid_argument(std::string(name) + " must be auto, px4, px2" + (backward ? ", cut or atomic" : "") +
                               " (or unset), not '" + e + "'");
 }
 
@@ -1008,7 +1142,8 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   GSW_KERNEL_CHECK();
   BlendRecords layout{visited, offsets};
   if (variant == Variant::kAtomic) {
-    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, TileSchedule{});
+    backward_kernel<T, 4, true><<<grid, kTilePixels / 4, 0, stream>>>(p, g, layout, nullptr, TileSchedule{},
+                                                                       TileChunks<T>{});
     GSW_KERNEL_CHECK();
     return;
   }
@@ -1035,13 +1170,28 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   constexpr bool kHasPx2 = sizeof(BackwardShared<T, 2>) <= 48 * 1024;  // float64: px2's shared memory would not fit
   const bool px2 = kHasPx2 && variant == Variant::kPx2;
   const bool choose = kHasPx2 && variant == Variant::kAuto;
+  const bool cut = variant == Variant::kCut;
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
-  // One pass: the tiles in decreasing order of their visited splats (tile_order). A chunk's tiles run
-  // in index order.
-  const DeviceBuffer order_buf = tile_order(visited, ids, tiles, chunks.size() == 1 ? p.bins.M : 0, stream);
-  const int32_t* order = chunks.size() == 1 ? order_buf.as<int32_t>() : nullptr;
   const int sms = device_sms();
+  // cut: the visited splats of a tile longer than a chunk are cut into chunks (one block each,
+  // started from back_checkpoint_kernel's checkpoints); the same chunks in every chunk of tiles of
+  // a records budget, so the budget changes no bits of a Gaussian summed by one thread.
+  const ChunkPlan<T> plan =
+      cut ? plan_chunks<T>(offsets, tiles, p.bins.M,
+                           chunk_size(p.bins.M, wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms)), 5,
+                           stream)
+          : ChunkPlan<T>{DeviceBuffer(0), DeviceBuffer(0)};
+  if (cut) {
+    if (plan.extra > 0) {
+      back_checkpoint_kernel<T><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, visited, plan.chunks);
+      GSW_KERNEL_CHECK();
+    }
+  }
+  // Whole tiles in one pass: in decreasing order of their visited splats (tile_order). A chunk's
+  // tiles run in index order.
+  const DeviceBuffer order_buf = tile_order(visited, ids, tiles, !cut && chunks.size() == 1 ? p.bins.M : 0, stream);
+  const int32_t* order = !cut && chunks.size() == 1 ? order_buf.as<int32_t>() : nullptr;
   if (choose) {  // from the whole image's counts, so every chunking walks a tile alike (the same bits)
     choose_layout_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), max_visited,
                                               wave_of(backward_kernel<T, 4, false>, kTilePixels / 4, sms), px2_flag);
@@ -1050,14 +1200,27 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   for (const auto& [c0, c1] : chunks) {
     const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
-    const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
-    const TileSchedule sched{order, t0, choose ? px2_flag : nullptr};
-    if constexpr (kHasPx2) {
-      if (px2 || choose) backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, sched);
+    if (cut) {
+      TileChunks<T> part = plan.chunks;
+      part.t0 = t0;
+      part.t1 = t1;
+      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(t1 - t0 + plan.extra), kTilePixels / 4, 0, stream>>>(
+          p, g, layout, rec, TileSchedule{}, part);
+      GSW_KERNEL_CHECK();
+    } else {
+      const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
+      const TileSchedule sched{order, t0, choose ? px2_flag : nullptr};
+      if constexpr (kHasPx2) {
+        if (px2 || choose)
+          backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, sched,
+                                                                                   TileChunks<T>{});
+        GSW_KERNEL_CHECK();
+      }
+      if (!px2)
+        backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched,
+                                                                                 TileChunks<T>{});
       GSW_KERNEL_CHECK();
     }
-    if (!px2) backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched);
-    GSW_KERNEL_CHECK();
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
     if (chunks.size() == 1)
       reduce_blend_grads_kernel<T><<<blocks_for(p.N, kBlock), kBlock, 0, stream>>>(p, g, layout, rec, big);
@@ -1079,8 +1242,13 @@ void launch_contribution(const RasterParams<T>& p, const ContributionParams<T>& 
                          cudaStream_t stream) {
   const int64_t tiles = num_tiles(p);
   if (variant == Variant::kAuto) {
-    const ChunkPlan<T> plan = plan_chunks(
-        p, chunk_size(p.bins.M, wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms())), stream);
+    const ChunkPlan<T> plan = plan_chunks<T>(
+        p.bins.tile_offsets, tiles, p.bins.M,
+        chunk_size(p.bins.M, wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms())), 1, stream);
+    if (plan.extra > 0) {
+      chunk_prefix_kernel<T><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, plan.chunks);
+      GSW_KERNEL_CHECK();
+    }
     contribution_kernel<T, CT, 4><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, cp, TileSchedule{}, plan.chunks);
     GSW_KERNEL_CHECK();
     return;
