@@ -832,8 +832,9 @@ __device__ __forceinline__ void resume(const TileChunks<T>& chunks, const typena
 }
 
 // Blend backward with PX vertically adjacent pixels per thread (see the file comment): on the
-// chunks of `chunks` (Cut; back_checkpoint_kernel first), else on the whole tiles of `sched`. `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's
-// rows layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
+// chunks of `chunks` (Cut; back_checkpoint_kernel first), else on the whole tiles of `sched`.
+// `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
+// layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
 template <typename T, int PX, bool Atomic, bool Cut = false>
 __global__ void __launch_bounds__(kTilePixels / PX, Cut && sizeof(T) == 4 ? kCutBlocksPerSM : 1)
     backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
