@@ -88,7 +88,7 @@ int main(int argc, char** argv) {
   } else if (mode == "bwd" || full) {
     p.final_T = const_cast<float*>(final_T.data());
     p.n_contrib = const_cast<int32_t*>(n_contrib.data());
-    std::vector<float> v_image(3 * P, 1.0f), v_alpha(P), v_depth(P), scratch(size_t(M) * cpu::kSplatGradSize);
+    std::vector<float> v_image(3 * P, 1.0f), v_alpha(P), v_depth(P);
     std::vector<float> v_means2d(2 * N), v_conics(3 * N), v_colors(3 * N), v_opacities(N), v_depths(N);
     RasterGradParams<float> g;
     if (full) {
@@ -106,7 +106,7 @@ int main(int argc, char** argv) {
     g.v_colors = v_colors.data();
     g.v_opacities = v_opacities.data();
     g.v_depths = v_depths.data();
-    timed([&] { cpu::rasterize_backward(p, g, scratch.data()); });
+    timed([&] { cpu::rasterize_backward(p, g, -1); });  // no records budget: one pass
     for (const auto* v : {&v_means2d, &v_conics, &v_colors, &v_opacities, &v_depths})
       out.insert(out.end(), v->begin(), v->end());
   } else {
