@@ -567,9 +567,9 @@ def test_ellipse_bins_match_cpu_on_the_same_splats(dtype: torch.dtype) -> None:
 @pytest.mark.parametrize("name", ["random_sh1", "flat_huge_zero_opacity", "size_17x33", "dense_multi_batch",
                                   "frustum", "tile_borders", "all_culled", "empty", "dense_tiles"])
 def test_contribution_matches_cpu(name: str, dtype: torch.dtype, channels: int, variant: str, monkeypatch) -> None:
-    """Each layout of the contribution behind GSW_CUDA_CONTRIBUTION (csrc/cuda/rasterize_cuda.cu: 4 or 2 pixels
-    per thread, or chosen per render, the default; tiles in decreasing order of their intersections) matches the
-    CPU's; auto64 cuts tiles into chunks of 64 splats (GSW_CUDA_CHUNK)."""
+    """Each layout of the contribution behind GSW_CUDA_CONTRIBUTION (csrc/cuda/rasterize_cuda.cu: the default cuts
+    dense tiles into chunks; px4 / px2 walk whole tiles with 4 or 2 pixels per thread, in decreasing order of their
+    intersections) matches the CPU's; auto64 cuts every tile longer than 64 splats (GSW_CUDA_CHUNK)."""
     monkeypatch.setenv("GSW_CUDA_CONTRIBUTION", variant.removesuffix("64"))
     monkeypatch.setenv("GSW_CUDA_CHUNK", "64" if variant.endswith("64") else "")
     g64, cam, _, _ = SCENES[name]()
