@@ -68,9 +68,10 @@ class EmbedConfig:
         lpips_net: "vgg", "alex" or None (no LPIPS term; set weights.lpips = 0).
         mask: "exp" (3D-GSW), "stega" (StegaNeRF-style) or "none".
         fgd: run FGD (prune + split) before fine-tuning (off by default: its split changes the renders of a
-            trained model before the fine-tune begins and adds ~28 % Gaussians; without it 0.6-1.1 dB more at
-            equal bits on the built-in scene and lego 800x800, 0.2 dB less on a 200x200 lego model, BENCHMARKS.md
-            §7a, §9j; the paper's recipe keeps it).
+            trained model before the fine-tune begins and adds ~28 % Gaussians; without it, at equal bits, 1.1 dB
+            more on the built-in scene, the same PSNR with this default recipe on lego 800x800 and 0.6-0.7 dB more
+            with the paper's recipe or a PSNR target there, 0.2 dB less on a 200x200 lego model, BENCHMARKS.md
+            §7a, §9j, §9k; the paper's recipe keeps it).
         prune_threshold: FGD phase-1 threshold on the normalised contribution (:func:`gsw.mark.fgd.fgd_prune`).
         top_percent: FGD phase-2 share of patches (percent).
         split_quantile: FGD phase-2 low-contribution quantile that is split.
