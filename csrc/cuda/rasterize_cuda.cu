@@ -64,6 +64,7 @@
 // deterministic.
 #include <cstdlib>
 #include <cstring>
+#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -1178,14 +1179,13 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   // cut: the visited splats of a tile longer than a chunk are cut into chunks (one block each,
   // started from back_checkpoint_kernel's checkpoints); the same chunks in every chunk of tiles of
   // a records budget, so the budget changes no bits of a Gaussian summed by one thread.
-  const ChunkPlan<T> plan =
-      cut ? plan_chunks<T>(offsets, tiles, p.bins.M,
-                           chunk_size(p.bins.M, wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms)), 5,
-                           stream)
-          : ChunkPlan<T>{DeviceBuffer(0), DeviceBuffer(0)};
+  std::optional<ChunkPlan<T>> plan;  // cut only: whole tiles need no plan
   if (cut) {
-    if (plan.extra > 0) {
-      back_checkpoint_kernel<T><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, visited, plan.chunks);
+    plan.emplace(plan_chunks<T>(
+        offsets, tiles, p.bins.M,
+        chunk_size(p.bins.M, wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms)), 5, stream));
+    if (plan->extra > 0) {
+      back_checkpoint_kernel<T><<<plan->grid, kTilePixels / 4, 0, stream>>>(p, visited, plan->chunks);
       GSW_KERNEL_CHECK();
     }
   }
@@ -1202,10 +1202,10 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
     const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
     if (cut) {
-      TileChunks<T> part = plan.chunks;
+      TileChunks<T> part = plan->chunks;
       part.t0 = t0;
       part.t1 = t1;
-      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(t1 - t0 + plan.extra), kTilePixels / 4, 0, stream>>>(
+      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(t1 - t0 + plan->extra), kTilePixels / 4, 0, stream>>>(
           p, g, layout, rec, TileSchedule{}, part);
       GSW_KERNEL_CHECK();
     } else {
