@@ -306,8 +306,7 @@ BACKWARD_VARIANTS = [("auto", ""), ("cut", ""), ("cut", "64"), ("px2", ""), ("px
 @pytest.mark.parametrize("name", ["dense_multi_batch", "heavy", "size_17x33", "large_splats", "dense_tiles"])
 def test_backward_variants_match_cpu(name: str, dtype: torch.dtype, variant: str, chunk: str, monkeypatch) -> None:
     """Each blend backward behind the benchmarking switch GSW_CUDA_BACKWARD (csrc/cuda/rasterize_cuda.cu) gives
-    the CPU's gradients (float64 runs px4 for px2 and auto), "cut" also with its tiles cut into chunks of 64
-    splats."""
+    the CPU's gradients (float64 runs px4 for px2), "cut" also with its tiles cut into chunks of 64 splats."""
     monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
     monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
     _assert_gradients_match_cpu(name, dtype)
@@ -345,31 +344,39 @@ def _visited_records(n_contrib: torch.Tensor) -> int:
 
 
 def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
-    """The default blend backward ("auto") walks every tile with 2 pixels per thread when the densest tile's walk is
-    longer than twice the total walk shared by one wave of 4-pixel blocks (rasterize_cuda.cu, choose_layout_kernel),
-    else with 4: its gradients are px2's bits on a small image and px4's on a 1080p render of uniform tiles. A wave
-    holds at least one block per SM and at most 32, which bounds the choice from the tiles' counts alone."""
+    """The default blend backward ("auto") chooses its layout per render from the tiles' visited splats
+    (rasterize_cuda.cu, choose_layout_kernel). Where the densest tile's walk is longer than twice the total walk
+    shared by one wave of 4-pixel blocks, it cuts the tiles into chunks of 128 splats (their checkpoints fit: a
+    small scene has fewer than one wave of them) or, where that would not cut the densest tile, walks whole tiles
+    with 2 pixels per thread; otherwise whole tiles with 4. Its gradients are the chosen layout's bits ("cut" at
+    GSW_CUDA_CHUNK=128 cuts alike), and differ from the other layouts'. A wave holds at least one block per SM and
+    at most 32, which bounds the choice from the tiles' counts alone."""
     sms = torch.cuda.get_device_properties(0).multi_processor_count
 
-    def grads(g: Gaussians, cam: Camera, bg, deg: int, variant: str) -> dict:
+    def grads(g: Gaussians, cam: Camera, bg, deg: int, variant: str, chunk: str = "") -> dict:
         monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
+        monkeypatch.setenv("GSW_CUDA_CHUNK", chunk)
         return _grads(g, cam, bg, deg, _weights(cam, torch.float32))
 
-    small = SCENES["dense_tiles"]()
     cam_large = make_camera(1920, 1080)
     large = (frustum_scene(1_000_000, cam_large, sh_degree=0, seed=7, dtype=torch.float32), cam_large, (0.0, 0.0, 0.0), 0)
-    for (g, cam, bg, deg), expected, bound in ((small, "px2", 1), (large, "px4", 32)):
+    cases = ((SCENES["dense_tiles"](), ("cut", "128"), ("px2", "px4")),
+             (SCENES["size_17x33"](), ("px2", ""), ("px4",)),
+             (large, ("px4", ""), ("px2",)))
+    for (g, cam, bg, deg), expected, others in cases:
         g = g.to(dtype=torch.float32, device="cuda")
         visited = _tile_visited(_render(g, cam, bg, deg).n_contrib)
         most, total = int(visited.max()), int(visited.sum())
-        if expected == "px2":
-            assert most * sms * bound > 2 * total  # true for any wave of at least one block per SM
+        if expected[0] == "px4":
+            assert most * sms * 32 <= 2 * total  # not dense for any wave of at most 32 blocks per SM
         else:
-            assert most * sms * bound <= 2 * total  # true for any wave of at most 32 blocks per SM
-        auto, ref = grads(g, cam, bg, deg, "auto"), grads(g, cam, bg, deg, expected)
+            assert most * sms > 2 * total  # dense for any wave of at least one block per SM
+            assert (most > 128) == (expected[0] == "cut"), most  # 128 splats cut the densest tile
+        auto, ref = grads(g, cam, bg, deg, "auto"), grads(g, cam, bg, deg, *expected)
         assert all(torch.equal(auto[k], ref[k]) for k in ref), expected
-        other = grads(g, cam, bg, deg, "px4" if expected == "px2" else "px2")  # the layouts differ in the bits
-        assert any(not torch.equal(auto[k], other[k]) for k in ref), expected
+        for other in others:  # the layouts differ in the bits
+            bits = grads(g, cam, bg, deg, other)
+            assert any(not torch.equal(auto[k], bits[k]) for k in ref), (expected, other)
 
 
 def test_cut_backward_is_px4_where_no_tile_is_cut(monkeypatch) -> None:

@@ -50,25 +50,27 @@
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
 // as on the CPU. The blocks start with the tiles that visit the most splats (tile_order). When the
 // densest tile's walk is longer than the time the busy tiles' total work keeps the GPU filled (a
-// trained model's few dense tiles; any small image), every tile is walked with 2 pixels per thread
-// instead of 4: twice the warps per tile (choose_layout_kernel). GSW_CUDA_BACKWARD (A/B benchmarks
-// only): "cut" cuts a tile whose visited splats are longer than a chunk into chunks, one 4-pixel
-// block each: back_checkpoint_kernel first walks every chunk of such a tile front to back from
-// T = 1 (its transmittance product and the colour and depth it adds, per pixel), and the block of
-// chunk k starts each pixel that blends past the chunk from those (the transmittance in front of
-// the chunk's end and the colour and depth behind it) instead of from T_final; a chunk's records
-// are its own splats' rows, so the per-Gaussian sums are unchanged, and a tile of one chunk is
-// walked as px4 walks it (BENCHMARKS.md 2r: faster on a lego model at 800x800, slower at
-// 1600x1600, so not the default). "px4" / "px2" walk whole tiles with that layout; "atomic" adds the
-// tile totals to the gradients with one atomic per value instead: no scratch, not bitwise
-// deterministic.
+// trained model's few dense tiles; any small image), the tiles are cut into chunks instead
+// (choose_layout_kernel, on the device, per render): a tile whose visited splats are longer than a
+// chunk (128 splats, or the shortest length whose chunks fit one wave of checkpoint slots) is
+// walked by one 4-pixel block per chunk. back_checkpoint_kernel first walks every chunk of such a
+// tile front to back from T = 1 (its transmittance product and the colour and depth it adds, per
+// pixel), and the block of chunk k starts each pixel that blends past the chunk from those (the
+// transmittance in front of the chunk's end and the colour and depth behind it) instead of from
+// T_final; a chunk's records are its own splats' rows, so the per-Gaussian sums are unchanged, and
+// a tile of one chunk is walked as px4 walks it (BENCHMARKS.md 2s: 2.1x faster than whole tiles on a
+// lego model at 800x800, as fast at 1600x1600). Where no length would cut the densest tile, every
+// tile is walked with 2 pixels per thread instead of 4: twice the warps per tile. GSW_CUDA_BACKWARD
+// (A/B benchmarks only): "cut" cuts every render so (GSW_CUDA_CHUNK: at that length), "px4" / "px2"
+// walk whole tiles with that layout; "atomic" adds the tile totals to the gradients with one atomic
+// per value instead: no scratch, not bitwise deterministic.
 #include <cstdlib>
 #include <cstring>
-#include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
+#include <cub/block/block_scan.cuh>
 #include <cub/device/device_radix_sort.cuh>
 
 #include "cuda/common.cuh"
@@ -251,25 +253,31 @@ __device__ __forceinline__ unsigned traverse_tile(const RasterParams<T>& p, cons
 
 // ------------------------------------------------------------------ tile schedules
 
+// The blend backward's layouts, chosen per render on the device (choose_layout_kernel): whole tiles
+// with 4 or 2 pixels per thread, or dense tiles cut into chunks (TileChunks).
+constexpr int32_t kLayoutPx4 = 0, kLayoutPx2 = 1, kLayoutCut = 2;
+
 // The tiles of one backward_kernel or contribution_kernel launch: block b takes tile order[b] (or
 // tile0 + b without an order). With a layout flag (choose_layout_kernel's), the launch does nothing
-// unless the flag chose its pixels per thread: both layouts are launched, one returns at once.
+// unless the flag chose its pixels per thread: every layout is launched, all but one return at once.
 struct TileSchedule {
   const int32_t* order = nullptr;
   int tile0 = 0;
-  const int32_t* px2 = nullptr;
-  __device__ __forceinline__ bool skips(int px) const { return px2 != nullptr && (*px2 != 0) != (px == 2); }
+  const int32_t* layout = nullptr;
+  __device__ __forceinline__ bool skips(int px) const {
+    return layout != nullptr && *layout != (px == 2 ? kLayoutPx2 : kLayoutPx4);
+  }
   __device__ __forceinline__ int tile() const {
     return order != nullptr ? order[blockIdx.x] : tile0 + static_cast<int>(blockIdx.x);
   }
 };
 
-// Pixels per thread of the whole-tile backward_kernel (the default): 4 (fewer warps, each reading a
-// splat for more pixels: the higher throughput), or 2 for a render whose densest tile sets the
-// kernel's length, when its walk is more than kCriticalPathFactor times the busy tiles' mean share
-// of one wave of 4-pixel blocks (choose_layout_kernel; BENCHMARKS.md 2k / 2l: a trained model's
-// densest tiles visit 6-7x the mean). The contribution (and the "cut" backward) cuts such tiles into
-// chunks instead (TileChunks, chunk_size).
+// A render's densest tile sets the kernel's length when its walk is more than kCriticalPathFactor
+// times the busy tiles' mean share of one wave of 4-pixel blocks (BENCHMARKS.md 2k / 2l: a trained
+// model's densest tiles visit 6-7x the mean). The blend backward then cuts its tiles into chunks
+// (choose_layout_kernel; or walks them whole with 2 pixels per thread), otherwise walks whole tiles
+// with 4 (fewer warps, each reading a splat for more pixels: the higher throughput). The
+// contribution cuts tiles longer than chunk_size into chunks on every render (TileChunks).
 constexpr int kCriticalPathFactor = 2;
 
 // ------------------------------------------------------------------ dense-tile chunks
@@ -286,16 +294,20 @@ constexpr int kCriticalPathFactor = 2;
 // GSW_CUDA_CHUNK=N (tests and A/B benchmarks; read at every call) sets the length instead: a positive
 // multiple of the 4-pixel batch (64 splats).
 constexpr int32_t kMinChunk = 256;
+inline int32_t env_chunk_length() {  // GSW_CUDA_CHUNK, 0 when unset or empty
+  constexpr int64_t kSplats = kTilePixels / 4;
+  const char* e = std::getenv("GSW_CUDA_CHUNK");
+  if (e == nullptr || *e == '\0') return 0;
+  char* end = nullptr;
+  const long n = std::strtol(e, &end, 10);
+  if (*end != '\0' || n <= 0 || n % kSplats != 0 || n > (1L << 30))
+    throw std::invalid_argument(std::string("GSW_CUDA_CHUNK must be a positive multiple of ") +
+                                std::to_string(kSplats) + " (splats per chunk), not '" + e + "'");
+  return static_cast<int32_t>(n);
+}
 inline int32_t chunk_size(int64_t M, int64_t wave) {
   constexpr int64_t kSplats = kTilePixels / 4;
-  if (const char* e = std::getenv("GSW_CUDA_CHUNK"); e != nullptr && *e != '\0') {
-    char* end = nullptr;
-    const long n = std::strtol(e, &end, 10);
-    if (*end != '\0' || n <= 0 || n % kSplats != 0 || n > (1L << 30))
-      throw std::invalid_argument(std::string("GSW_CUDA_CHUNK must be a positive multiple of ") +
-                                  std::to_string(kSplats) + " (splats per chunk), not '" + e + "'");
-    return static_cast<int32_t>(n);
-  }
+  if (const int32_t n = env_chunk_length(); n > 0) return n;
   const int64_t share = (kCriticalPathFactor * M + wave - 1) / (wave > 0 ? wave : 1);
   const int64_t size = share > kMinChunk ? share : kMinChunk;
   return static_cast<int32_t>((size + kSplats - 1) / kSplats * kSplats);
@@ -312,7 +324,9 @@ inline int32_t chunk_size(int64_t M, int64_t wave) {
 // in the chunk, walked from T = 1, or 0 where the pixel terminates in it. The product over the
 // chunks in front is then below T_MIN exactly when the pixel has terminated in front of the chunk
 // (transmittance only falls), and otherwise the transmittance a whole-tile walk reaches there, up
-// to rounding. The blend backward's are back_checkpoint_kernel's.
+// to rounding. The blend backward's are back_checkpoint_kernel's. The blend backward's chunks
+// are chosen on the device per render (choose_layout_kernel): `chosen` holds the layout flag and
+// the length, and there are no chunks unless it chose kLayoutCut.
 template <typename T>
 struct TileChunks {
   const int32_t* offsets = nullptr;  // nullptr: no chunks (one block per tile)
@@ -320,12 +334,15 @@ struct TileChunks {
   int32_t size = 0;
   T* prefix = nullptr;
   T* colour = nullptr;
+  const int32_t* chosen = nullptr;  // {layout flag, length} (choose_layout_kernel), or nullptr: `size`
   struct Chunk {
     int tile, k, n;  // chunk k of the tile's n
     int64_t slot0;   // chunks of the tiles in front beyond their first
   };
-  // This block's chunk; false for a block past the last.
+  __device__ __forceinline__ int32_t length() const { return chosen != nullptr ? chosen[1] : size; }
+  // This block's chunk; false for a block past the last (or for every block unless cut).
   __device__ __forceinline__ bool find(Chunk& ch) const {
+    if (chosen != nullptr && chosen[0] != kLayoutCut) return false;
     const int32_t b = offsets[t0] + static_cast<int32_t>(blockIdx.x);
     if (b >= offsets[t1]) return false;
     int lo = t0, n = t1 - t0;  // the last j with offsets[j] <= b (then offsets[j + 1] > b)
@@ -340,8 +357,8 @@ struct TileChunks {
   // Narrows c to chunk ch of its tile's intersections.
   template <int PX>
   __device__ __forceinline__ void narrow(PixelCtx<PX>& c, const Chunk& ch) const {
-    c.start += ch.k * size;
-    c.end = min(c.end, c.start + size);
+    c.start += ch.k * length();
+    c.end = min(c.end, c.start + length());
   }
   __device__ __forceinline__ T* prefix_slot(const Chunk& ch, int k) const {
     return prefix + (ch.slot0 + k) * kTilePixels;
@@ -410,7 +427,8 @@ __global__ void __launch_bounds__(kTilePixels / 4)
   typename TileChunks<T>::Chunk ch;
   if (!chunks.find(ch) || ch.n == 1) return;
   const PixelCtx<PX> c = pixel_ctx<PX>(p, ch.tile);
-  const int j0 = ch.k * chunks.size, j1 = min(visited[ch.tile], j0 + chunks.size);
+  const int32_t size = chunks.length();
+  const int j0 = ch.k * size, j1 = min(visited[ch.tile], j0 + size);
   const int t = static_cast<int>(threadIdx.x);
   const T pxc = T(c.px) + T(0.5);
   T pyc[PX], tr[PX], acc[PX][4];
@@ -460,12 +478,11 @@ __global__ void __launch_bounds__(kTilePixels / 4)
   }
 }
 
-// A render's chunks (TileChunks) of `size` splats of the tile lists whose prefix sum is
-// `tile_offsets` (total <= `bound` splats): the chunk counts' prefix sum and `values` prefix
-// values per pixel and slot (1: the contribution's transmittances; 5: the blend backward's
-// checkpoints, transmittance then colour and depth), computed on the device (no host
-// synchronisation); `grid` blocks cover every chunk, `extra` >= the chunks beyond each tile's first
-// (their sum of ceil(n / size) - 1 is at most bound / size). The slots are not filled here.
+// The contribution's chunks (TileChunks) of `size` splats of the tile lists whose prefix sum is
+// `tile_offsets` (total <= `bound` splats): the chunk counts' prefix sum and a prefix slot per
+// pixel and chunk, computed on the device (no host synchronisation); `grid` blocks cover every
+// chunk, `extra` >= the chunks beyond each tile's first (their sum of ceil(n / size) - 1 is at most
+// bound / size). The slots are not filled here.
 template <typename T>
 struct ChunkPlan {
   DeviceBuffer offsets, prefix;
@@ -475,11 +492,11 @@ struct ChunkPlan {
 };
 
 template <typename T>
-ChunkPlan<T> plan_chunks(const int32_t* tile_offsets, int64_t tiles, int64_t bound, int32_t size, int values,
+ChunkPlan<T> plan_chunks(const int32_t* tile_offsets, int64_t tiles, int64_t bound, int32_t size,
                          cudaStream_t stream) {
   const int64_t extra = bound / size;
   ChunkPlan<T> plan{DeviceBuffer(sizeof(int32_t) * size_t(2 * (tiles + 1))),
-                    DeviceBuffer(sizeof(T) * size_t(extra) * kTilePixels * values)};
+                    DeviceBuffer(sizeof(T) * size_t(extra) * kTilePixels)};
   int32_t* counts = plan.offsets.template as<int32_t>();
   int32_t* offsets = counts + tiles + 1;
   chunk_count_kernel<<<blocks_for(tiles + 1, kBlock), kBlock, 0, stream>>>(tile_offsets, static_cast<int>(tiles),
@@ -487,8 +504,7 @@ ChunkPlan<T> plan_chunks(const int32_t* tile_offsets, int64_t tiles, int64_t bou
   GSW_KERNEL_CHECK();
   exclusive_sum(counts, offsets, static_cast<int>(tiles + 1), stream);
   T* prefix = plan.prefix.template as<T>();
-  plan.chunks = TileChunks<T>{offsets, 0, static_cast<int>(tiles), size, prefix,
-                              values > 1 ? prefix + size_t(extra) * kTilePixels : nullptr};
+  plan.chunks = TileChunks<T>{offsets, 0, static_cast<int>(tiles), size, prefix};
   plan.extra = extra;
   plan.grid = static_cast<unsigned>(tiles + extra);
   return plan;
@@ -858,8 +874,9 @@ __global__ void __launch_bounds__(kTilePixels / PX, Cut && sizeof(T) == 4 ? kCut
   // The splats [j0, j1) of the tile's list: its visited ones, or one chunk of them.
   int j0 = 0, j1 = layout.visited[c.tile];
   if constexpr (Cut) {
-    j0 = ch.k * chunks.size;
-    j1 = min(j1, j0 + chunks.size);
+    const int32_t size = chunks.length();
+    j0 = ch.k * size;
+    j1 = min(j1, j0 + size);
   }
   BackPixel<T> px[PX];
   int n_max = 0;
@@ -918,15 +935,75 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-// The layout of the backward for this render (counts: the tiles' visited splats), in *px2: 1 (2
-// pixels per thread) when the densest tile's walk (*max_count) is longer than kCriticalPathFactor x
-// the total walk (offsets[tiles], the counts' prefix sum) shared by `wave` resident 4-pixel
-// blocks, else 0. The kernel is then as long as that
-// tile's walk by one block, whatever the other SMs do: twice its warps shorten it. Otherwise the
-// GPU is filled and 4 pixels per thread, the higher throughput, win.
-__global__ void choose_layout_kernel(const int32_t* __restrict__ offsets, int tiles,
-                                     const int32_t* __restrict__ max_count, int64_t wave, int32_t* __restrict__ px2) {
-  *px2 = int64_t(*max_count) * wave > int64_t(kCriticalPathFactor) * offsets[tiles] ? 1 : 0;
+// The chunk lengths a dense render's blend backward may cut at, shortest first: 128, 192, 256, 384,
+// ... 2048 splats (multiples of the 4-pixel batch; BENCHMARKS.md 2s: 128 was the fastest of 128 /
+// 256 / ~450 on lego at 800x800).
+constexpr int kNumCutLengths = 9;
+__host__ __device__ constexpr int32_t cut_length(int l) { return (l % 2 != 0 ? 192 : 128) << (l / 2); }
+constexpr int kChooseThreads = 1024;
+
+// The blend backward's layout for this render (one block; visited / offsets: the tiles' visited
+// splats and their prefix sum), in choice[0]: kLayoutPx4 when the densest tile's walk (*max_count)
+// is at most kCriticalPathFactor x the total walk (offsets[tiles]) shared by `wave` resident
+// 4-pixel blocks: the GPU is filled and 4 pixels per thread, the higher throughput, win. Otherwise
+// the kernel is as long as that tile's walk by one block, whatever the other SMs do: the tiles
+// are cut into chunks of the shortest length of cut_length (choice[1]) whose chunks beyond each
+// tile's first fit `capacity` checkpoint slots (kLayoutCut; choice[2 ...]: the chunk counts'
+// prefix sum over the tiles, TileChunks::offsets), or, where no length fits or cuts the densest
+// tile, walked whole with 2 pixels per thread: twice the warps (kLayoutPx2, HasPx2) or 4.
+// force_cut (GSW_CUDA_BACKWARD=cut): cut whatever the balance; `length` > 0 (GSW_CUDA_CHUNK): cut at
+// that length (the caller's capacity covers it).
+template <bool HasPx2>
+__global__ void __launch_bounds__(kChooseThreads)
+    choose_layout_kernel(const int32_t* __restrict__ visited, const int32_t* __restrict__ offsets, int tiles,
+                         const int32_t* __restrict__ max_count, int64_t wave, int64_t capacity, bool force_cut,
+                         int32_t length, int32_t* __restrict__ choice) {
+  using Scan = cub::BlockScan<int32_t, kChooseThreads>;
+  __shared__ typename Scan::TempStorage scan;
+  __shared__ int32_t extra[kNumCutLengths];
+  __shared__ int32_t chosen;
+  const int t = static_cast<int>(threadIdx.x);
+  const int32_t most = *max_count;
+  const bool dense = int64_t(most) * wave > int64_t(kCriticalPathFactor) * offsets[tiles];
+  if (!dense && !force_cut) {
+    if (t == 0) choice[0] = kLayoutPx4, choice[1] = 0;
+    return;
+  }
+  if (t < kNumCutLengths) extra[t] = 0;
+  __syncthreads();
+  if (length == 0) {  // the chunks beyond each tile's first, per length
+    int32_t mine[kNumCutLengths] = {};
+    for (int j = t; j < tiles; j += kChooseThreads) {
+      const int32_t v = visited[j];
+#pragma unroll
+      for (int l = 0; l < kNumCutLengths; ++l) mine[l] += v > 0 ? (v - 1) / cut_length(l) : 0;
+    }
+#pragma unroll
+    for (int l = 0; l < kNumCutLengths; ++l)
+      if (mine[l] > 0) atomicAdd(&extra[l], mine[l]);
+  }
+  __syncthreads();
+  if (t == 0) {
+    int32_t len = length;
+    for (int l = 0; len == 0 && l < kNumCutLengths; ++l)
+      if (extra[l] <= capacity) len = cut_length(l);
+    const bool cut = len > 0 && (force_cut || len < most);
+    choice[0] = cut ? kLayoutCut : (dense && HasPx2 ? kLayoutPx2 : kLayoutPx4);
+    choice[1] = chosen = cut ? len : 0;
+  }
+  __syncthreads();
+  if (chosen == 0) return;
+  // Chunks per tile (ceil(visited / length), at least 1: an empty tile's block does nothing; 0 for
+  // the total at index `tiles`), summed over a contiguous range of tiles per thread, then scanned.
+  const int per = (tiles + 1 + kChooseThreads - 1) / kChooseThreads, lo = t * per, hi = min(tiles + 1, lo + per);
+  auto chunks_of = [&](int j) { return j < tiles ? (visited[j] > 0 ? (visited[j] - 1) / chosen + 1 : 1) : 0; };
+  int32_t sum = 0;
+  for (int j = lo; j < hi; ++j) sum += chunks_of(j);
+  Scan(scan).ExclusiveSum(sum, sum);
+  for (int j = lo; j < hi; ++j) {
+    choice[2 + j] = sum;
+    sum += chunks_of(j);
+  }
 }
 
 // The tile counts of the contribution's whole-tile layouts: each tile's intersections in
@@ -1066,11 +1143,12 @@ int64_t num_tiles(const RasterParams<T>& p) {
 }
 
 // Which blend backward runs: a benchmarking switch, read at every call from the environment
-// variable GSW_CUDA_BACKWARD: "auto" (the default, also when unset or empty: whole tiles, 2 or 4
-// pixels per thread as choose_layout_kernel decides), "cut" (4 pixels per thread, tiles longer than
-// a chunk cut into chunks), "px4" / "px2" (whole tiles, 4 / 2 pixels per thread on every render) or
-// "atomic" (px4 adding the tile totals with atomics: the former design, not bitwise deterministic).
-// float64 runs px4 for px2 and auto: px2's shared memory would not fit.
+// variable GSW_CUDA_BACKWARD: "auto" (the default, also when unset or empty: whole tiles with 4
+// pixels per thread, or dense tiles cut into chunks, or whole tiles with 2, as choose_layout_kernel
+// decides), "cut" (tiles longer than a chunk cut into chunks on every render), "px4" / "px2" (whole
+// tiles, 4 / 2 pixels per thread on every render) or "atomic" (px4 adding the tile totals with
+// atomics: the former design, not bitwise deterministic). float64 runs px4 for px2: px2's shared
+// memory would not fit.
 // Anything else is an error.
 // GSW_CUDA_CONTRIBUTION chooses the contribution's: "auto" (default: dense tiles cut into chunks),
 // "px4" or "px2" (whole tiles; float64: px2 only where its shared memory fits, else px4).
@@ -1132,13 +1210,12 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   }
   const unsigned grid = static_cast<unsigned>(tiles);
   // Record layout (BlendRecords): each tile's visited count and their prefix sum; then each tile's
-  // index (tile_order's values), the largest count and the layout flag (choose_layout_kernel).
-  DeviceBuffer layout_buf(sizeof(int32_t) * (3 * tiles + 4));
+  // index (tile_order's values) and the largest count.
+  DeviceBuffer layout_buf(sizeof(int32_t) * (3 * tiles + 3));
   int32_t* visited = layout_buf.as<int32_t>();
   int32_t* offsets = visited + tiles + 1;
   int32_t* ids = offsets + tiles + 1;
   int32_t* max_visited = ids + tiles;
-  int32_t* px2_flag = max_visited + 1;
   GSW_CUDA_CHECK(cudaMemsetAsync(max_visited, 0, sizeof(int32_t), stream));
   tile_visited_kernel<T><<<grid, kBlock, 0, stream>>>(p, visited, ids, max_visited);
   GSW_KERNEL_CHECK();
@@ -1171,55 +1248,68 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   T* rec = records.as<T>();
   constexpr bool kHasPx2 = sizeof(BackwardShared<T, 2>) <= 48 * 1024;  // float64: px2's shared memory would not fit
   const bool px2 = kHasPx2 && variant == Variant::kPx2;
-  const bool choose = kHasPx2 && variant == Variant::kAuto;
-  const bool cut = variant == Variant::kCut;
+  const bool choose = variant == Variant::kAuto || variant == Variant::kCut;  // on the device, per render
   DeviceBuffer big_buf(sizeof(int32_t) * (size_t(p.N) + 1));
   int32_t* big = big_buf.as<int32_t>();
   const int sms = device_sms();
-  // cut: the visited splats of a tile longer than a chunk are cut into chunks (one block each,
-  // started from back_checkpoint_kernel's checkpoints); the same chunks in every chunk of tiles of
-  // a records budget, so the budget changes no bits of a Gaussian summed by one thread.
-  std::optional<ChunkPlan<T>> plan;  // cut only: whole tiles need no plan
-  if (cut) {
-    plan.emplace(plan_chunks<T>(
-        offsets, tiles, p.bins.M,
-        chunk_size(p.bins.M, wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms)), 5, stream));
-    if (plan->extra > 0) {
-      back_checkpoint_kernel<T><<<plan->grid, kTilePixels / 4, 0, stream>>>(p, visited, plan->chunks);
+  // auto / cut: choose_layout_kernel picks whole tiles (px4, px2) or chunks; a cut render's chunks
+  // start from back_checkpoint_kernel's checkpoints, `capacity` slots of them: the chunks beyond
+  // each tile's first at the shortest length of cut_length, up to one wave of 4-pixel blocks (or
+  // every chunk at GSW_CUDA_CHUNK's length). The choice comes from the whole image's counts, so
+  // every chunk of tiles of a records budget walks a tile alike (the same bits).
+  const int32_t length = choose ? env_chunk_length() : 0;
+  const int64_t capacity =
+      !choose ? 0
+      : length > 0
+          ? p.bins.M / length
+          : std::min<int64_t>(wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms),
+                              (p.bins.M + cut_length(0) - 1) / cut_length(0));
+  DeviceBuffer choice_buf(sizeof(int32_t) * (choose ? size_t(tiles) + 3 : 0));
+  DeviceBuffer checkpoints(sizeof(T) * size_t(capacity) * kTilePixels * 5);
+  int32_t* choice = choice_buf.as<int32_t>();
+  TileChunks<T> cuts{};
+  if (choose) {
+    choose_layout_kernel<kHasPx2><<<1, kChooseThreads, 0, stream>>>(
+        visited, offsets, static_cast<int>(tiles), max_visited,
+        wave_of(backward_kernel<T, 4, false>, kTilePixels / 4, sms), capacity, variant == Variant::kCut, length,
+        choice);
+    GSW_KERNEL_CHECK();
+    T* slots = checkpoints.as<T>();
+    cuts = TileChunks<T>{choice + 2, 0, static_cast<int>(tiles), 0, slots,
+                         slots + size_t(capacity) * kTilePixels, choice};
+    if (capacity > 0) {
+      back_checkpoint_kernel<T><<<static_cast<unsigned>(tiles + capacity), kTilePixels / 4, 0, stream>>>(
+          p, visited, cuts);
       GSW_KERNEL_CHECK();
     }
   }
   // Whole tiles in one pass: in decreasing order of their visited splats (tile_order). A chunk's
   // tiles run in index order.
-  const DeviceBuffer order_buf = tile_order(visited, ids, tiles, !cut && chunks.size() == 1 ? p.bins.M : 0, stream);
-  const int32_t* order = !cut && chunks.size() == 1 ? order_buf.as<int32_t>() : nullptr;
-  if (choose) {  // from the whole image's counts, so every chunking walks a tile alike (the same bits)
-    choose_layout_kernel<<<1, 1, 0, stream>>>(offsets, static_cast<int>(tiles), max_visited,
-                                              wave_of(backward_kernel<T, 4, false>, kTilePixels / 4, sms), px2_flag);
-    GSW_KERNEL_CHECK();
-  }
+  const DeviceBuffer order_buf = tile_order(visited, ids, tiles, chunks.size() == 1 ? p.bins.M : 0, stream);
+  const int32_t* order = chunks.size() == 1 ? order_buf.as<int32_t>() : nullptr;
   for (const auto& [c0, c1] : chunks) {
     const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
-    if (cut) {
-      TileChunks<T> part = plan->chunks;
+    if (choose) {  // returns at once unless cut
+      TileChunks<T> part = cuts;
       part.t0 = t0;
       part.t1 = t1;
-      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(t1 - t0 + plan->extra), kTilePixels / 4, 0, stream>>>(
+      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(t1 - t0 + capacity), kTilePixels / 4, 0, stream>>>(
           p, g, layout, rec, TileSchedule{}, part);
       GSW_KERNEL_CHECK();
-    } else {
-      const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
-      const TileSchedule sched{order, t0, choose ? px2_flag : nullptr};
-      if constexpr (kHasPx2) {
-        if (px2 || choose)
-          backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, sched,
-                                                                                   TileChunks<T>{});
+    }
+    const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
+    const TileSchedule sched{order, t0, choose ? choice : nullptr};
+    if constexpr (kHasPx2) {
+      if (px2 || choose) {
+        backward_kernel<T, 2, false><<<chunk_grid, kTilePixels / 2, 0, stream>>>(p, g, layout, rec, sched,
+                                                                                 TileChunks<T>{});
         GSW_KERNEL_CHECK();
       }
-      if (!px2)
-        backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched,
-                                                                                 TileChunks<T>{});
+    }
+    if (!px2) {
+      backward_kernel<T, 4, false><<<chunk_grid, kTilePixels / 4, 0, stream>>>(p, g, layout, rec, sched,
+                                                                               TileChunks<T>{});
       GSW_KERNEL_CHECK();
     }
     GSW_CUDA_CHECK(cudaMemsetAsync(big, 0, sizeof(int32_t), stream));
@@ -1245,7 +1335,7 @@ void launch_contribution(const RasterParams<T>& p, const ContributionParams<T>& 
   if (variant == Variant::kAuto) {
     const ChunkPlan<T> plan = plan_chunks<T>(
         p.bins.tile_offsets, tiles, p.bins.M,
-        chunk_size(p.bins.M, wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms())), 1, stream);
+        chunk_size(p.bins.M, wave_of(contribution_kernel<T, CT, 4>, kTilePixels / 4, device_sms())), stream);
     if (plan.extra > 0) {
       chunk_prefix_kernel<T><<<plan.grid, kTilePixels / 4, 0, stream>>>(p, plan.chunks);
       GSW_KERNEL_CHECK();
