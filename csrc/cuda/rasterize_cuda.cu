@@ -50,17 +50,17 @@
 // forward blended are undone; the exp() is shared with the VJP (splat_alpha_vjp_from_gaussian),
 // as on the CPU. The blocks start with the tiles that visit the most splats (tile_order). When the
 // densest tile's walk is longer than the time the busy tiles' total work keeps the GPU filled (a
-// trained model's few dense tiles; any small image), the tiles are cut into chunks instead
-// (choose_layout_kernel, on the device, per render): a tile whose visited splats are longer than a
-// chunk (128 splats, or the shortest length whose chunks fit one wave of checkpoint slots) is
-// walked by one 4-pixel block per chunk. back_checkpoint_kernel first walks every chunk of such a
+// trained model's few dense tiles; any small image), every tile is walked with 2 pixels per thread
+// instead of 4 (twice the warps per tile) and, when it is much longer, the tiles are cut into
+// chunks instead (choose_layout_kernel, on the device, per render): a tile whose visited splats are
+// longer than a chunk (128 splats, or the shortest length whose chunks fit one wave of checkpoint
+// slots) is walked by one 4-pixel block per chunk. back_checkpoint_kernel first walks every chunk of such a
 // tile front to back from T = 1 (its transmittance product and the colour and depth it adds, per
 // pixel), and the block of chunk k starts each pixel that blends past the chunk from those (the
 // transmittance in front of the chunk's end and the colour and depth behind it) instead of from
 // T_final; a chunk's records are its own splats' rows, so the per-Gaussian sums are unchanged, and
-// a tile of one chunk is walked as px4 walks it (BENCHMARKS.md 2s: 2.1x faster than whole tiles on a
-// lego model at 800x800, as fast at 1600x1600). Where no length would cut the densest tile, every
-// tile is walked with 2 pixels per thread instead of 4: twice the warps per tile. GSW_CUDA_BACKWARD
+// a tile of one chunk is walked as px4 walks it (BENCHMARKS.md 2s: on a lego model 1.7x / 3.5x
+// faster than 2 pixels per thread at 800x800 / 400x400). GSW_CUDA_BACKWARD
 // (A/B benchmarks only): "cut" cuts every render so (GSW_CUDA_CHUNK: at that length), "px4" / "px2"
 // walk whole tiles with that layout; "atomic" adds the tile totals to the gradients with one atomic
 // per value instead: no scratch, not bitwise deterministic.
@@ -279,6 +279,12 @@ struct TileSchedule {
 // with 4 (fewer warps, each reading a splat for more pixels: the higher throughput). The
 // contribution cuts tiles longer than chunk_size into chunks on every render (TileChunks).
 constexpr int kCriticalPathFactor = 2;
+// Such a render's tiles are cut into chunks when the densest tile's walk is more than kCutFactor
+// times that share, else walked whole with 2 pixels per thread (BENCHMARKS.md 2s, the blend
+// backward on a lego model, one wave of 8 blocks per SM: at 3.9x the share (1600x1600) cut 0.68-0.71
+// ms, whole tiles with 2 pixels per thread 0.64-0.66; at 11.6x (800x800) 0.44-0.50 against 0.85; at
+// 30x (400x400) 0.37 against 1.30).
+constexpr int kCutFactor = 6;
 
 // ------------------------------------------------------------------ dense-tile chunks
 
@@ -946,11 +952,12 @@ constexpr int kChooseThreads = 1024;
 // splats and their prefix sum), in choice[0]: kLayoutPx4 when the densest tile's walk (*max_count)
 // is at most kCriticalPathFactor x the total walk (offsets[tiles]) shared by `wave` resident
 // 4-pixel blocks: the GPU is filled and 4 pixels per thread, the higher throughput, win. Otherwise
-// the kernel is as long as that tile's walk by one block, whatever the other SMs do: the tiles
-// are cut into chunks of the shortest length of cut_length (choice[1]) whose chunks beyond each
-// tile's first fit `capacity` checkpoint slots (kLayoutCut; choice[2 ...]: the chunk counts'
-// prefix sum over the tiles, TileChunks::offsets), or, where no length fits or cuts the densest
-// tile, walked whole with 2 pixels per thread: twice the warps (kLayoutPx2, HasPx2) or 4.
+// the kernel is as long as that tile's walk by one block, whatever the other SMs do. Above
+// kCutFactor x the share, the tiles are cut into chunks of the shortest length of cut_length
+// (choice[1]) whose chunks beyond each tile's first fit `capacity` checkpoint slots (kLayoutCut;
+// choice[2 ...]: the chunk counts' prefix sum over the tiles, TileChunks::offsets); below it, or
+// where no length fits or cuts the densest tile, every tile is walked whole with 2 pixels per
+// thread: twice the warps (kLayoutPx2, HasPx2; else 4).
 // force_cut (GSW_CUDA_BACKWARD=cut): cut whatever the balance; `length` > 0 (GSW_CUDA_CHUNK): cut at
 // that length (the caller's capacity covers it).
 template <bool HasPx2>
@@ -965,8 +972,9 @@ __global__ void __launch_bounds__(kChooseThreads)
   const int t = static_cast<int>(threadIdx.x);
   const int32_t most = *max_count;
   const bool dense = int64_t(most) * wave > int64_t(kCriticalPathFactor) * offsets[tiles];
-  if (!dense && !force_cut) {
-    if (t == 0) choice[0] = kLayoutPx4, choice[1] = 0;
+  const bool cut_dense = int64_t(most) * wave > int64_t(kCutFactor) * offsets[tiles];
+  if (!cut_dense && !force_cut) {
+    if (t == 0) choice[0] = dense && HasPx2 ? kLayoutPx2 : kLayoutPx4, choice[1] = 0;
     return;
   }
   if (t < kNumCutLengths) extra[t] = 0;
@@ -987,7 +995,7 @@ __global__ void __launch_bounds__(kChooseThreads)
     int32_t len = length;
     for (int l = 0; len == 0 && l < kNumCutLengths; ++l)
       if (extra[l] <= capacity) len = cut_length(l);
-    const bool cut = len > 0 && (force_cut || len < most);
+    const bool cut = len > 0 && (force_cut || (cut_dense && len < most));
     choice[0] = cut ? kLayoutCut : (dense && HasPx2 ? kLayoutPx2 : kLayoutPx4);
     choice[1] = chosen = cut ? len : 0;
   }
