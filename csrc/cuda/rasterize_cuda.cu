@@ -341,16 +341,15 @@ struct TileChunks {
   T* prefix = nullptr;
   T* colour = nullptr;
   const int32_t* chosen = nullptr;  // {layout flag, length} (choose_layout_kernel), or nullptr: `size`
-  int32_t* counter = nullptr;       // the launch's work counter (draw), zeroed before it
   struct Chunk {
     int tile, k, n;  // chunk k of the tile's n
     int64_t slot0;   // chunks of the tiles in front beyond their first
   };
   __device__ __forceinline__ int32_t length() const { return chosen != nullptr ? chosen[1] : size; }
-  // The launch's chunk i; false past the last (or for every chunk unless cut).
-  __device__ __forceinline__ bool find(Chunk& ch, int32_t i) const {
+  // This block's chunk; false for a block past the last (or for every block unless cut).
+  __device__ __forceinline__ bool find(Chunk& ch) const {
     if (chosen != nullptr && chosen[0] != kLayoutCut) return false;
-    const int32_t b = offsets[t0] + i;
+    const int32_t b = offsets[t0] + static_cast<int32_t>(blockIdx.x);
     if (b >= offsets[t1]) return false;
     int lo = t0, n = t1 - t0;  // the last j with offsets[j] <= b (then offsets[j + 1] > b)
     while (n > 1) {
@@ -360,20 +359,6 @@ struct TileChunks {
     }
     ch = Chunk{lo, b - offsets[lo], offsets[lo + 1] - offsets[lo], int64_t(offsets[lo]) - lo};
     return true;
-  }
-  // This block's chunk (one block per chunk).
-  __device__ __forceinline__ bool find(Chunk& ch) const { return find(ch, static_cast<int32_t>(blockIdx.x)); }
-  // The block's next chunk, drawn from `counter` (every thread of the block calls it; the block's
-  // shared memory is free again when it returns): a launch of one wave of blocks walks every chunk,
-  // each block the next one whenever it is done, and a render that is not cut costs one wave of
-  // empty blocks, not one per chunk.
-  __device__ __forceinline__ bool draw(Chunk& ch) const {
-    if (chosen != nullptr && chosen[0] != kLayoutCut) return false;
-    __shared__ int32_t drawn;
-    __syncthreads();
-    if (threadIdx.x == 0) drawn = atomicAdd(counter, 1);
-    __syncthreads();
-    return find(ch, drawn);
   }
   // Narrows c to chunk ch of its tile's intersections.
   template <int PX>
@@ -446,58 +431,56 @@ __global__ void __launch_bounds__(kTilePixels / 4)
   __shared__ SplatGeo<T> s_geo[kThreads];
   __shared__ SplatColor<T> s_col[kThreads];
   typename TileChunks<T>::Chunk ch;
-  while (chunks.draw(ch)) {
-    if (ch.n == 1) continue;
-    const PixelCtx<PX> c = pixel_ctx<PX>(p, ch.tile);
-    const int32_t size = chunks.length();
-    const int j0 = ch.k * size, j1 = min(visited[ch.tile], j0 + size);
-    const int t = static_cast<int>(threadIdx.x);
-    const T pxc = T(c.px) + T(0.5);
-    T pyc[PX], tr[PX], acc[PX][4];
-    int n[PX], n_max = 0;
+  if (!chunks.find(ch) || ch.n == 1) return;
+  const PixelCtx<PX> c = pixel_ctx<PX>(p, ch.tile);
+  const int32_t size = chunks.length();
+  const int j0 = ch.k * size, j1 = min(visited[ch.tile], j0 + size);
+  const int t = static_cast<int>(threadIdx.x);
+  const T pxc = T(c.px) + T(0.5);
+  T pyc[PX], tr[PX], acc[PX][4];
+  int n[PX], n_max = 0;
 #pragma unroll
-    for (int i = 0; i < PX; ++i) {
-      pyc[i] = T(c.py + i) + T(0.5);
-      n[i] = c.inside(i) ? p.n_contrib[c.pix + int64_t(i) * p.width] : 0;
-      n_max = max(n_max, n[i]);
-      tr[i] = T(1);
+  for (int i = 0; i < PX; ++i) {
+    pyc[i] = T(c.py + i) + T(0.5);
+    n[i] = c.inside(i) ? p.n_contrib[c.pix + int64_t(i) * p.width] : 0;
+    n_max = max(n_max, n[i]);
+    tr[i] = T(1);
 #pragma unroll
-      for (int q = 0; q < 4; ++q) acc[i][q] = T(0);
+    for (int q = 0; q < 4; ++q) acc[i][q] = T(0);
+  }
+  const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
+  for (int lo = j0; lo < j1; lo += kThreads) {
+    __syncthreads();  // the previous batch is consumed
+    if (lo + t < j1) {
+      const int32_t gid = p.bins.gauss_ids[c.start + lo + t];
+      s_geo[t] = load_geo(p, gid);
+      s_col[t] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2], p.depths[gid]};
     }
-    const int warp_n = static_cast<int>(__reduce_max_sync(kFullMask, static_cast<unsigned>(n_max)));
-    for (int lo = j0; lo < j1; lo += kThreads) {
-      __syncthreads();  // the previous batch is consumed
-      if (lo + t < j1) {
-        const int32_t gid = p.bins.gauss_ids[c.start + lo + t];
-        s_geo[t] = load_geo(p, gid);
-        s_col[t] = {p.colors[3 * gid], p.colors[3 * gid + 1], p.colors[3 * gid + 2], p.depths[gid]};
-      }
-      __syncthreads();
-      const int hi = min(min(j1, warp_n), lo + kThreads);
-      for (int j = lo; j < hi; ++j) {
-        const SplatGeo<T> s = s_geo[j - lo];
-        const SplatColor<T> col = s_col[j - lo];
+    __syncthreads();
+    const int hi = min(min(j1, warp_n), lo + kThreads);
+    for (int j = lo; j < hi; ++j) {
+      const SplatGeo<T> s = s_geo[j - lo];
+      const SplatColor<T> col = s_col[j - lo];
 #pragma unroll
-        for (int i = 0; i < PX; ++i) {
-          const T a = j < n[i] ? alpha_at(s, pxc, pyc[i]) : T(0);
-          if (a > T(0)) {
-            const T w = a * tr[i];
-            acc[i][0] += w * col.r;
-            acc[i][1] += w * col.g;
-            acc[i][2] += w * col.b;
-            acc[i][3] += w * col.depth;
-            tr[i] *= T(1) - a;
-          }
+      for (int i = 0; i < PX; ++i) {
+        const T a = j < n[i] ? alpha_at(s, pxc, pyc[i]) : T(0);
+        if (a > T(0)) {
+          const T w = a * tr[i];
+          acc[i][0] += w * col.r;
+          acc[i][1] += w * col.g;
+          acc[i][2] += w * col.b;
+          acc[i][3] += w * col.depth;
+          tr[i] *= T(1) - a;
         }
       }
     }
+  }
 #pragma unroll
-    for (int i = 0; i < PX; ++i) {
-      if (ch.k < ch.n - 1) chunks.prefix_slot(ch, ch.k)[c.local(i)] = tr[i];
-      if (ch.k > 0)
+  for (int i = 0; i < PX; ++i) {
+    if (ch.k < ch.n - 1) chunks.prefix_slot(ch, ch.k)[c.local(i)] = tr[i];
+    if (ch.k > 0)
 #pragma unroll
-        for (int q = 0; q < 4; ++q) chunks.colour_slot(ch, ch.k - 1, q)[c.local(i)] = acc[i][q];
-    }
+      for (int q = 0; q < 4; ++q) chunks.colour_slot(ch, ch.k - 1, q)[c.local(i)] = acc[i][q];
   }
 }
 
@@ -875,13 +858,23 @@ __device__ __forceinline__ void resume(const TileChunks<T>& chunks, const typena
 // chunks of `chunks` (Cut; back_checkpoint_kernel first), else on the whole tiles of `sched`.
 // `records` (unless Atomic): the BlendRecords buffer (core/params.h); this tile's rows
 // layout.offsets[tile] - layout.row0 + [0, layout.visited[tile]) are all written.
-template <typename T, int PX, bool Atomic, bool Cut>
-__device__ __forceinline__ void backward_walk(const RasterParams<T>& p, const RasterGradParams<T>& g,
-                                              const BlendRecords& layout, T* __restrict__ records,
-                                              BackwardShared<T, PX>& sh, int tile, const TileChunks<T>& chunks,
-                                              const typename TileChunks<T>::Chunk& ch) {
+template <typename T, int PX, bool Atomic, bool Cut = false>
+__global__ void __launch_bounds__(kTilePixels / PX, Cut && sizeof(T) == 4 ? kCutBlocksPerSM : 1)
+    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
+                    T* __restrict__ records, const TileSchedule sched, const TileChunks<T> chunks) {
   using Shared = BackwardShared<T, PX>;
+  static_assert(sizeof(Shared) <= 48 * 1024, "static shared memory is limited to 48 KiB");
   constexpr int kThreads = Shared::kThreads;
+  __shared__ Shared sh;
+  typename TileChunks<T>::Chunk ch{};
+  int tile;
+  if constexpr (Cut) {
+    if (!chunks.find(ch)) return;
+    tile = ch.tile;
+  } else {
+    if (sched.skips(PX)) return;
+    tile = sched.tile();
+  }
   const PixelCtx<PX> c = pixel_ctx<PX>(p, tile);
   const T pxc = T(c.px) + T(0.5);
   // The splats [j0, j1) of the tile's list: its visited ones, or one chunk of them.
@@ -924,21 +917,6 @@ __device__ __forceinline__ void backward_walk(const RasterParams<T>& p, const Ra
   }
 }
 
-template <typename T, int PX, bool Atomic, bool Cut = false>
-__global__ void __launch_bounds__(kTilePixels / PX, Cut && sizeof(T) == 4 ? kCutBlocksPerSM : 1)
-    backward_kernel(const RasterParams<T> p, const RasterGradParams<T> g, const BlendRecords layout,
-                    T* __restrict__ records, const TileSchedule sched, const TileChunks<T> chunks) {
-  static_assert(sizeof(BackwardShared<T, PX>) <= 48 * 1024, "static shared memory is limited to 48 KiB");
-  __shared__ BackwardShared<T, PX> sh;
-  typename TileChunks<T>::Chunk ch{};
-  if constexpr (Cut) {
-    while (chunks.draw(ch)) backward_walk<T, PX, Atomic, Cut>(p, g, layout, records, sh, ch.tile, chunks, ch);
-  } else {
-    if (sched.skips(PX)) return;
-    backward_walk<T, PX, Atomic, Cut>(p, g, layout, records, sh, sched.tile(), chunks, ch);
-  }
-}
-
 // Record layout, first pass: each tile's visited count, the largest n_contrib of its pixels (one
 // block per tile, one thread per pixel; visited[tiles] = 0 for the prefix sum's total), its index in
 // ids[tile] (the values tile_order sorts), and the largest count in *max_visited (zeroed by the
@@ -977,8 +955,7 @@ constexpr int kChooseThreads = 1024;
 // the kernel is as long as that tile's walk by one block, whatever the other SMs do. Above
 // kCutFactor x the share, the tiles are cut into chunks of the shortest length of cut_length
 // (choice[1]) whose chunks beyond each tile's first fit `capacity` checkpoint slots (kLayoutCut;
-// choice[4 ...]: the chunk counts' prefix sum over the tiles, TileChunks::offsets; choice[2], [3]:
-// the cut launches' work counters, zeroed here); below it, or
+// choice[2 ...]: the chunk counts' prefix sum over the tiles, TileChunks::offsets); below it, or
 // where no length fits or cuts the densest tile, every tile is walked whole with 2 pixels per
 // thread: twice the warps (kLayoutPx2, HasPx2; else 4).
 // force_cut (GSW_CUDA_BACKWARD=cut): cut whatever the balance; `length` > 0 (GSW_CUDA_CHUNK): cut at
@@ -1032,7 +1009,7 @@ __global__ void __launch_bounds__(kChooseThreads)
   for (int j = lo; j < hi; ++j) sum += chunks_of(j);
   Scan(scan).ExclusiveSum(sum, sum);
   for (int j = lo; j < hi; ++j) {
-    choice[4 + j] = sum;
+    choice[2 + j] = sum;
     sum += chunks_of(j);
   }
 }
@@ -1289,11 +1266,13 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   // every chunk at GSW_CUDA_CHUNK's length). The choice comes from the whole image's counts, so
   // every chunk of tiles of a records budget walks a tile alike (the same bits).
   const int32_t length = choose ? env_chunk_length() : 0;
-  const int64_t cut_wave = choose ? wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms) : 0;
-  const int64_t capacity = !choose     ? 0
-                           : length > 0 ? p.bins.M / length
-                                        : std::min<int64_t>(cut_wave, (p.bins.M + cut_length(0) - 1) / cut_length(0));
-  DeviceBuffer choice_buf(sizeof(int32_t) * (choose ? size_t(tiles) + 5 : 0));
+  const int64_t capacity =
+      !choose ? 0
+      : length > 0
+          ? p.bins.M / length
+          : std::min<int64_t>(wave_of(backward_kernel<T, 4, false, true>, kTilePixels / 4, sms),
+                              (p.bins.M + cut_length(0) - 1) / cut_length(0));
+  DeviceBuffer choice_buf(sizeof(int32_t) * (choose ? size_t(tiles) + 3 : 0));
   DeviceBuffer checkpoints(sizeof(T) * size_t(capacity) * kTilePixels * 5);
   int32_t* choice = choice_buf.as<int32_t>();
   TileChunks<T> cuts{};
@@ -1304,12 +1283,11 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
         choice);
     GSW_KERNEL_CHECK();
     T* slots = checkpoints.as<T>();
-    cuts = TileChunks<T>{choice + 4, 0, static_cast<int>(tiles), 0, slots,
-                         slots + size_t(capacity) * kTilePixels, choice, choice + 2};
+    cuts = TileChunks<T>{choice + 2, 0, static_cast<int>(tiles), 0, slots,
+                         slots + size_t(capacity) * kTilePixels, choice};
     if (capacity > 0) {
-      const int64_t wave = wave_of(back_checkpoint_kernel<T>, kTilePixels / 4, sms);
-      back_checkpoint_kernel<T><<<static_cast<unsigned>(std::min(tiles + capacity, wave)), kTilePixels / 4, 0,
-                                  stream>>>(p, visited, cuts);
+      back_checkpoint_kernel<T><<<static_cast<unsigned>(tiles + capacity), kTilePixels / 4, 0, stream>>>(
+          p, visited, cuts);
       GSW_KERNEL_CHECK();
     }
   }
@@ -1320,14 +1298,12 @@ void rasterize_backward(const RasterParams<T>& p, const RasterGradParams<T>& g, 
   for (const auto& [c0, c1] : chunks) {
     const int t0 = static_cast<int>(c0), t1 = static_cast<int>(c1);
     layout.row0 = chunks.size() > 1 ? host[t0] : 0;  // the chunk's first row in the full layout
-    if (choose) {  // one wave of blocks drawing the chunks; returns at once unless cut
+    if (choose) {  // returns at once unless cut
       TileChunks<T> part = cuts;
       part.t0 = t0;
       part.t1 = t1;
-      part.counter = choice + 3;
-      if (chunks.size() > 1) GSW_CUDA_CHECK(cudaMemsetAsync(part.counter, 0, sizeof(int32_t), stream));
-      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(std::min(t1 - t0 + capacity, cut_wave)),
-                                           kTilePixels / 4, 0, stream>>>(p, g, layout, rec, TileSchedule{}, part);
+      backward_kernel<T, 4, false, true><<<static_cast<unsigned>(t1 - t0 + capacity), kTilePixels / 4, 0, stream>>>(
+          p, g, layout, rec, TileSchedule{}, part);
       GSW_KERNEL_CHECK();
     }
     const unsigned chunk_grid = static_cast<unsigned>(t1 - t0);
