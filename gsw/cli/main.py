@@ -1,8 +1,8 @@
-"""The `gsw` command line: demo, embed, embed-image, extract, verify, eval, eval-grid, train, render, info.
+"""The `gsw` command line: watermark 3DGS models and images, read and identify marks, fingerprint copies, more.
 
 Run `gsw <command> --help` for the options of each command. Each command group lives in its own module
-(:mod:`gsw.cli.demo`, :mod:`gsw.cli.mark`, :mod:`gsw.cli.evaluate`, :mod:`gsw.cli.train`, :mod:`gsw.cli.render`)
-and adds its sub-commands with ``register(subparsers)``; :func:`main` is the one place that turns an expected
+(:mod:`gsw.cli.demo`, :mod:`gsw.cli.mark`, :mod:`gsw.cli.evaluate`, :mod:`gsw.cli.train`, :mod:`gsw.cli.render`,
+:mod:`gsw.cli.registry`, :mod:`gsw.cli.export`, :mod:`gsw.cli.decoder`, :mod:`gsw.cli.fingerprint`) and adds its sub-commands with ``register(subparsers)``; :func:`main` is the one place that turns an expected
 failure into one line on stderr and exit status 2 (``gsw --debug ...`` shows the traceback instead).
 """
 
