@@ -13,9 +13,10 @@
 #   bash benchmarks/gpu_kernels.sh ncu OUT [CASE]  # Nsight Compute: the blend forward and contribution kernels of CASE
 #   bash benchmarks/gpu_kernels.sh lego_train OUT TAG  # lego trained here for 60 s (build/gpu/lego carried)
 #   bash benchmarks/gpu_kernels.sh lego OUT TAG  # that model (trained first if none), gsplat side by side
-#   bash benchmarks/gpu_kernels.sh cut OUT TAG  # the blend backward with dense tiles cut into chunks (GSW_CUDA_BACKWARD=cut)
-#                                              # against the default on that model and two synthetic cases, at the default
-#                                              # chunk length and at 256 / 128 splats (GSW_CUDA_CHUNK; BENCHMARKS.md 2r)
+#   bash benchmarks/gpu_kernels.sh cut OUT TAG  # the blend backward's layouts (auto, px2, px4) on that model at 400 / 800 /
+#                                              # 1600 px and two synthetic cases, with auto's cut length free and fixed
+#                                              # at 128 / 192 / 256 splats (GSW_CUDA_CHUNK), and the tile counts behind
+#                                              # auto's choice (tile_counts.py; BENCHMARKS.md 2s)
 #   bash benchmarks/gpu_kernels.sh lego_kernels OUT TAG  # kernel_times.py on that model
 #   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over it (e.g. the last
 #                                              # commit's csrc/ and gsw/: `git archive HEAD csrc gsw | tar -x -C DIR`),
@@ -91,17 +92,19 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
       --cases ply:0:800x800 ply:0:1600x1600 \
       --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_lego_$3.json" --md "$2/cuda_lego_$3.md" 2>&1 | tail -20
     ;;
-  cut)  # the cut blend backward against the default, per chunk length (no gsplat)
+  cut)  # the blend backward's layouts per cut length, and the tile counts (no gsplat)
     P=$(find build/train_lego -name point_cloud.ply 2>/dev/null | sort | tail -1)
     if [ -z "$P" ]; then
       bash "$0" lego_train "$2" "$3" || exit 1
       P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
     fi
-    for CHUNK in "" 256 128; do
-      GSW_CUDA_CHUNK=$CHUNK "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --no-gsplat --backward auto cut \
-        --ply "$P" --cases ply:0:800x800 ply:0:1600x1600 frustum:100000:800x800 heavy:1000000:1920x1080 \
+    CASES=(ply:0:400x400 ply:0:800x800 ply:0:1600x1600 frustum:100000:800x800 heavy:1000000:1920x1080)
+    "${PY[@]}" benchmarks/tile_counts.py --ply "$P" --cases "${CASES[@]}" 2>&1 | grep -v Warning
+    for CHUNK in "" 128 192 256; do
+      GSW_CUDA_CHUNK=$CHUNK "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --no-gsplat --backward auto px2 px4 \
+        --ply "$P" --cases "${CASES[@]}" \
         --commit "$(git rev-parse --short HEAD 2>/dev/null)+$3" --out "$2/cuda_cut_${3}_chunk${CHUNK:-auto}.json" \
-        --md "$2/cuda_cut_${3}_chunk${CHUNK:-auto}.md" 2>&1 | grep -A8 "blend backward variants" | tail -6
+        --md "$2/cuda_cut_${3}_chunk${CHUNK:-auto}.md" 2>&1 | grep -A9 "blend backward variants" | tail -7
     done
     ;;
   lego_kernels)  # kernel_times.py on that model (trained first if this machine has none) at 1x and 2x render size
