@@ -348,9 +348,10 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
     (rasterize_cuda.cu, choose_layout_kernel). Where the densest tile's walk is longer than twice the total walk
     shared by one wave of 4-pixel blocks, it walks whole tiles with 2 pixels per thread or, where it is longer than
     six times that share, cuts the tiles into chunks of 128 splats (their checkpoints fit: a small scene has fewer
-    than one wave of them) unless that would not cut the densest tile; otherwise whole tiles with 4. Its gradients are the chosen layout's bits ("cut" at
-    GSW_CUDA_CHUNK=128 cuts alike), and differ from the other layouts'. A wave holds at least one block per SM and
-    at most 32, which bounds the choice from the tiles' counts alone."""
+    than one wave of them) unless that would not cut the densest tile; otherwise whole tiles with 4. Its gradients
+    are the chosen layout's bits ("cut" at GSW_CUDA_CHUNK=128 cuts alike), and differ from the other layouts'. A
+    wave holds at least one block per SM and at most 32, which bounds the choice from the tiles' counts alone. (The
+    thresholds 2x, 6x and 128 splats are the kernel's kCriticalPathFactor, kCutFactor and cut_length(0).)"""
     sms = torch.cuda.get_device_properties(0).multi_processor_count
 
     def grads(g: Gaussians, cam: Camera, bg, deg: int, variant: str, chunk: str = "") -> dict:

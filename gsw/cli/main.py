@@ -2,8 +2,9 @@
 
 Run `gsw <command> --help` for the options of each command. Each command group lives in its own module
 (:mod:`gsw.cli.demo`, :mod:`gsw.cli.mark`, :mod:`gsw.cli.evaluate`, :mod:`gsw.cli.train`, :mod:`gsw.cli.render`,
-:mod:`gsw.cli.registry`, :mod:`gsw.cli.export`, :mod:`gsw.cli.decoder`, :mod:`gsw.cli.fingerprint`) and adds its sub-commands with ``register(subparsers)``; :func:`main` is the one place that turns an expected
-failure into one line on stderr and exit status 2 (``gsw --debug ...`` shows the traceback instead).
+:mod:`gsw.cli.registry`, :mod:`gsw.cli.export`, :mod:`gsw.cli.decoder`, :mod:`gsw.cli.fingerprint`) and adds its
+sub-commands with ``register(subparsers)``; :func:`main` is the one place that turns an expected failure into one
+line on stderr and exit status 2 (``gsw --debug ...`` shows the traceback instead).
 """
 
 from __future__ import annotations
