@@ -42,6 +42,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
                               gsw::SH_C3_4, gsw::SH_C3_5, gsw::SH_C3_6);
   c["BLEND_GRADS"] = gsw::kBlendGrads;
   c["RECORDS_BUDGET_MIB"] = gsw::kRecordsBudgetMiB;
+  c["LAYOUT_CRITICAL_PATH_FACTOR"] = gsw::kCriticalPathFactor;
+  c["LAYOUT_CUT_FACTOR"] = gsw::kCutFactor;
+  c["CUT_LENGTH_MIN"] = gsw::kCutLengthMin;
   m.attr("constants") = c;
 
   py::dict b;

@@ -19,6 +19,7 @@ import pytest
 import torch
 
 import gsw
+from gsw._ext import _C
 from gsw.camera import Camera
 from gsw.gaussians import Gaussians, cat_gaussians
 from gsw.render.functional import rasterization
@@ -351,8 +352,10 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
     than one wave of them) unless that would not cut the densest tile; otherwise whole tiles with 4. Its gradients
     are the chosen layout's bits ("cut" at GSW_CUDA_CHUNK=128 cuts alike), and differ from the other layouts'. A
     wave holds at least one block per SM and at most 32, which bounds the choice from the tiles' counts alone. (The
-    thresholds 2x, 6x and 128 splats are the kernel's kCriticalPathFactor, kCutFactor and cut_length(0).)"""
+    thresholds 2x, 6x and 128 splats are read from the extension: csrc/core/constants.h.)"""
     sms = torch.cuda.get_device_properties(0).multi_processor_count
+    c = _C.constants
+    dense, cut, length = c["LAYOUT_CRITICAL_PATH_FACTOR"], c["LAYOUT_CUT_FACTOR"], c["CUT_LENGTH_MIN"]
 
     def grads(g: Gaussians, cam: Camera, bg, deg: int, variant: str, chunk: str = "") -> dict:
         monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
@@ -361,7 +364,7 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
 
     cam_large = make_camera(1920, 1080)
     large = (frustum_scene(1_000_000, cam_large, sh_degree=0, seed=7, dtype=torch.float32), cam_large, (0.0, 0.0, 0.0), 0)
-    cases = ((SCENES["dense_tiles"](), ("cut", "128"), ("px2", "px4")),
+    cases = ((SCENES["dense_tiles"](), ("cut", str(length)), ("px2", "px4")),
              (SCENES["size_17x33"](), ("px2", ""), ("px4",)),
              (large, ("px4", ""), ("px2",)))
     for (g, cam, bg, deg), expected, others in cases:
@@ -369,10 +372,10 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
         visited = _tile_visited(_render(g, cam, bg, deg).n_contrib)
         most, total = int(visited.max()), int(visited.sum())
         if expected[0] == "px4":
-            assert most * sms * 32 <= 2 * total  # not dense for any wave of at most 32 blocks per SM
+            assert most * sms * 32 <= dense * total  # not dense for any wave of at most 32 blocks per SM
         else:
-            assert most * sms > 6 * total  # dense enough to cut for any wave of at least one block per SM
-            assert (most > 128) == (expected[0] == "cut"), most  # 128 splats cut the densest tile
+            assert most * sms > cut * total  # dense enough to cut for any wave of at least one block per SM
+            assert (most > length) == (expected[0] == "cut"), most  # the shortest chunk cuts the densest tile
         auto, ref = grads(g, cam, bg, deg, "auto"), grads(g, cam, bg, deg, *expected)
         assert all(torch.equal(auto[k], ref[k]) for k in ref), expected
         for other in others:  # the layouts differ in the bits

@@ -57,6 +57,25 @@ constexpr double SH_COLOR_OFFSET = 0.5;
 // Layout, not a threshold: a splat's blend cotangents as one record (CPU scratch rows, CUDA warp
 // sums), in this order: mean2d x, y; conic a, b, c; opacity; colour r, g, b; depth.
 constexpr int kBlendGrads = 10;
+// Scheduling thresholds of the CUDA blend backward (rasterize_cuda.cu, choose_layout_kernel), not
+// rendering thresholds: they choose a layout per render, and the layouts agree to rounding.
+// A render's densest tile sets the kernel's length when its walk is more than
+// kCriticalPathFactor times the busy tiles' mean share of one wave of 4-pixel blocks (BENCHMARKS.md
+// 2k / 2l: a trained model's densest tiles visit 6-7x the mean); the backward then walks whole
+// tiles with 2 pixels per thread, otherwise with 4 (fewer warps, each reading a splat for more
+// pixels: the higher throughput). The contribution cuts tiles longer than its chunk into chunks on
+// every render.
+constexpr int kCriticalPathFactor = 2;
+// Such a render's tiles are cut into chunks when the densest tile's walk is more than kCutFactor
+// times that share (BENCHMARKS.md 2s, the blend backward on a lego model, one wave of 8 blocks per
+// SM: at 3.9x the share (1600x1600) cut 0.68-0.71 ms, whole tiles with 2 pixels per thread
+// 0.64-0.66; at 11.6x (800x800) 0.44-0.50 against 0.85; at 30x (400x400) 0.37 against 1.30).
+constexpr int kCutFactor = 6;
+// The shortest chunk such a render's tiles are cut at (splats, a multiple of the 4-pixel batch of
+// 64); the longer ones are 1.5x and 2x the one before: 128, 192, 256, 384, ... (BENCHMARKS.md 2s:
+// 128 was the fastest of 128 / 256 / ~450 on lego at 800x800).
+constexpr int kCutLengthMin = 128;
+
 // Default budget of the blend backward's records held at once (MiB; core/params.h
 // blend_records_budget): a cap against running out of memory on very large renders.
 constexpr double kRecordsBudgetMiB = 256.0;

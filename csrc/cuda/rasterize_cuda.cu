@@ -272,19 +272,7 @@ struct TileSchedule {
   }
 };
 
-// A render's densest tile sets the kernel's length when its walk is more than kCriticalPathFactor
-// times the busy tiles' mean share of one wave of 4-pixel blocks (BENCHMARKS.md 2k / 2l: a trained
-// model's densest tiles visit 6-7x the mean). The blend backward then cuts its tiles into chunks
-// (choose_layout_kernel; or walks them whole with 2 pixels per thread), otherwise walks whole tiles
-// with 4 (fewer warps, each reading a splat for more pixels: the higher throughput). The
-// contribution cuts tiles longer than chunk_size into chunks on every render (TileChunks).
-constexpr int kCriticalPathFactor = 2;
-// Such a render's tiles are cut into chunks when the densest tile's walk is more than kCutFactor
-// times that share, else walked whole with 2 pixels per thread (BENCHMARKS.md 2s, the blend
-// backward on a lego model, one wave of 8 blocks per SM: at 3.9x the share (1600x1600) cut 0.68-0.71
-// ms, whole tiles with 2 pixels per thread 0.64-0.66; at 11.6x (800x800) 0.44-0.50 against 0.85; at
-// 30x (400x400) 0.37 against 1.30).
-constexpr int kCutFactor = 6;
+// The layout thresholds kCriticalPathFactor and kCutFactor are in core/constants.h.
 
 // ------------------------------------------------------------------ dense-tile chunks
 
@@ -941,11 +929,14 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-// The chunk lengths a dense render's blend backward may cut at, shortest first: 128, 192, 256, 384,
-// ... 2048 splats (multiples of the 4-pixel batch; BENCHMARKS.md 2s: 128 was the fastest of 128 /
-// 256 / ~450 on lego at 800x800).
+// The chunk lengths a dense render's blend backward may cut at, shortest first: kCutLengthMin (128),
+// 192, 256, 384, ... 2048 splats (core/constants.h).
 constexpr int kNumCutLengths = 9;
-__host__ __device__ constexpr int32_t cut_length(int l) { return (l % 2 != 0 ? 192 : 128) << (l / 2); }
+__host__ __device__ constexpr int32_t cut_length(int l) {
+  return (l % 2 != 0 ? kCutLengthMin * 3 / 2 : kCutLengthMin) << (l / 2);
+}
+static_assert(cut_length(0) % (kTilePixels / 4) == 0 && cut_length(1) % (kTilePixels / 4) == 0,
+              "cut lengths are whole 4-pixel batches");
 constexpr int kChooseThreads = 1024;
 
 // The blend backward's layout for this render (one block; visited / offsets: the tiles' visited
