@@ -18,24 +18,7 @@ import torch
 from bench_cuda import make_scene, parse_case
 from gsw.render.rasterize import rasterize
 
-TILE = 16
 CUT_LENGTHS = (128, 192, 256, 384, 512)
-
-
-def tile_visited(n_contrib: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Each 16x16 tile's largest n_contrib, flattened in tile order.
-
-    Args:
-        n_contrib: [H * W] or [H, W] splats blended per pixel (the forward's).
-        height: H.
-        width: W.
-
-    Returns:
-        [tiles] int64.
-    """
-    pad = torch.zeros((height + TILE - 1) // TILE * TILE, (width + TILE - 1) // TILE * TILE, dtype=torch.int64)
-    pad[:height, :width] = n_contrib.reshape(height, width).cpu()
-    return pad.reshape(pad.shape[0] // TILE, TILE, pad.shape[1] // TILE, TILE).amax(dim=(1, 3)).flatten()
 
 
 def main() -> None:
@@ -53,7 +36,7 @@ def main() -> None:
         g, cam = make_scene(family, n, w, h, args.ply, args.device)
         with torch.no_grad():
             out = rasterize(g, cam, validate=False)
-        v = tile_visited(out.n_contrib, h, w)
+        v = out.tile_walks()
         most, total = int(v.max()), int(v.sum())
         extra = {L: int(((v - 1).clamp(min=0) // L).sum()) for L in CUT_LENGTHS}
         p90, p99 = torch.quantile(v.double(), torch.tensor([0.9, 0.99], dtype=torch.float64)).tolist()

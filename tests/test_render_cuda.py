@@ -331,19 +331,6 @@ def test_backward_is_bitwise_deterministic(name: str, variant: str, chunk: str, 
             assert torch.equal(again[key], ref), key
 
 
-def _tile_visited(n_contrib: torch.Tensor) -> torch.Tensor:
-    """Each 16x16 tile's largest n_contrib (the splats the blend backward walks there), flattened."""
-    H, W = n_contrib.shape[-2:]
-    pad = torch.zeros((H + 15) // 16 * 16, (W + 15) // 16 * 16, dtype=torch.int64)
-    pad[:H, :W] = n_contrib.reshape(H, W).cpu()
-    return pad.reshape(pad.shape[0] // 16, 16, pad.shape[1] // 16, 16).amax(dim=(1, 3)).flatten()
-
-
-def _visited_records(n_contrib: torch.Tensor) -> int:
-    """Sum over 16x16 tiles of the tile's largest n_contrib: the blend backward's record count."""
-    return int(_tile_visited(n_contrib).sum())
-
-
 def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
     """The default blend backward ("auto") chooses its layout per render from the tiles' visited splats
     (rasterize_cuda.cu, choose_layout_kernel). Where the densest tile's walk is longer than twice the total walk
@@ -369,7 +356,7 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
              (large, ("px4", ""), ("px2",)))
     for (g, cam, bg, deg), expected, others in cases:
         g = g.to(dtype=torch.float32, device="cuda")
-        visited = _tile_visited(_render(g, cam, bg, deg).n_contrib)
+        visited = _render(g, cam, bg, deg).tile_walks()
         most, total = int(visited.max()), int(visited.sum())
         if expected[0] == "px4":
             assert most * sms * 32 <= dense * total  # not dense for any wave of at most 32 blocks per SM
@@ -391,7 +378,7 @@ def test_cut_backward_is_px4_where_no_tile_is_cut(monkeypatch) -> None:
     g64, cam, bg, deg = SCENES["dense_tiles"]()
     g = g64.to(dtype=torch.float32, device="cuda")
     w = _weights(cam, torch.float32)
-    assert int(_tile_visited(_render(g, cam, bg, deg).n_contrib).max()) > 64  # some tile is cut at 64
+    assert int(_render(g, cam, bg, deg).tile_walks().max()) > 64  # some tile is cut at 64
 
     def grads(variant: str, chunk: str) -> dict:
         monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)
@@ -434,7 +421,7 @@ def test_backward_records_only_visited_splats(monkeypatch) -> None:
     cpu = _grads(g, cam, bg, 3, w)
     gc = g.to("cuda")
     out = rasterize(gc, cam, validate=False)
-    M, R = int(out.bins.gauss_ids.numel()), _visited_records(out.n_contrib)
+    M, R = int(out.bins.gauss_ids.numel()), int(out.tile_walks().sum())  # the blend backward's records
     assert M * 10 * 8 > 64 << 20 and R < 0.75 * M, (M, R)
     peaks = {}
     for variant in ("atomic", "px4"):

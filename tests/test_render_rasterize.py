@@ -80,6 +80,17 @@ def test_forward_lower_sh_degree_than_stored() -> None:
     assert_forward_matches(g, make_camera(), sh_degree=1)
 
 
+@pytest.mark.parametrize("size", [(16, 16), (50, 21), (1, 1)])
+def test_tile_walks_are_each_tiles_largest_n_contrib(size: tuple[int, int]) -> None:
+    W, H = size
+    out = rasterize(random_gaussians(200, sh_degree=0, seed=9, extent=0.8), make_camera(W, H), validate=False)
+    walks = out.tile_walks()
+    tx, ty = -(-W // 16), -(-H // 16)
+    expected = [int(out.n_contrib[y * 16:(y + 1) * 16, x * 16:(x + 1) * 16].max()) for y in range(ty) for x in range(tx)]
+    assert walks.dtype == torch.int64 and walks.tolist() == expected
+    assert int(walks.max()) > 0
+
+
 def test_empty_scene_is_background() -> None:
     g = Gaussians.empty(sh_degree=2)
     out = rasterize(g, make_camera(21, 13), background=(0.1, 0.2, 0.3))

@@ -199,6 +199,20 @@ class RenderOutput:
         """[N] bool mask of Gaussians on screen."""
         return self.projection.visible
 
+    def tile_walks(self) -> Tensor:
+        """Each tile's walk: the largest :attr:`n_contrib` of its pixels, the splats the blend backward walks there.
+
+        Returns:
+            [tiles_y * tiles_x] int64 on the CPU, row-major over the TILE_SIZE x TILE_SIZE tiles (edge tiles
+            padded with 0). Their sum is the backward's record count; the largest against that sum is what the
+            CUDA backward chooses its layout by (BENCHMARKS.md 2s).
+        """
+        t = int(_C.constants["TILE_SIZE"])
+        H, W = self.height, self.width
+        pad = torch.zeros(-(-H // t) * t, -(-W // t) * t, dtype=torch.int64)
+        pad[:H, :W] = self.n_contrib.reshape(H, W).cpu()
+        return pad.reshape(pad.shape[0] // t, t, pad.shape[1] // t, t).amax(dim=(1, 3)).flatten()
+
     @property
     def expected_depth(self) -> Tensor:
         """[1, H, W] depth / alpha (0 where nothing was blended)."""
