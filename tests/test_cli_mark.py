@@ -236,6 +236,23 @@ def test_fgd_is_the_recipes_unless_asked() -> None:
     assert cfg("--fgd").fgd and not cfg("--recipe", "paper", "--no-fgd").fgd
 
 
+def test_mse_replaces_the_l1_term_in_embed_and_fingerprint(capsys) -> None:
+    from gsw.fingerprint.batched import pool_config
+
+    def weights(*argv: str, base=None):
+        return embed_config(build_parser().parse_args(list(argv)), base).weights
+
+    default = weights("embed", "in", "--output", "out")
+    assert (default.l1, default.mse) == (1.0, 0.0)
+    w = weights("embed", "in", "--output", "out", "--mse", "35", "--message-weight", "0.2")
+    assert (w.l1, w.mse, w.message) == (0.0, 35.0, 0.2)
+    fp = ["fingerprint", "in", "--recipients", "r.csv", "--output", "out"]
+    assert (weights(*fp, base=pool_config()).l1, weights(*fp, "--mse", "35", base=pool_config()).mse) == (1.0, 35.0)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["embed", "in", "--output", "out", "--mse", "0"])
+    assert "must be a positive number" in capsys.readouterr().err
+
+
 def test_embed_render_scales_reach_the_config_and_are_checked(capsys) -> None:
     args = build_parser().parse_args(["embed", "in", "--output", "out", "--render-scales", "0.5", "1"])
     assert embed_config(args).render_scales == (0.5, 1.0)

@@ -248,6 +248,7 @@ def test_early_stop_settings() -> None:
     assert (EarlyStop.parse("careful,redraw=2").redraw, EarlyStop().redraw_bits) == (2, 0.995)
     assert (EarlyStop.parse("careful,focus=0.5").focus, EarlyStop().focus) == (0.5, 0.0)
     assert EarlyStop.parse("focused") == dataclasses.replace(careful, focus=1.0)
+    assert EarlyStop.parse("assured") == dataclasses.replace(careful, focus=1.0, redraw=2)
     for bad in ("redraw=-1", "redraw_bits=1.5", "redraw=0.5"):
         with pytest.raises(ValueError, match="redraw"):
             EarlyStop.parse(bad)

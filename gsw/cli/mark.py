@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from gsw.cli.common import (DEFAULT_BITS, READOUTS, add_background_options, add_bits_option, add_device_option,
-                            add_message_options, add_readout_option, add_resize_images_option, background_of,
-                            check_output, check_readout_origin, input_paths, message_from_args,
+                            add_message_options, add_mse_option, add_readout_option, add_resize_images_option,
+                            background_of, check_output, check_readout_origin, input_paths, message_from_args,
                             not_detectable_warning, output_file, output_folder, positive_float, positive_int,
                             print_json, read_images, readout_decoder, reading)
 from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
@@ -76,6 +76,7 @@ def _add_embed_parser(subparsers: argparse._SubParsersAction) -> None:
                      help="train-time model-attack probability (parameter noise / SH degree 0)")
     emb.add_argument("--message-weight", type=float, default=None,
                      help="weight of the message loss (default: LossWeights.message)")
+    add_mse_option(emb)
     add_background_options(emb, "default: black")
     add_readout_option(emb)
     emb.add_argument("--seed", type=int, default=0, help="optimisation seed (never the message)")
@@ -144,6 +145,8 @@ def embed_config(args: argparse.Namespace, base=None):
     weights = lpips_weights(lpips_net)
     if args.message_weight is not None:
         weights = dataclasses.replace(weights, message=args.message_weight)
+    if args.mse is not None:
+        weights = dataclasses.replace(weights, l1=0.0, mse=args.mse)
     scales = getattr(args, "render_scales", None)  # `gsw fingerprint` has no such option
     novel = getattr(args, "novel_views", None)  # `gsw embed` takes it from --recipe
     bank = getattr(args, "view_bank", None)
