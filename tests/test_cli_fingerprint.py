@@ -108,6 +108,27 @@ def test_novel_views_reach_the_pool(model_dir, tmp_path, capsys, monkeypatch) ->
     assert (tmp_path / "out" / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
 
 
+def test_the_measured_setting_reaches_the_pool(model_dir, tmp_path, capsys, monkeypatch) -> None:
+    """`--early-stop assured --mse 35 --no-fgd` (README: the best measured setting) runs a job whose pool gets the
+    squared-error term instead of L1, no FGD, and the rule that redraws hard messages."""
+    import gsw.fingerprint as fp
+    from gsw.fingerprint.stopping import EarlyStop
+
+    seen, real = {}, fp.fingerprint
+
+    def spy(*args, **kwargs):
+        seen.update(config=kwargs["config"], early_stop=kwargs["early_stop"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fp, "fingerprint", spy)
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--early-stop", "assured", "--mse", "35",
+                        "--no-fgd") == 0
+    cfg = seen["config"]
+    assert (cfg.weights.l1, cfg.weights.mse, cfg.fgd) == (0.0, 35.0, False)
+    assert seen["early_stop"] == EarlyStop.parse("focused,redraw=2")
+    assert (tmp_path / "out" / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
+
+
 def test_novel_views_outside_0_1_are_refused(model_dir, tmp_path, capsys) -> None:
     assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "1.5") == 2
     err = capsys.readouterr().err
