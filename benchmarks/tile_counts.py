@@ -2,8 +2,9 @@
 
 For each case: the 16x16 tiles' visited splats (the largest n_contrib of a tile's pixels: the splats the blend
 backward walks there), their total and quantiles, the densest tile's walk over the total walk shared by one wave of
-`--blocks-per-sm` whole-tile blocks per SM (the quantity `choose_layout_kernel` compares with 2 and 6 in
-csrc/cuda/rasterize_cuda.cu), and the chunks beyond each tile's first at the cut lengths it may choose.
+`--blocks-per-sm` whole-tile blocks per SM (the quantity `choose_layout_kernel` compares with
+LAYOUT_CRITICAL_PATH_FACTOR and LAYOUT_CUT_FACTOR, csrc/core/constants.h), and the chunks beyond each tile's first
+at the cut lengths it may choose.
 
     python benchmarks/tile_counts.py --ply MODEL.ply --cases ply:0:800x800 frustum:100000:800x800
 
@@ -16,9 +17,11 @@ import argparse
 import torch
 
 from bench_cuda import make_scene, parse_case
+from gsw._ext import _C
 from gsw.render.rasterize import rasterize
 
-CUT_LENGTHS = (128, 192, 256, 384, 512)
+_MIN = int(_C.constants["CUT_LENGTH_MIN"])
+CUT_LENGTHS = (_MIN, _MIN * 3 // 2, 2 * _MIN, 3 * _MIN, 4 * _MIN)  # the kernel's cut_length(0 ... 4)
 
 
 def main() -> None:
