@@ -19,6 +19,10 @@ tensors to the image:
   (gradients reset before each run, outside the timed region);
 * contribution (gsw only): `gsw.contribution(g, cam, weights[3, H, W])`, reported against gsw's forward.
 
+gsw's and gsplat's forward and forward+backward are timed in `--rounds` alternating rounds (gsw, gsplat packed,
+gsplat unpacked, each forward then forward+backward), and each is reported as the median of its rounds: a drift of
+the GPU's or the host's speed over a case's run falls on both renderers alike.
+
 gsplat runs with `packed=True` (its default) and `packed=False`; each gsw time is compared with the faster
 mode of that measurement. gsplat gets pre-activated scales/opacities (its API takes them; the activation is
 not timed) and default settings otherwise (16x16 tiles, eps2d 0.3 as ours). Peak memory is
@@ -193,9 +197,11 @@ def fwdbwd_pair(g: Gaussians, cam: Camera, w_img: torch.Tensor, keep_image: bool
     return (gsw_fwdbwd, params), (gsplat_fwdbwd, gp)
 
 
-def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.Tensor, reps: int,
-              warmup: int) -> tuple[dict[str, float], torch.Tensor]:
-    """gsw's timings and peaks for one scene; returns them and the forward image."""
+def gsw_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor):
+    """gsw's forward (no grad; `validate`, `host_check`: the device flag, the former host check) and
+    forward+backward (loss = sum(image * w_img); the image alone is kept, as gsplat's is in gsplat_ops: the other
+    outputs are freed before the backward, except what the backward itself saved), and the reset of its
+    gradients, as (fwd, fwdbwd, reset)."""
     def fwd(validate: bool = False, host_check: bool = False):
         with torch.no_grad():
             if host_check:
@@ -204,27 +210,35 @@ def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.T
 
     params, g_train = trainable(g)
 
+    def fwdbwd(validate: bool = False):
+        image = gsw.rasterize(g_train, cam, validate=validate).image
+        (image * w_img).sum().backward()
+        return params[0].grad
+
     def reset():
         for p in params:
             p.grad = None
 
-    def fwdbwd(validate: bool = False):
-        # The image alone is kept, as gsplat's is below (its alphas and meta are not): the other outputs are freed
-        # before the backward, except what the backward itself saved.
-        image = gsw.rasterize(g_train, cam, validate=validate).image
-        (image * w_img).sum().backward()
-        return params[0].grad
+    return fwd, fwdbwd, reset
+
+
+def bench_gsw(g: Gaussians, cam: Camera, w_img: torch.Tensor, w_contrib: torch.Tensor, reps: int,
+              warmup: int) -> tuple[dict[str, float], torch.Tensor]:
+    """gsw's validation and contribution timings and its peaks for one scene; returns them and the forward
+    image (the forward and forward+backward against gsplat's: head_to_head)."""
+    fwd, fwdbwd, reset = gsw_ops(g, cam, w_img)
 
     def contrib():
         return gsw.contribution(g, cam, w_contrib).values
 
     r: dict[str, float] = {}
-    r["gsw_fwd_ms"] = cuda_time(fwd, reps, warmup)
+    # validate=True against validate=False, two interleaved measurements of each (the spread of one measurement);
+    # the plain forward and forward+backward against gsplat's are timed in head_to_head's rounds
+    r["gsw_fwd_plain_ms"] = cuda_time(fwd, reps, warmup)
     r["gsw_fwd_validate_ms"] = cuda_time(lambda: fwd(True), reps, warmup)
     r["gsw_fwd_hostcheck_ms"] = cuda_time(lambda: fwd(False, True), reps, warmup)
-    r["gsw_fwd_ms_again"] = cuda_time(fwd, reps, warmup)  # the spread of one measurement
+    r["gsw_fwd_plain_ms_again"] = cuda_time(fwd, reps, warmup)
     r["gsw_fwd_validate_ms_again"] = cuda_time(lambda: fwd(True), reps, warmup)
-    r["gsw_fwdbwd_ms"] = cuda_time(fwdbwd, reps, warmup, reset)
     r["gsw_fwdbwd_validate_ms"] = cuda_time(lambda: fwdbwd(True), reps, warmup, reset)
     r["gsw_contrib_ms"] = cuda_time(contrib, reps, warmup)
     r["gsw_fwd_peak_mb"] = peak_mb(fwd)
@@ -247,38 +261,61 @@ def gsplat_inputs(g: Gaussians, cam: Camera, w_img: torch.Tensor):
     return scales, opac, gp, viewmats, Ks, w_img.permute(1, 2, 0)[None].contiguous()
 
 
-def bench_gsplat(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int,
-                 gsw_image: torch.Tensor) -> dict[str, float]:
-    """gsplat 1.5.3's timings and peaks in both modes, and its image difference to gsw's."""
+def gsplat_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor, packed: bool):
+    """gsplat 1.5.3's forward (no grad) and forward+backward in one mode, and the reset of its gradients, as
+    (fwd, fwdbwd, reset)."""
     import gsplat
 
     scales, opac, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
     W, H = cam.width, cam.height
 
+    def fwd():
+        with torch.no_grad():
+            return gsplat.rasterization(g.means, g.quats, scales, opac, g.sh, viewmats, Ks, W, H, sh_degree=3,
+                                        packed=packed)[0]
+
+    def fwdbwd():
+        img = gsplat.rasterization(*gp, viewmats, Ks, W, H, sh_degree=3, packed=packed)[0]
+        (img * w_hwc).sum().backward()
+        return gp[0].grad
+
     def reset():
         for p in gp:
             p.grad = None
 
+    return fwd, fwdbwd, reset
+
+
+def bench_gsplat(g: Gaussians, cam: Camera, w_img: torch.Tensor, gsw_image: torch.Tensor) -> dict[str, float]:
+    """gsplat 1.5.3's peaks in both modes, and its image difference to gsw's (its times: head_to_head)."""
     r: dict[str, float] = {}
     for mode, packed in GSPLAT_MODES.items():
-        def fwd():
-            with torch.no_grad():
-                return gsplat.rasterization(g.means, g.quats, scales, opac, g.sh, viewmats, Ks, W, H, sh_degree=3,
-                                            packed=packed)[0]
-
-        def fwdbwd():
-            img = gsplat.rasterization(*gp, viewmats, Ks, W, H, sh_degree=3, packed=packed)[0]
-            (img * w_hwc).sum().backward()
-            return gp[0].grad
-
-        r[f"gsplat_{mode}_fwd_ms"] = cuda_time(fwd, reps, warmup)
-        r[f"gsplat_{mode}_fwdbwd_ms"] = cuda_time(fwdbwd, reps, warmup, reset)
+        fwd, fwdbwd, reset = gsplat_ops(g, cam, w_img, packed)
         r[f"gsplat_{mode}_fwd_peak_mb"] = peak_mb(fwd)
         r[f"gsplat_{mode}_fwdbwd_peak_mb"] = peak_mb(fwdbwd, reset)
         diff = (fwd()[0].permute(2, 0, 1) - gsw_image).abs()
         r[f"image_mean_abs_diff_vs_gsplat_{mode}"] = float(diff.mean())
         r[f"image_max_abs_diff_vs_gsplat_{mode}"] = float(diff.max())
-    reset()
+        reset()
+    return r
+
+
+def head_to_head(g: Gaussians, cam: Camera, w_img: torch.Tensor, reps: int, warmup: int, rounds: int,
+                 with_gsplat: bool) -> dict[str, object]:
+    """gsw's and gsplat's forward and forward+backward, timed in `rounds` alternating rounds (each round: gsw,
+    then gsplat packed, then unpacked, forward then forward+backward): each time is the median of its rounds'
+    medians, so a drift of the GPU or the host over the case's run falls on both renderers alike."""
+    ops = {"gsw": gsw_ops(g, cam, w_img)}
+    if with_gsplat:
+        ops.update({f"gsplat_{mode}": gsplat_ops(g, cam, w_img, packed) for mode, packed in GSPLAT_MODES.items()})
+    times: dict[str, list[float]] = {f"{name}_{k}": [] for name in ops for k in ("fwd_ms", "fwdbwd_ms")}
+    for _ in range(rounds):
+        for name, (fwd, fwdbwd, reset) in ops.items():
+            times[f"{name}_fwd_ms"].append(cuda_time(fwd, reps, warmup))
+            times[f"{name}_fwdbwd_ms"].append(cuda_time(fwdbwd, reps, warmup, reset))
+            reset()
+    r: dict[str, object] = {k: statistics.median(v) for k, v in times.items()}
+    r.update({f"{k}_rounds": v for k, v in times.items()})
     return r
 
 
@@ -402,8 +439,8 @@ def bench_case(family: str, n: int, width: int, height: int, args: argparse.Name
     row.update(timings)
     # two interleaved measurements of each (fwd, +val, host, fwd, +val)
     row["validate_overhead"] = ((row["gsw_fwd_validate_ms"] + row["gsw_fwd_validate_ms_again"])
-                                / (row["gsw_fwd_ms"] + row["gsw_fwd_ms_again"]) - 1)
-    row["contrib_over_fwd"] = row["gsw_contrib_ms"] / row["gsw_fwd_ms"]
+                                / (row["gsw_fwd_plain_ms"] + row["gsw_fwd_plain_ms_again"]) - 1)
+    row["contrib_over_fwd"] = row["gsw_contrib_ms"] / row["gsw_fwd_plain_ms"]  # the forward timed beside it
     if args.breakdown:
         row["gsw_breakdown_ms"] = stage_breakdown(g, cam, w_img, args.reps, args.warmup)
     if args.backward:
@@ -413,7 +450,9 @@ def bench_case(family: str, n: int, width: int, height: int, args: argparse.Name
         row["gsw_contribution_variants"] = compare_contribution_variants(g, cam, w_contrib, args.contribution,
                                                                          args.reps, args.warmup)
     if not args.no_gsplat:
-        row.update(bench_gsplat(g, cam, w_img, args.reps, args.warmup, image))
+        row.update(bench_gsplat(g, cam, w_img, image))
+    row.update(head_to_head(g, cam, w_img, args.reps, args.warmup, args.rounds, not args.no_gsplat))
+    if not args.no_gsplat:
         compare(row)
     del g, image
     torch.cuda.empty_cache()
@@ -468,14 +507,17 @@ def _gsplat_pair(r: dict[str, object], key: str, fmt: str = "{:.2f}") -> str:
     return " / ".join(_f(r, f"gsplat_{m}_{key}", fmt) for m in GSPLAT_MODES)
 
 
-def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int, warmup: int) -> str:
+def to_markdown(env: dict[str, object], rows: list[dict[str, object]], reps: int, warmup: int, rounds: int) -> str:
     b = env["gsw_build"]
     lines = [
         f"# gsw CUDA rasterizer vs gsplat {env.get('gsplat') or '(not run)'} (packed / unpacked)", "",
         f"GPU: {env['gpu']} (driver {env['driver']}); torch {env['torch']}, CUDA {env['cuda']}, "
         f"Python {env['python']}; gsw {env.get('gsw_commit', '?')}, CUDA archs {b.get('cuda_archs')}; {env['date']}.",
-        "", f"Median of {reps} runs after {warmup} warm-up runs, CUDA events, ms. gsw fwd: `validate=False`; "
-        "+val: `validate=True` (device flag) and its overhead (mean of two interleaved measurements of each); host: the former `check_finite()` + render. "
+        "", f"Median of {reps} runs after {warmup} warm-up runs, CUDA events, ms; fwd and fwd+bwd of gsw and gsplat: "
+        f"the median of {rounds} alternating rounds of that. gsw fwd: `validate=False`; "
+        "+val: `validate=True` (device flag) and its overhead against `validate=False` (mean of two interleaved "
+        "measurements of each); host: the former `check_finite()` + render; contrib/fwd: against the forward timed "
+        "beside it. "
         "gsplat: packed / unpacked; ratio = gsw / the faster gsplat mode (named). Peaks: extra MiB.", "",
         "| scene | N | size | M | gsw fwd | +val | val overhead | host check | gsplat fwd | ratio | gsw fwd+bwd "
         "| gsplat fwd+bwd | ratio | contrib | contrib/fwd | peak fwd+bwd gsw / gsplat | peak fwd gsw / gsplat |",
@@ -553,6 +595,8 @@ def main() -> None:
     ap.add_argument("--ply", default="../shared/data/ply/sh3_fixture/point_cloud.ply")
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--warmup", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="alternating rounds of gsw's and gsplat's forward and forward+backward (median of the rounds)")
     ap.add_argument("--no-gsplat", action="store_true")
     ap.add_argument("--breakdown", action="store_true", help="also time each gsw op alone (ellipse tiles vs radius rectangles)")
     ap.add_argument("--backward", nargs="+", choices=BACKWARD_VARIANTS, default=[],
@@ -579,8 +623,8 @@ def main() -> None:
         print(json.dumps(row), flush=True)
         rows.append(row)
         with open(args.out, "w") as f:  # after every case, so a cut-off run keeps what it measured
-            json.dump(dict(env=env, reps=args.reps, warmup=args.warmup, rows=rows), f, indent=1)
-    md = to_markdown(env, rows, args.reps, args.warmup)
+            json.dump(dict(env=env, reps=args.reps, warmup=args.warmup, rounds=args.rounds, rows=rows), f, indent=1)
+    md = to_markdown(env, rows, args.reps, args.warmup, args.rounds)
     with open(args.md, "w") as f:
         f.write(md)
     print(md)
