@@ -305,8 +305,8 @@ def add_mse_option(parser: argparse._ActionsContainer) -> None:
     """``--mse W``: the squared-error image term instead of L1 (``LossWeights(l1=0, mse=W)``)."""
     parser.add_argument("--mse", type=positive_float, default=None, metavar="W",
                         help="replace the L1 image term of the loss by W x the mean squared error, the error PSNR "
-                             "measures (35 pulls as hard as L1 near 37 dB: +0.3-0.5 dB at equal bits in BENCHMARKS.md "
-                             "9j / 9l; default: L1)")
+                             "measures (35 pulls as hard as L1 near 37 dB: +0.3-0.5 dB at equal bits there, "
+                             "BENCHMARKS.md 9j / 9l; harder below it; default: L1)")
 
 
 def add_resize_images_option(parser: argparse.ArgumentParser) -> None:
