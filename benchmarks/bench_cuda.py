@@ -169,39 +169,18 @@ def trainable(g: Gaussians) -> tuple[list[torch.Tensor], Gaussians]:
 
 def fwdbwd_pair(g: Gaussians, cam: Camera, w_img: torch.Tensor, keep_image: bool = True):
     """One forward+backward of gsw and of gsplat 1.5.3 (`packed=False`) on a scene, loss = sum(image * w_img), as
-    ((gsw_fn, gsw_params), (gsplat_fn, gsplat_params)). With `keep_image` each function keeps its image alive
-    through the backward and returns it (as a training loop does); otherwise the image is a temporary, freed once
-    the loss's product is made."""
-    import gsplat
-
-    params, g_train = trainable(g)
-    _, _, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
-    w, h = cam.width, cam.height
-
-    def gsw_fwdbwd():
-        if not keep_image:
-            (gsw.rasterize(g_train, cam, validate=False).image * w_img).sum().backward()
-            return None
-        image = gsw.rasterize(g_train, cam, validate=False).image
-        (image * w_img).sum().backward()
-        return image
-
-    def gsplat_fwdbwd():
-        if not keep_image:
-            (gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0] * w_hwc).sum().backward()
-            return None
-        img = gsplat.rasterization(*gp, viewmats, Ks, w, h, sh_degree=3, packed=False)[0]
-        (img * w_hwc).sum().backward()
-        return img
-
-    return (gsw_fwdbwd, params), (gsplat_fwdbwd, gp)
+    ((gsw_fn, gsw_reset), (gsplat_fn, gsplat_reset)) (gsw_ops / gsplat_ops; reset: the gradients to None)."""
+    _, gsw_fwdbwd, gsw_reset = gsw_ops(g, cam, w_img, keep_image)
+    _, gsplat_fwdbwd, gsplat_reset = gsplat_ops(g, cam, w_img, False, keep_image)
+    return (gsw_fwdbwd, gsw_reset), (gsplat_fwdbwd, gsplat_reset)
 
 
-def gsw_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor):
+def gsw_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor, keep_image: bool = True):
     """gsw's forward (no grad; `validate`, `host_check`: the device flag, the former host check) and
-    forward+backward (loss = sum(image * w_img); the image alone is kept, as gsplat's is in gsplat_ops: the other
-    outputs are freed before the backward, except what the backward itself saved), and the reset of its
-    gradients, as (fwd, fwdbwd, reset)."""
+    forward+backward (loss = sum(image * w_img); with `keep_image` the image alone is kept alive through the
+    backward and returned, as a training loop does and as gsplat_ops does with gsplat's: the other outputs are
+    freed before the backward, except what the backward itself saved; without it the image is a temporary, freed
+    once the loss's product is made), and the reset of its gradients, as (fwd, fwdbwd, reset)."""
     def fwd(validate: bool = False, host_check: bool = False):
         with torch.no_grad():
             if host_check:
@@ -211,9 +190,12 @@ def gsw_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor):
     params, g_train = trainable(g)
 
     def fwdbwd(validate: bool = False):
+        if not keep_image:
+            (gsw.rasterize(g_train, cam, validate=validate).image * w_img).sum().backward()
+            return None
         image = gsw.rasterize(g_train, cam, validate=validate).image
         (image * w_img).sum().backward()
-        return params[0].grad
+        return image
 
     def reset():
         for p in params:
@@ -261,9 +243,9 @@ def gsplat_inputs(g: Gaussians, cam: Camera, w_img: torch.Tensor):
     return scales, opac, gp, viewmats, Ks, w_img.permute(1, 2, 0)[None].contiguous()
 
 
-def gsplat_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor, packed: bool):
-    """gsplat 1.5.3's forward (no grad) and forward+backward in one mode, and the reset of its gradients, as
-    (fwd, fwdbwd, reset)."""
+def gsplat_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor, packed: bool, keep_image: bool = True):
+    """gsplat 1.5.3's forward (no grad) and forward+backward in one mode (`keep_image` as in gsw_ops), and the
+    reset of its gradients, as (fwd, fwdbwd, reset)."""
     import gsplat
 
     scales, opac, gp, viewmats, Ks, w_hwc = gsplat_inputs(g, cam, w_img)
@@ -275,9 +257,12 @@ def gsplat_ops(g: Gaussians, cam: Camera, w_img: torch.Tensor, packed: bool):
                                         packed=packed)[0]
 
     def fwdbwd():
+        if not keep_image:
+            (gsplat.rasterization(*gp, viewmats, Ks, W, H, sh_degree=3, packed=packed)[0] * w_hwc).sum().backward()
+            return None
         img = gsplat.rasterization(*gp, viewmats, Ks, W, H, sh_degree=3, packed=packed)[0]
         (img * w_hwc).sum().backward()
-        return gp[0].grad
+        return img
 
     def reset():
         for p in gp:

@@ -16,7 +16,7 @@
 #   bash benchmarks/gpu_kernels.sh cut OUT TAG  # the blend backward's layouts (auto, px2, px4) on that model at 400 / 800 /
 #                                              # 1600 px and two synthetic cases, with auto's cut length free and fixed
 #                                              # at 128 / 192 / 256 splats (GSW_CUDA_CHUNK), and the tile counts behind
-#                                              # auto's choice (tile_counts.py; BENCHMARKS.md 2s)
+#                                              # auto's choice (tile_load.py; BENCHMARKS.md 2s)
 #   bash benchmarks/gpu_kernels.sh lego_kernels OUT TAG  # kernel_times.py on that model
 #   bash benchmarks/gpu_kernels.sh base DIR    # an A/B baseline: this tree with DIR's files over it (e.g. the last
 #                                              # commit's csrc/ and gsw/: `git archive HEAD csrc gsw | tar -x -C DIR`),
@@ -99,7 +99,7 @@ print('gsplat ready', gsplat.__version__)" > /tmp/gsplat_jit.log 2>&1 < /dev/nul
       P=$(find build/train_lego -name point_cloud.ply | sort | tail -1)
     fi
     CASES=(ply:0:400x400 ply:0:800x800 ply:0:1600x1600 frustum:100000:800x800 heavy:1000000:1920x1080)
-    "${PY[@]}" benchmarks/tile_counts.py --ply "$P" --cases "${CASES[@]}" 2>&1 | grep -v Warning
+    "${PY[@]}" benchmarks/tile_load.py --ply "$P" --cases "${CASES[@]}" 2>&1 | grep -v Warning
     for CHUNK in "" 128 192 256; do
       GSW_CUDA_CHUNK=$CHUNK "${PY[@]}" benchmarks/bench_cuda.py --reps 10 --warmup 3 --no-gsplat --backward auto px2 px4 \
         --ply "$P" --cases "${CASES[@]}" \

@@ -85,16 +85,14 @@ def main() -> None:
         family, n, w, h = parse_case(case)
         g, cam = make_scene(family, n, w, h, args.ply)
         w_img = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
-        (gsw_fwdbwd, params), (gsplat_fwdbwd, gp) = fwdbwd_pair(g, cam, w_img, keep_image=args.keep_image)
+        (gsw_fwdbwd, gsw_reset), (gsplat_fwdbwd, gsplat_reset) = fwdbwd_pair(g, cam, w_img, keep_image=args.keep_image)
         row: dict = {"case": case}
-        for name, fn, ps in (("gsw", gsw_fwdbwd, params), ("gsplat_unpacked", gsplat_fwdbwd, gp)):
+        for name, fn, reset in (("gsw", gsw_fwdbwd, gsw_reset), ("gsplat_unpacked", gsplat_fwdbwd, gsplat_reset)):
             for _ in range(2):  # warm-up (gsplat's JIT, the caching allocator)
                 fn()
-                for p in ps:
-                    p.grad = None
+                reset()
             row[name] = peak_breakdown(fn)
-            for p in ps:
-                p.grad = None
+            reset()
             print(f"{case} {name}: peak {row[name]['peak_mib']:.1f} MiB", flush=True)
             for r in row[name]["live_at_peak"][:10]:
                 print(f"    {r['mib']:8.1f} MiB  {r['tensors']:3d} x  {r['site']}  {r['sizes_mib'][:4]}", flush=True)

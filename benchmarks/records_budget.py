@@ -28,14 +28,9 @@ from gsw._ext import _C  # noqa: E402
 BUDGET_ENV = "GSW_BLEND_RECORDS_MIB"
 
 
-def visited_records_mib(n_contrib: torch.Tensor) -> float:
-    """Size of a one-pass backward's records: per tile its pixels' largest n_contrib, x kBlendGrads float32."""
-    t = _C.constants["TILE_SIZE"]
-    h, w = n_contrib.shape
-    padded = torch.zeros((-(-h // t) * t, -(-w // t) * t), dtype=torch.int32, device=n_contrib.device)
-    padded[:h, :w] = n_contrib
-    per_tile = padded.view(padded.shape[0] // t, t, padded.shape[1] // t, t).amax(dim=(1, 3))
-    return float(per_tile.sum()) * _C.constants["BLEND_GRADS"] * 4 / 2**20
+def visited_records_mib(out: gsw.RenderOutput) -> float:
+    """Size of a one-pass backward's records: the tiles' walks (`RenderOutput.tile_walks`) x kBlendGrads float32."""
+    return float(out.tile_walks().sum()) * _C.constants["BLEND_GRADS"] * 4 / 2**20
 
 
 def main() -> None:
@@ -57,18 +52,13 @@ def main() -> None:
         family, n, w, h = parse_case(case)
         g, cam = make_scene(family, n, w, h, args.ply)
         w_img = torch.rand(3, h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
-        (gsw_fwdbwd, params), (gsplat_fwdbwd, gp) = fwdbwd_pair(g, cam, w_img)
-
-        def reset(ps=params):
-            for p in ps:
-                p.grad = None
-
+        (gsw_fwdbwd, reset), (gsplat_fwdbwd, gsplat_reset) = fwdbwd_pair(g, cam, w_img)
         with torch.no_grad():
-            rec = visited_records_mib(gsw.rasterize(g, cam, validate=False).n_contrib)
+            rec = visited_records_mib(gsw.rasterize(g, cam, validate=False))
         row: dict = {"case": case, "visited_records_mib": rec,
-                     "gsplat_unpacked_fwdbwd_ms": cuda_time(gsplat_fwdbwd, args.reps, args.warmup, lambda ps=gp: reset(ps)),
-                     "gsplat_unpacked_fwdbwd_peak_mb": peak_mb(gsplat_fwdbwd, lambda ps=gp: reset(ps)), "gsw": {}}
-        reset(gp)
+                     "gsplat_unpacked_fwdbwd_ms": cuda_time(gsplat_fwdbwd, args.reps, args.warmup, gsplat_reset),
+                     "gsplat_unpacked_fwdbwd_peak_mb": peak_mb(gsplat_fwdbwd, gsplat_reset), "gsw": {}}
+        gsplat_reset()
         for b in args.budgets:
             with env_setting(BUDGET_ENV, None if b == "default" else b):
                 row["gsw"][b] = {"fwdbwd_ms": cuda_time(gsw_fwdbwd, args.reps, args.warmup, reset),
@@ -79,7 +69,7 @@ def main() -> None:
               + "; ".join(f"{b}: {r['fwdbwd_ms']:.2f} ms ({r['fwdbwd_ms'] / gs:.2f}x) {r['fwdbwd_peak_mb']:.0f} MiB"
                           for b, r in row["gsw"].items()), flush=True)
         result["cases"].append(row)
-        del g, params, gp, gsw_fwdbwd, gsplat_fwdbwd
+        del g, gsw_fwdbwd, gsplat_fwdbwd, reset, gsplat_reset
         torch.cuda.empty_cache()
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)

@@ -86,7 +86,8 @@ def test_tile_walks_are_each_tiles_largest_n_contrib(size: tuple[int, int]) -> N
     out = rasterize(random_gaussians(200, sh_degree=0, seed=9, extent=0.8), make_camera(W, H), validate=False)
     walks = out.tile_walks()
     tx, ty = -(-W // 16), -(-H // 16)
-    expected = [int(out.n_contrib[y * 16:(y + 1) * 16, x * 16:(x + 1) * 16].max()) for y in range(ty) for x in range(tx)]
+    expected = [int(out.n_contrib[y * 16:(y + 1) * 16, x * 16:(x + 1) * 16].max())
+                for y in range(ty) for x in range(tx)]
     assert walks.dtype == torch.int64 and walks.tolist() == expected
     assert int(walks.max()) > 0
 
