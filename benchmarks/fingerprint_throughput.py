@@ -322,10 +322,9 @@ def bench_baseline(args, dev, g, cams, held, held_orig, bg, images) -> dict:
     from gsw.decoder.zoo import load_decoder
     from gsw.fingerprint.batched import pool_config
     from gsw.mark.embed import embed
-    from gsw.mark.loss import lpips_weights
     from gsw.mark.message import random_message
 
-    cfg = pool_config(background=bg, lpips_net="alex", weights=lpips_weights("alex"))
+    cfg = pool_config(background=bg, lpips_net="alex")
     rows, total = [], 0.0
     for i in range(args.baseline):
         m = random_message(args.bits, seed=1000 + i)

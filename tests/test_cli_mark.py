@@ -236,21 +236,28 @@ def test_fgd_is_the_recipes_unless_asked() -> None:
     assert cfg("--fgd").fgd and not cfg("--recipe", "paper", "--no-fgd").fgd
 
 
-def test_mse_replaces_the_l1_term_in_embed_and_fingerprint(capsys) -> None:
+def test_mse_sets_the_image_term_in_embed_and_fingerprint(capsys) -> None:
+    """The default recipe's image term is the squared error (35), the paper's and the pool's L1; ``--mse W`` sets
+    it, ``--mse 0`` picks L1."""
     from gsw.fingerprint.batched import pool_config
+    from gsw.mark.loss import LossWeights
 
     def weights(*argv: str, base=None):
         return embed_config(build_parser().parse_args(list(argv)), base).weights
 
     default = weights("embed", "in", "--output", "out")
-    assert (default.l1, default.mse) == (1.0, 0.0)
-    w = weights("embed", "in", "--output", "out", "--mse", "35", "--message-weight", "0.2")
-    assert (w.l1, w.mse, w.message) == (0.0, 35.0, 0.2)
+    assert (default.l1, default.mse) == (0.0, 35.0) == (LossWeights().l1, LossWeights().mse)
+    assert (weights("embed", "in", "--output", "out", "--recipe", "paper").l1,
+            weights("embed", "in", "--output", "out", "--recipe", "paper").mse) == (1.0, 0.0)
+    w = weights("embed", "in", "--output", "out", "--mse", "20", "--message-weight", "0.2")
+    assert (w.l1, w.mse, w.message) == (0.0, 20.0, 0.2)
+    l1 = weights("embed", "in", "--output", "out", "--mse", "0")
+    assert (l1.l1, l1.mse, l1.message) == (1.0, 0.0, LossWeights().message)
     fp = ["fingerprint", "in", "--recipients", "r.csv", "--output", "out"]
     assert (weights(*fp, base=pool_config()).l1, weights(*fp, "--mse", "35", base=pool_config()).mse) == (1.0, 35.0)
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["embed", "in", "--output", "out", "--mse", "0"])
-    assert "must be a positive number" in capsys.readouterr().err
+        build_parser().parse_args(["embed", "in", "--output", "out", "--mse", "-1"])
+    assert "must be a number >= 0" in capsys.readouterr().err
 
 
 def test_embed_render_scales_reach_the_config_and_are_checked(capsys) -> None:

@@ -47,7 +47,8 @@ def _differences(cfg: EmbedConfig) -> dict[str, object]:
 
 def test_methods_are_the_intended_embedder_configurations() -> None:
     expected = {
-        "default": {"fgd": False, "freeze": ("f_rest",), "mask": "none", "novel_views": 1.0},
+        "default": {"fgd": False, "freeze": ("f_rest",), "mask": "none", "novel_views": 1.0, "weights.l1": 0.0,
+                    "weights.mse": 35.0},
         "3d-gsw": {},
         "paper": {},
         "freeze-rest": {"freeze": ("f_rest",), "mask": "none"},

@@ -293,7 +293,7 @@ def test_a_running_accuracy_finishes_a_recipient_without_a_perfect_streak() -> N
 def test_train_time_image_attacks_per_slot() -> None:
     scene = default_scene(width=64, height=64, n_cameras=2, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, attacks=1.0)
+    cfg = pool_config(epochs=2, lpips_net=None, weights={"lpips": 0.0}, background=bg, attacks=1.0)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
     copies = finetune_batch(ws, ["a", "b", "c"], messages, slots=2)  # attacks of different output sizes
@@ -309,7 +309,7 @@ def test_sampled_viewpoints_per_slot_are_gsw_embeds(bank) -> None:
     a refilled slot is gsw.embed's with that config."""
     scene = default_scene(width=64, height=64, n_cameras=3, detail=0.3)
     bg = tuple(float(v) for v in scene.background)
-    cfg = pool_config(epochs=2, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg, novel_views=0.5,
+    cfg = pool_config(epochs=2, lpips_net=None, weights={"lpips": 0.0}, background=bg, novel_views=0.5,
                       view_bank=bank)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     messages = torch.stack([as_message(h, 32) for h in ("c0ffee42", "12345678", "abcdef01")])
@@ -332,7 +332,7 @@ def test_a_view_bank_renders_and_keeps_each_viewpoint_once(monkeypatch) -> None:
     from gsw.mark.embed import ViewBank, embedding_view_sampler
 
     scene = default_scene(width=48, height=48, n_cameras=2, detail=0.2)
-    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0), novel_views=1.0, view_bank=3)
+    cfg = pool_config(epochs=1, lpips_net=None, weights={"lpips": 0.0}, novel_views=1.0, view_bank=3)
     ws = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=cfg), "cpu")
     fresh = embedding_view_sampler(scene.gaussians, scene.cameras, cfg).sample_many(3)
     assert [torch.equal(a.viewmat, b.viewmat) for a, b in zip(ws.bank.cameras, fresh)] == [True] * 3
@@ -378,7 +378,8 @@ def test_pool_default_is_the_measured_setting() -> None:
 
     cfg = pool_config()
     assert cfg.lpips_net == POOL_LPIPS == "alex" and cfg.weights.lpips > 0
-    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items())
+    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items() if k != "weights")
+    assert all(getattr(cfg.weights, k) == v for k, v in PAPER_RECIPE["weights"].items())  # the L1 image term
     assert pool_config(lpips_net="vgg").lpips_net == "vgg"
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers())

@@ -11,7 +11,6 @@ import gsw
 from gsw.fingerprint.store import DONE_FILE, JOB_FILE
 from gsw.fingerprint.batched import pool_config
 from gsw.mark.embed import EmbedConfig
-from gsw.mark.loss import LossWeights
 from gsw.registry import hash_model_file, open_registry, shipped_decoder_sha256
 from gsw.scenes import default_scene
 from helpers import ReadsOnes
@@ -22,7 +21,7 @@ def _scene(seed: int = 0):
 
 
 def _config(scene) -> EmbedConfig:
-    return pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0),
+    return pool_config(epochs=1, lpips_net=None, weights={"lpips": 0.0},
                        background=tuple(float(v) for v in scene.background))
 
 

@@ -13,7 +13,6 @@ import gsw
 from gsw.fingerprint.batched import pool_config
 from gsw.mark.embed import EmbedConfig
 from gsw.mark.identify import identify
-from gsw.mark.loss import LossWeights
 from gsw.registry import open_registry
 from gsw.render.rasterize import rasterize
 from gsw.scenes import default_cameras, default_scene
@@ -47,7 +46,7 @@ def scene():
 
 
 def _config(scene) -> EmbedConfig:
-    return pool_config(epochs=10, lpips_net=None, weights=LossWeights(lpips=0.0, message=2.0), lr_f_dc=3e-2,
+    return pool_config(epochs=10, lpips_net=None, weights={"lpips": 0.0, "message": 2.0}, lr_f_dc=3e-2,
                        background=tuple(float(v) for v in scene.background))
 
 
@@ -97,7 +96,7 @@ def test_redrawn_messages_come_back_from_the_workers(cluster, scene, tmp_path) -
     chosen message; a given message is never redrawn."""
     from gsw.fingerprint.stopping import EarlyStop
 
-    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0),
+    cfg = pool_config(epochs=1, lpips_net=None, weights={"lpips": 0.0},
                       background=tuple(float(v) for v in scene.background))
     # every copy ends below 100 % after one pass over 6 views: one new message each (a given one is kept)
     rule = EarlyStop(min_steps=100, window=1, check_every=1, redraw=1, redraw_bits=1.0)

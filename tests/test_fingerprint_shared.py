@@ -7,14 +7,13 @@ import torch
 from gsw.fingerprint.batched import pool_config
 import gsw.fingerprint.shared as shared_module
 from gsw.fingerprint.shared import prepare_scene, scene_hash, warm_worker, worker_scene
-from gsw.mark.loss import LossWeights
 from gsw.render.rasterize import rasterize
 from gsw.scenes import default_scene
 
 
 def _scene():
     sc = default_scene(width=32, height=32, n_cameras=2, detail=0.2, seed=0)
-    cfg = pool_config(epochs=1, lpips_net=None, weights=LossWeights(lpips=0.0),
+    cfg = pool_config(epochs=1, lpips_net=None, weights={"lpips": 0.0},
                       background=tuple(float(v) for v in sc.background))
     return sc, cfg
 

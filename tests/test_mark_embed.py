@@ -25,7 +25,7 @@ def result(scene):
     bg = tuple(float(v) for v in scene.background)
     # the paper's recipe: on a 96-px scene of 6 views it reads the embedding views after 120 steps; the default
     # (a sampled viewpoint every step) needs more steps than a fast test affords
-    cfg = paper_config(epochs=EPOCHS, lpips_net=None, weights=LossWeights(lpips=0.0), background=bg)
+    cfg = paper_config(epochs=EPOCHS, lpips_net=None, weights={"lpips": 0.0}, background=bg)
     before = scene.gaussians.clone()
     res = embed(scene.gaussians, scene.cameras, message="0xc0ffee42", num_bits=32, config=cfg,
                 progress=False)
@@ -33,6 +33,20 @@ def result(scene):
     for name, t in before.parameters().items():
         assert torch.equal(t, scene.gaussians.parameters()[name]), name
     return res
+
+
+def test_paper_config_pins_the_papers_image_term_and_takes_weight_overrides() -> None:
+    """The library default's image term is the squared error; the paper's recipe pins L1. A mapping for ``weights``
+    replaces single fields of the recipe's weights, a :class:`LossWeights` replaces them all."""
+    default, paper = EmbedConfig().weights, paper_config().weights
+    assert (default.l1, default.mse, paper.l1, paper.mse) == (0.0, 35.0, 1.0, 0.0)
+    assert paper_config(weights={"lpips": 0.0}).weights == LossWeights(l1=1.0, mse=0.0, lpips=0.0)
+    assert paper_config(weights=LossWeights(message=0.4)).weights == LossWeights(message=0.4)
+    assert paper_config(epochs=3, fgd=False).epochs == 3 and not paper_config(fgd=False).fgd
+    with pytest.raises(ValueError, match="unknown LossWeights fields"):
+        paper_config(weights={"l2": 1.0})
+    with pytest.raises(ValueError, match="unknown EmbedConfig fields"):
+        paper_config(epoch=3)
 
 
 def test_embed_result_structure(scene, result) -> None:

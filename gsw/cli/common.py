@@ -301,12 +301,22 @@ def not_detectable_warning(command: str, fpr: float, what: Sequence[str], hint: 
     print(f"gsw {command}: warning: not detectable at p <= {fpr:g}: {', '.join(what)} ({hint})", file=sys.stderr)
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    value = float(text)
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return value
+
+
 def add_mse_option(parser: argparse._ActionsContainer) -> None:
-    """``--mse W``: the squared-error image term instead of L1 (``LossWeights(l1=0, mse=W)``)."""
-    parser.add_argument("--mse", type=positive_float, default=None, metavar="W",
-                        help="replace the L1 image term of the loss by W x the mean squared error, the error PSNR "
-                             "measures (35 pulls as hard as L1 near 37 dB: +0.3-0.5 dB at equal bits there, "
-                             "BENCHMARKS.md 9j / 9l; harder below it; default: L1)")
+    """``--mse W``: the squared-error image term's weight (``LossWeights(l1=0, mse=W)``); 0: the paper's L1 term."""
+    parser.add_argument("--mse", type=non_negative_float, default=None, metavar="W",
+                        help="the image term of the loss: W x the mean squared error, the error PSNR measures "
+                             "(35 pulls as hard as L1 near 37 dB), or with 0 the paper's L1 term; default: the "
+                             "recipe's (35 for gsw embed's default recipe: +2.1 dB on lego 800x800 and +0.5 dB on "
+                             "the built-in scene against L1, BENCHMARKS.md 9l / 9m; L1 for --recipe paper and "
+                             "gsw fingerprint)")
 
 
 def add_resize_images_option(parser: argparse.ArgumentParser) -> None:

@@ -137,16 +137,16 @@ def embed_config(args: argparse.Namespace, base=None):
         base: the settings the options apply to (default: ``--recipe``'s: ``EmbedConfig()`` or the paper's).
     """
     from gsw.mark.embed import EmbedConfig, paper_config
-    from gsw.mark.loss import lpips_weights
+    from gsw.mark.loss import PAPER_IMAGE_TERM, lpips_weights
 
     if base is None:
         base = paper_config() if args.recipe == "paper" else EmbedConfig()
     lpips_net = None if args.lpips == "none" else args.lpips
-    weights = lpips_weights(lpips_net)
+    weights = lpips_weights(lpips_net, base.weights)
     if args.message_weight is not None:
         weights = dataclasses.replace(weights, message=args.message_weight)
-    if args.mse is not None:
-        weights = dataclasses.replace(weights, l1=0.0, mse=args.mse)
+    if args.mse is not None:  # 0: the paper's L1 image term
+        weights = dataclasses.replace(weights, **(PAPER_IMAGE_TERM if args.mse == 0 else dict(l1=0.0, mse=args.mse)))
     scales = getattr(args, "render_scales", None)  # `gsw fingerprint` has no such option
     novel = getattr(args, "novel_views", None)  # `gsw embed` takes it from --recipe
     bank = getattr(args, "view_bank", None)

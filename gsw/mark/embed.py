@@ -20,7 +20,7 @@ import math
 import random
 import time
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -30,7 +30,7 @@ from gsw.gaussians import Gaussians
 from gsw.mark.detect import load_decoder_for
 from gsw.mark.fgd import (PRUNE_THRESHOLD, TOP_PERCENT, PruneReport, SplitReport, check_opacity_rule, fgd_prune,
                           fgd_split)
-from gsw.mark.loss import LossWeights, WatermarkLoss, WeightControl
+from gsw.mark.loss import PAPER_IMAGE_TERM, LossWeights, WatermarkLoss, WeightControl
 from gsw.mark.mask import UpdateMask
 from gsw.mark.message import MessageLike, as_message, message_to_hex
 from gsw.mark.views import ViewSampler, ViewSamplerConfig, scale_camera
@@ -38,7 +38,8 @@ from gsw.metrics.image import psnr
 from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
-__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "check_config", "embed",
+__all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "apply_overrides",
+           "check_config", "embed",
            "ViewBank", "embedding_view_sampler", "paper_config", "pick_view", "prepare_embedding"]
 
 #: Fine-tuned parameter groups of :func:`embed` (:attr:`EmbedConfig.freeze` names; positions: ``lr_position``).
@@ -63,7 +64,8 @@ class EmbedConfig:
         freeze: parameter groups kept at their (post-FGD) values, names of :data:`PARAMETER_GROUPS`
             (``f_dc``, ``f_rest``, ``opacity``, ``scaling``, ``rotation``); e.g. ``("f_rest",)`` keeps the
             view-dependent SH untouched, so the mark lives where SH-degree-0 viewers and ``.splat`` keep it.
-        weights: loss weights.
+        weights: loss weights (default :class:`LossWeights`: the squared-error image term; the paper's recipe pins
+            its L1 term, :data:`PAPER_RECIPE`).
         logit_scale: factor on the decoder logits inside the message BCE (the official code: 10).
         lpips_net: "vgg", "alex" or None (no LPIPS term; set weights.lpips = 0).
         mask: "exp" (3D-GSW), "stega" (StegaNeRF-style) or "none".
@@ -143,15 +145,50 @@ class EmbedConfig:
     seed: int = 0
 
 
-#: The paper's recipe as :class:`EmbedConfig` overrides: FGD, given cameras only, the exponential gradient mask,
-#: every parameter group trained, no train-time attacks, a fixed message weight.
+#: The paper's recipe as :class:`EmbedConfig` overrides (``"weights"`` overrides single fields of
+#: :class:`LossWeights`): FGD, given cameras only, the exponential gradient mask, every parameter group trained, no
+#: train-time attacks, a fixed message weight, the L1 image term (:data:`gsw.mark.loss.PAPER_IMAGE_TERM`).
 PAPER_RECIPE: dict = {"fgd": True, "freeze": (), "mask": "exp", "novel_views": 0.0, "render_scales": (1.0, 1.0),
-                      "attacks": 0.0, "model_attacks": 0.0, "psnr_target": None}
+                      "attacks": 0.0, "model_attacks": 0.0, "psnr_target": None, "weights": dict(PAPER_IMAGE_TERM)}
+
+
+def apply_overrides(config: EmbedConfig, overrides: Mapping[str, Any]) -> EmbedConfig:
+    """A copy of ``config`` with ``overrides`` applied.
+
+    Args:
+        config: the base configuration (not modified).
+        overrides: EmbedConfig field -> value; ``"weights"`` is a :class:`LossWeights` (replacing the weights) or a
+            mapping of LossWeights fields to values (replacing those fields of ``config.weights``).
+
+    Returns:
+        A new :class:`EmbedConfig`.
+
+    Raises:
+        ValueError: an unknown field.
+    """
+    known = {f.name for f in dataclasses.fields(EmbedConfig)}
+    unknown = set(overrides) - known
+    if unknown:
+        raise ValueError(f"unknown EmbedConfig fields {sorted(unknown)}; choose from {sorted(known)}")
+    values = {k: v for k, v in overrides.items() if k != "weights"}
+    if "background" in values:
+        values["background"] = tuple(values["background"])
+    weights = overrides.get("weights")
+    if isinstance(weights, LossWeights):
+        values["weights"] = weights
+    elif weights is not None:
+        loss_fields = {f.name for f in dataclasses.fields(LossWeights)}
+        if set(weights) - loss_fields:
+            raise ValueError(f"unknown LossWeights fields {sorted(set(weights) - loss_fields)}; choose from "
+                             f"{sorted(loss_fields)}")
+        values["weights"] = dataclasses.replace(config.weights, **weights)
+    return dataclasses.replace(config, **values)
 
 
 def paper_config(**overrides) -> EmbedConfig:
-    """The paper's recipe (:data:`PAPER_RECIPE` on the defaults), with further ``overrides`` (field -> value)."""
-    return dataclasses.replace(EmbedConfig(), **{**PAPER_RECIPE, **overrides})
+    """The paper's recipe (:data:`PAPER_RECIPE` on the defaults), with further ``overrides`` (field -> value; a
+    :class:`LossWeights` for ``weights`` replaces the recipe's weights, a mapping replaces single fields)."""
+    return apply_overrides(apply_overrides(EmbedConfig(), PAPER_RECIPE), overrides)
 
 
 @dataclass

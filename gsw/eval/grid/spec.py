@@ -6,10 +6,10 @@ import dataclasses
 import itertools
 import json
 from dataclasses import asdict, dataclass, field
-from typing import Any, Iterable, Mapping, NamedTuple, Sequence
+from typing import Any, Iterable, NamedTuple, Sequence
 
 from gsw.attacks.presets import EXPORT_MODEL_ATTACKS, IMAGE_ATTACKS, MODEL_ATTACK_NAMES, SWEEPS
-from gsw.mark.embed import PAPER_RECIPE, EmbedConfig
+from gsw.mark.embed import PAPER_RECIPE, EmbedConfig, apply_overrides
 from gsw.stats import DETECTION_FPR
 
 __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "GridMismatchError", "GridSpec",
@@ -22,13 +22,14 @@ __all__ = ["ABLATIONS", "FORMAT", "METHODS", "PAPER_MODEL_ATTACKS", "Cell", "Gri
 #: ``3d-gsw+all-attacks`` also decodes the render of a perturbed model (parameter noise or SH degree 0) at
 #: half of them (``EmbedConfig.model_attacks``). ``3d-gsw`` / ``paper`` and every method derived from them pin
 #: the paper-faithful recipe (:data:`gsw.mark.embed.PAPER_RECIPE`: given cameras only, exponential mask, no
-#: train-time attacks) whatever the defaults; ``default`` is the library's default (``EmbedConfig()``, which is
-#: ``freeze-rest+views`` without FGD); ``wild`` (issue 23) trains on sampled viewpoints and render
-#: sizes, with image attacks up to the evaluation's strengths and every model distortion (parameter noise,
-#: SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports). ``freeze-rest`` keeps the SH rest coefficients fixed
+#: train-time attacks, the L1 image term) whatever the defaults; ``default`` is the library's default
+#: (``EmbedConfig()``, which is ``freeze-rest+views`` without FGD and with the squared-error image term); ``wild``
+#: (issue 23) trains on sampled viewpoints and render sizes, with image attacks up to the evaluation's strengths and
+#: every model distortion (parameter noise, SH degree 0, ``.splat`` / ``.spz`` / 8-bit exports). ``freeze-rest`` keeps the SH rest coefficients fixed
 #: and updates the others without the exponential mask, so the mark lives where SH-degree-0 viewers and ``.splat``
 #: keep it (the mask would all but freeze saturated DC colours); ``freeze-rest+views`` also renders every step from a
 #: fresh viewpoint sampled around the content (:mod:`gsw.mark.views`).
+_PAPER_NO_SUBBAND = {**PAPER_RECIPE["weights"], "subband": 0.0}  # the paper's image term, no subband loss
 METHODS: dict[str, dict[str, Any]] = {
     "default": {},
     "3d-gsw": dict(PAPER_RECIPE),
@@ -40,9 +41,9 @@ METHODS: dict[str, dict[str, Any]] = {
              "model_attack_kinds": ("noise", "sh0", "splat", "spz", "8bit")},
     "no-fgd": {**PAPER_RECIPE, "fgd": False},
     "no-mask": {**PAPER_RECIPE, "mask": "none"},
-    "no-subband": {**PAPER_RECIPE, "weights": {"subband": 0.0}},
-    "stega-3dgs": {**PAPER_RECIPE, "fgd": False, "mask": "stega", "weights": {"subband": 0.0}},
-    "waterf-3dgs": {**PAPER_RECIPE, "fgd": False, "mask": "none", "weights": {"subband": 0.0}},
+    "no-subband": {**PAPER_RECIPE, "weights": _PAPER_NO_SUBBAND},
+    "stega-3dgs": {**PAPER_RECIPE, "fgd": False, "mask": "stega", "weights": _PAPER_NO_SUBBAND},
+    "waterf-3dgs": {**PAPER_RECIPE, "fgd": False, "mask": "none", "weights": _PAPER_NO_SUBBAND},
     "3d-gsw+attacks": {**PAPER_RECIPE, "attacks": 0.5},
     "3d-gsw+all-attacks": {**PAPER_RECIPE, "attacks": 0.5, "model_attacks": 0.5},
 }
@@ -64,36 +65,6 @@ FORMAT = 1
 
 class GridMismatchError(ValueError):
     """The output folder holds a grid with other settings or another scene."""
-
-
-def apply_overrides(config: EmbedConfig, overrides: Mapping[str, Any]) -> EmbedConfig:
-    """A copy of ``config`` with ``overrides`` applied.
-
-    Args:
-        config: the base configuration (not modified).
-        overrides: EmbedConfig field -> value; ``"weights"`` maps LossWeights fields to values.
-
-    Returns:
-        A new :class:`EmbedConfig`.
-
-    Raises:
-        ValueError: an unknown field.
-    """
-    known = {f.name for f in dataclasses.fields(EmbedConfig)}
-    unknown = set(overrides) - known
-    if unknown:
-        raise ValueError(f"unknown EmbedConfig fields {sorted(unknown)}; choose from {sorted(known)}")
-    values = {k: v for k, v in overrides.items() if k != "weights"}
-    if "background" in values:
-        values["background"] = tuple(values["background"])
-    if "weights" in overrides:
-        weights = overrides["weights"]
-        loss_fields = {f.name for f in dataclasses.fields(config.weights)}
-        if set(weights) - loss_fields:
-            raise ValueError(f"unknown LossWeights fields {sorted(set(weights) - loss_fields)}; choose from "
-                             f"{sorted(loss_fields)}")
-        values["weights"] = dataclasses.replace(config.weights, **weights)
-    return dataclasses.replace(config, **values)
 
 
 def lpips_loss_overrides(net: str | None) -> dict[str, Any]:
