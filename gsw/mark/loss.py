@@ -2,8 +2,7 @@
 
 `L = w_l1 * L1(I_w, I_o) + w_mse * MSE(I_w, I_o) + w_lpips * LPIPS(I_w, I_o)
  + w_sub * sum_{l=1,2} sum_{S in LH,HL,HH} L1(S_l, S_l^o) + w_msg * BCE(D(LL_2(I_w)), M)` with defaults 0, 35, 0.2, 0.3,
-0.15 with the L1 term off and a squared-error term of weight 35 (the paper: L1 weight 1, no squared-error term,
-0.4 for the message term), where `I_o` is the render of
+0.15 (the paper: L1 weight 1, no squared-error term, 0.4 for the message term), where `I_o` is the render of
 the original model, `S_l` the wavelet subbands of the project's DWT (:mod:`gsw.decoder.dwt`) and `D`
 the frozen decoder (logits; bit = logit > 0).
 """
