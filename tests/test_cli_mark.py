@@ -247,8 +247,8 @@ def test_mse_sets_the_image_term_in_embed_and_fingerprint(capsys) -> None:
 
     default = weights("embed", "in", "--output", "out")
     assert (default.l1, default.mse) == (0.0, 35.0) == (LossWeights().l1, LossWeights().mse)
-    assert (weights("embed", "in", "--output", "out", "--recipe", "paper").l1,
-            weights("embed", "in", "--output", "out", "--recipe", "paper").mse) == (1.0, 0.0)
+    paper = weights("embed", "in", "--output", "out", "--recipe", "paper")
+    assert (paper.l1, paper.mse) == (1.0, 0.0)
     w = weights("embed", "in", "--output", "out", "--mse", "20", "--message-weight", "0.2")
     assert (w.l1, w.mse, w.message) == (0.0, 20.0, 0.2)
     l1 = weights("embed", "in", "--output", "out", "--mse", "0")

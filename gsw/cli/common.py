@@ -37,12 +37,23 @@ def positive_int(text: str) -> int:
     return value
 
 
+def _finite_float(text: str, zero_allowed: bool) -> float:
+    """``text`` as a finite number > 0 (>= 0 with ``zero_allowed``), or an argparse error saying which."""
+    value = float(text)
+    if not (value >= 0 if zero_allowed else value > 0) or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be {'a number >= 0' if zero_allowed else 'a positive number'}, "
+                                         f"got {text}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
-    value = float(text)
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return value
+    return _finite_float(text, zero_allowed=False)
+
+
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    return _finite_float(text, zero_allowed=True)
 
 
 def print_json(data: Any) -> None:
@@ -299,14 +310,6 @@ def claim_output_folder(output: Path, inputs: Sequence[Path], force: bool) -> Pa
 def not_detectable_warning(command: str, fpr: float, what: Sequence[str], hint: str) -> None:
     """The one wording of "the output does not carry a detectable mark" (stderr; the command then exits 1)."""
     print(f"gsw {command}: warning: not detectable at p <= {fpr:g}: {', '.join(what)} ({hint})", file=sys.stderr)
-
-
-def non_negative_float(text: str) -> float:
-    """argparse type: a finite number >= 0."""
-    value = float(text)
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
-    return value
 
 
 def add_mse_option(parser: argparse._ActionsContainer) -> None:
