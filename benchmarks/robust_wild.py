@@ -223,7 +223,8 @@ def _config(args, method: str, seed: int, bg, overrides: dict | None = None):
         cfg = apply_overrides(cfg, json.loads(args.embed))
     if overrides:
         cfg = apply_overrides(cfg, overrides)
-    return dataclasses.replace(cfg, epochs=args.epochs, seed=seed, background=bg)
+    epochs = (overrides or {}).get("epochs", args.epochs)  # a row may set its own
+    return dataclasses.replace(cfg, epochs=epochs, seed=seed, background=bg)
 
 
 def main() -> int:
