@@ -225,7 +225,8 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
         rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
                          redraws=r.redraws, redrawn_steps=r.redrawn_steps,
                          seconds=r.seconds, train_bits=r.bit_accuracy,
-                         train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, held_out_bits=accs, held_out_psnr=ps,
+                         train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, probe_bits=r.probe_bit_accuracy,
+                         held_out_bits=accs, held_out_psnr=ps,
                          **head_start(start_logits, messages[r.name].cpu())))
     fine = report.timings["finetune"]
     out = dict(setting=setting["text"], k=setting["k"], epochs=setting["epochs"], message_weight=cfg.weights.message,

@@ -40,18 +40,11 @@ def _stats(x: torch.Tensor) -> dict:
                 tail=round(float(x.max()) / mean, 2))
 
 
-def cut_lengths() -> tuple[int, ...]:
-    """The first five chunk lengths the CUDA blend backward may cut at (rasterize_cuda.cu cut_length)."""
-    from gsw._ext import _C
-
-    m = int(_C.constants["CUT_LENGTH_MIN"])
-    return (m, m * 3 // 2, 2 * m, 3 * m, 4 * m)
-
-
 def tile_load(case: str, ply: str | None, device: str, wave: int) -> dict:
     """Per-tile intersection and visited-splat statistics of one case, and the layout quantities for a wave of
     `wave` whole-tile blocks (see the module docstring)."""
     import gsw
+    from gsw._ext import _C
 
     family, n, w, h = parse_case(case)
     g, cam = make_scene(family, n, w, h, ply, device=device)
@@ -65,7 +58,8 @@ def tile_load(case: str, ply: str | None, device: str, wave: int) -> dict:
                 intersections=int(lengths.sum()), visited_total=total,
                 intersections_per_busy_tile=_stats(lengths[busy]), visited_per_busy_tile=_stats(visited[busy]),
                 wave=wave, densest_over_share=round(most * wave / max(total, 1), 2),
-                extra_chunks={L: int(((visited - 1).clamp(min=0) // L).sum()) for L in cut_lengths()},
+                extra_chunks={L: int(((visited - 1).clamp(min=0) // L).sum())
+                              for L in _C.constants["CUT_LENGTHS"][:5]},  # the first five (rasterize_cuda.cu)
                 device=str(device), gsw=gsw.__version__)
 
 

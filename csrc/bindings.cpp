@@ -44,7 +44,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   c["RECORDS_BUDGET_MIB"] = gsw::kRecordsBudgetMiB;
   c["LAYOUT_CRITICAL_PATH_FACTOR"] = gsw::kCriticalPathFactor;
   c["LAYOUT_CUT_FACTOR"] = gsw::kCutFactor;
-  c["CUT_LENGTH_MIN"] = gsw::kCutLengthMin;
+  py::list cuts;
+  for (int l = 0; l < gsw::kNumCutLengths; ++l) cuts.append(gsw::cut_length(l));
+  c["CUT_LENGTHS"] = py::tuple(cuts);
   m.attr("constants") = c;
 
   py::dict b;

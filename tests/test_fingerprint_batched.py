@@ -194,6 +194,36 @@ def test_a_failed_confirmation_focuses_the_steps_on_the_views_read_wrong(monkeyp
         assert sorted(views) == [0] * 4 + [1] * 4 + [2] * 4  # no focus: the shuffled epochs, as without a rule
 
 
+def test_probes_between_the_views_gate_the_confirmation_and_take_the_focused_steps(monkeypatch) -> None:
+    from gsw.fingerprint import batched
+
+    cfg, ws = _pool_scene(4)  # 3 views, cap 12; ReadsOnes passes every training step of a message of ones
+    views: list[int] = []
+    real_view = batched._Pool._view
+    monkeypatch.setattr(batched._Pool, "_view", lambda self, slot: views.append(int((r := real_view(self, slot))[1]))
+                        or r)
+
+    def scores(copy, cams, originals, dec, target, bg):  # every embedding view reads all bits, every probe 90 %
+        between = torch.tensor([c.name == "sampled_between" for c in cams])
+        return torch.where(between, 0.9, 1.0), torch.full((len(cams),), 50.0)
+
+    monkeypatch.setattr(batched, "final_scores", scores)
+    rule = EarlyStop(min_steps=4, window=1, check_every=2, confirm=1.0, focus=1.0, probes=2)
+    copy = finetune_batch(ws, ["a"], torch.ones(1, 32), stop=rule)[0]
+    assert (copy.steps, copy.stopped_early, copy.bit_accuracy) == (12, False, 1.0) and copy.refusals >= 1
+    assert copy.probe_bit_accuracy == pytest.approx(0.9)
+    assert ws.probe_views(2) == [3, 4] and [ws.camera(v).name for v in (3, 4)] == ["sampled_between"] * 2
+    assert set(views[4:]) == {3, 4}  # refused at step 4: from then on only the probes, read wrong
+    from gsw.render.rasterize import rasterize
+    assert torch.equal(ws.original(3), rasterize(ws.bank.original, ws.camera(3), background=cfg.background).image)
+    assert finetune_batch(ws, ["b"], torch.ones(1, 32), stop=dataclasses.replace(rule, probe_bits=0.85))[0].steps == 4
+    plain = finetune_batch(ws, ["c"], torch.ones(1, 32), stop=dataclasses.replace(rule, probes=0))[0]
+    assert (plain.steps, plain.probe_bit_accuracy) == (4, None)  # no probes: nothing scored between the views
+    assert rule.confirmed(1.0, 50.0, 0.99) and not rule.confirmed(1.0, 50.0, 0.98) and rule.confirmed(1.0, 50.0)
+    redrawing = dataclasses.replace(rule, redraw=1)
+    assert redrawing.redraws(1.0, 0, 0.9) and not redrawing.redraws(1.0, 0, 0.995) and not redrawing.redraws(1.0, 1, 0.9)
+
+
 def test_a_copy_below_redraw_bits_at_its_last_cap_gets_a_new_message() -> None:
     from gsw.mark.message import redrawn_message
 
@@ -249,6 +279,10 @@ def test_early_stop_settings() -> None:
     assert (EarlyStop.parse("careful,focus=0.5").focus, EarlyStop().focus) == (0.5, 0.0)
     assert EarlyStop.parse("focused") == dataclasses.replace(careful, focus=1.0)
     assert EarlyStop.parse("assured") == dataclasses.replace(careful, focus=1.0, redraw=2)
+    assert (EarlyStop.parse("assured,probes=16").probes, EarlyStop().probes, EarlyStop().probe_bits) == (16, 0, 0.99)
+    for bad in ("probes=-1", "probe_bits=2", "probes=0.5"):
+        with pytest.raises(ValueError, match="probe"):
+            EarlyStop.parse(bad)
     for bad in ("redraw=-1", "redraw_bits=1.5", "redraw=0.5"):
         with pytest.raises(ValueError, match="redraw"):
             EarlyStop.parse(bad)

@@ -11,7 +11,7 @@ from helpers import random_model
 
 from gsw.camera import orbit_cameras
 from gsw.gaussians import Gaussians, cat_gaussians
-from gsw.mark.views import ViewSampler, ViewSamplerConfig, content_bounds, scale_camera
+from gsw.mark.views import ViewSampler, ViewSamplerConfig, content_bounds, gap_views, scale_camera
 from gsw.render.rasterize import rasterize
 
 
@@ -83,6 +83,30 @@ def test_a_reseeded_sampler_draws_a_fresh_samplers_sequence():
     b = ViewSampler(g, cams, seed=7).sample_many(10)
     assert all(torch.equal(x.viewmat, y.viewmat) and (x.fx, x.width, x.cx) == (y.fx, y.width, y.cx)
                for x, y in zip(a, b))
+
+
+def test_gap_views_lie_between_neighbouring_cameras():
+    g = _scene()
+    centre, radius = content_bounds(g)
+    cams = orbit_cameras(centre.tolist(), 4.0, 8, width=96, height=64)  # a ring of 8
+    gaps = gap_views(g, cams, 24, seed=5)
+    _check_looks_at_content(gaps, centre, radius)
+    given = torch.stack([c.center.double() - centre for c in cams])
+    given = given / given.norm(dim=1, keepdim=True)
+    apart = math.degrees(math.acos(float(given[0] @ given[1])))  # neighbours' angle from the centre
+    for cam in gaps:
+        d = cam.center.double() - centre
+        angles = torch.rad2deg(torch.arccos((given @ (d / d.norm())).clamp(-1, 1)))
+        nearest, second = angles.sort().values[:2].tolist()
+        # on the arc between two neighbours, a quarter to half of the way from the nearer
+        assert 0.25 * apart - 1e-3 <= nearest <= 0.5 * apart + 1e-3
+        assert nearest + second == pytest.approx(apart, abs=1e-3)
+        assert (cam.width, cam.height, cam.fx) == (96, 64, pytest.approx(cams[0].fx))  # the cameras' own lens
+    again = gap_views(g, cams, 24, seed=5)
+    assert all(torch.equal(a.viewmat, b.viewmat) for a, b in zip(gaps, again))
+    assert not torch.equal(gap_views(g, cams, 1, seed=6)[0].viewmat, gaps[0].viewmat)
+    with pytest.raises(ValueError, match="at least 2"):
+        gap_views(g, cams[:1], 4)
 
 
 def test_config_rejects_bad_ranges():

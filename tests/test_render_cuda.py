@@ -342,7 +342,7 @@ def test_auto_backward_layout_follows_the_densest_tile(monkeypatch) -> None:
     thresholds 2x, 6x and 128 splats are read from the extension: csrc/core/constants.h.)"""
     sms = torch.cuda.get_device_properties(0).multi_processor_count
     c = _C.constants
-    dense, cut, length = c["LAYOUT_CRITICAL_PATH_FACTOR"], c["LAYOUT_CUT_FACTOR"], c["CUT_LENGTH_MIN"]
+    dense, cut, length = c["LAYOUT_CRITICAL_PATH_FACTOR"], c["LAYOUT_CUT_FACTOR"], c["CUT_LENGTHS"][0]
 
     def grads(g: Gaussians, cam: Camera, bg, deg: int, variant: str, chunk: str = "") -> dict:
         monkeypatch.setenv("GSW_CUDA_BACKWARD", variant)

@@ -72,9 +72,12 @@ constexpr int kCriticalPathFactor = 2;
 // 0.64-0.66; at 11.6x (800x800) 0.44-0.50 against 0.85; at 30x (400x400) 0.37 against 1.30).
 constexpr int kCutFactor = 6;
 // The shortest chunk such a render's tiles are cut at (splats, a multiple of the 4-pixel batch of
-// 64); the longer ones are 1.5x and 2x the one before: 128, 192, 256, 384, ... (BENCHMARKS.md 2s:
-// 128 was the fastest of 128 / 256 / ~450 on lego at 800x800).
+// 64); the longer ones are 1.5x and 2x the one before: 128, 192, 256, 384, ... 2048, kNumCutLengths
+// in all, cut_length(0) shortest (BENCHMARKS.md 2s: 128 was the fastest of 128 / 256 / ~450 on lego
+// at 800x800).
 constexpr int kCutLengthMin = 128;
+constexpr int kNumCutLengths = 9;
+constexpr int cut_length(int l) { return (l % 2 != 0 ? kCutLengthMin * 3 / 2 : kCutLengthMin) << (l / 2); }
 
 // Default budget of the blend backward's records held at once (MiB; core/params.h
 // blend_records_budget): a cap against running out of memory on very large renders.

@@ -929,12 +929,8 @@ __global__ void __launch_bounds__(kBlock)
   }
 }
 
-// The chunk lengths a dense render's blend backward may cut at, shortest first: kCutLengthMin (128),
-// 192, 256, 384, ... 2048 splats (core/constants.h).
-constexpr int kNumCutLengths = 9;
-__host__ __device__ constexpr int32_t cut_length(int l) {
-  return (l % 2 != 0 ? kCutLengthMin * 3 / 2 : kCutLengthMin) << (l / 2);
-}
+// The chunk lengths a dense render's blend backward may cut at: cut_length(0 .. kNumCutLengths - 1)
+// of core/constants.h, shortest first.
 static_assert(cut_length(0) % (kTilePixels / 4) == 0 && cut_length(1) % (kTilePixels / 4) == 0,
               "cut lengths are whole 4-pixel batches");
 constexpr int kChooseThreads = 1024;

@@ -259,6 +259,8 @@ class CopyResult:
             scores and seconds above are those of the last attempt.
         redrawn_steps: the steps of its discarded attempts.
         message: [k] the message this copy carries when it was redrawn (CPU), else None (the given one).
+        probe_bit_accuracy: mean bit accuracy on the rule's probes (:attr:`~gsw.fingerprint.stopping.EarlyStop.probes`,
+            viewpoints between the embedding views); None without them.
     """
 
     name: str
@@ -277,6 +279,7 @@ class CopyResult:
     redraws: int = 0
     redrawn_steps: int = 0
     message: Tensor | None = None
+    probe_bit_accuracy: float | None = None
 
 
 def _attack_layers(cfg: EmbedConfig) -> dict | None:
@@ -343,17 +346,17 @@ class _Pool:
                               sampler=None if self.sampler is None else self.sampler.reseeded(seed + 2),
                               focus_rng=random.Random(seed + 3))
 
-    def refocus(self, j: int, accuracies: Tensor) -> None:
-        """Slot ``j``'s copy failed a confirmation with these [V] per-view bit accuracies on the embedding views:
-        with :attr:`EarlyStop.focus`, its later steps revisit the views it read wrong, weighted by their wrong
-        bits."""
+    def refocus(self, j: int, views: Sequence[int], accuracies: Tensor) -> None:
+        """Slot ``j``'s copy failed a confirmation with these [V] bit accuracies on ``views`` (scene view indices:
+        the embedding views and the probes): with :attr:`EarlyStop.focus`, its later steps revisit the views it
+        read wrong, weighted by their wrong bits."""
         rule = self.monitor.rule
         if rule is None or rule.focus <= 0:
             return
-        wrong = (1 - accuracies).tolist()
+        wrong = [(v, w) for v, w in zip(views, (1 - accuracies).tolist()) if w > 0]
         slot = self.slots[j]
-        slot.focus = [v for v, w in enumerate(wrong) if w > 0]
-        slot.focus_weights = [wrong[v] for v in slot.focus]
+        slot.focus = [v for v, _ in wrong]
+        slot.focus_weights = [w for _, w in wrong]
 
     def redraw(self, index: int, steps: int) -> None:
         """Recipient ``index`` gets its next message (:func:`gsw.mark.message.redrawn_message`) after an attempt
@@ -512,20 +515,27 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
     steps = pool.params.steps[j]
     with torch.no_grad():
         copy = pool.params.gaussians(j).detach().clone()
-    accs, psnrs = _score(pool.scene, copy, pool.messages[slot.index])
+    scene, message, rule = pool.scene, pool.messages[slot.index], pool.monitor.rule
+    views = list(range(len(scene.shared.cameras)))
+    accs, psnrs = _score(scene, copy, message, views)
     acc, acc_min, ps, ps_min = float(accs.mean()), float(accs.min()), float(psnrs.mean()), float(psnrs.min())
-    rule = pool.monitor.rule
-    if rule is not None and not rule.confirmed(acc, ps):
+    probe_acc = None
+    if rule is not None and rule.probes:
+        probes = scene.probe_views(rule.probes)
+        probe_accs = _score(scene, copy, message, probes)[0]
+        probe_acc = float(probe_accs.mean())
+        views, accs = views + probes, torch.cat([accs, probe_accs])
+    if rule is not None and not rule.confirmed(acc, ps, probe_acc):
         if steps < pool.caps[j]:  # an early stop (before the cap or the extension's cap)
             pool.monitor.refuse(j)
-            pool.refocus(j, accs)
+            pool.refocus(j, views, accs)
             return None
         if pool.caps[j] == pool.cap and rule.extension(pool.cap):
             pool.caps[j] = pool.cap + rule.extension(pool.cap)
-            pool.refocus(j, accs)
+            pool.refocus(j, views, accs)
             return None
     if rule is not None and steps >= pool.caps[j] and pool.redrawable[slot.index] and rule.redraws(
-            acc, pool.redraws[slot.index]):
+            acc, pool.redraws[slot.index], probe_acc):
         pool.redraw(slot.index, steps)
         return _REDRAWN
     weight = float(pool.monitor.weights[j])
@@ -534,11 +544,12 @@ def _finish(pool: _Pool, j: int, names: Sequence[str], k: int) -> tuple[int, Cop
                                   (time.perf_counter() - slot.start) / k, steps, steps < pool.cap, weight,
                                   pool.monitor.rejections[j], redraws=redraws,
                                   redrawn_steps=pool.redrawn_steps[slot.index],
-                                  message=pool.messages[slot.index].cpu() if redraws else None)
+                                  message=pool.messages[slot.index].cpu() if redraws else None,
+                                  probe_bit_accuracy=probe_acc)
 
 
-def _score(scene, copy: Gaussians, target: Tensor) -> tuple[Tensor, Tensor]:
-    """[V] bit accuracies and [V] PSNRs (dB) of one copy on the embedding views (CPU)."""
-    acc, ps = final_scores(copy, scene.shared.cameras, scene.originals, scene.loss.decoder, target,
-                           scene.shared.config.background)
+def _score(scene, copy: Gaussians, target: Tensor, views: Sequence[int]) -> tuple[Tensor, Tensor]:
+    """[V] bit accuracies and [V] PSNRs (dB) of one copy on the scene's ``views`` (CPU)."""
+    acc, ps = final_scores(copy, [scene.camera(v) for v in views], [scene.original(v) for v in views],
+                           scene.loss.decoder, target, scene.shared.config.background)
     return acc.cpu(), ps.cpu()

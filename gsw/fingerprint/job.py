@@ -58,6 +58,8 @@ class RecipientReport:
             Ray, a batch's copies arrive together when the batch ends).
         worker_setup_s: seconds its worker spent preparing the scene before its batch (0: cached).
         worker_warm_s: seconds its worker's warm-up took, while the driver ran the set-up (Ray; 0 without).
+        probe_bit_accuracy: its mean bit accuracy on the stopping rule's probes (embedded with
+            :attr:`~gsw.fingerprint.stopping.EarlyStop.probes` only).
     """
 
     name: str
@@ -77,6 +79,7 @@ class RecipientReport:
     finished_s: float | None = None
     worker_setup_s: float | None = None
     worker_warm_s: float | None = None
+    probe_bit_accuracy: float | None = None
 
 
 @dataclass
@@ -209,7 +212,7 @@ class _Writer:
                                                    r.bit_accuracy, r.min_bit_accuracy, r.psnr, r.min_psnr,
                                                    r.seconds, r.steps, r.stopped_early, r.refusals, r.redraws,
                                                    r.redrawn_steps, self.arrived.get(r.name), r.worker_setup_s,
-                                                   r.worker_warm_s)
+                                                   r.worker_warm_s, r.probe_bit_accuracy)
         if self.bar is not None:
             self.bar.update(0, recipients=f"{sum(x.status == 'embedded' for x in self.reports.values())}")
 

@@ -124,7 +124,8 @@ class WorkerScene:
         loss: the watermark loss (decoder + LPIPS) on ``device``.
         warm_s: seconds :func:`warm_worker` took to make ``originals`` and ``loss`` (0: made with the scene).
         bank: the input model on ``device`` and the job's bank of sampled viewpoints (``EmbedConfig.view_bank``;
-            none without one); view ``len(cameras) + b`` is bank viewpoint ``b``.
+            none without one); view ``len(cameras) + b`` is bank viewpoint ``b``, and after them come the probes
+            (:meth:`probe_views`).
     """
 
     shared: SharedScene
@@ -136,16 +137,39 @@ class WorkerScene:
     warm_s: float = 0.0
     _references: dict[int, References] = field(default_factory=dict, repr=False)
     _held_bytes: int = field(default=0, repr=False)
+    _probes: list[tuple[Camera, Tensor]] = field(default_factory=list, repr=False)
 
     def camera(self, v: int) -> Camera:
-        """View ``v``'s camera: an embedding view, or beyond them a bank viewpoint."""
-        n = len(self.shared.cameras)
-        return self.shared.cameras[v] if v < n else self.bank.cameras[v - n]
+        """View ``v``'s camera: an embedding view, beyond them a bank viewpoint, then a probe."""
+        n, b = len(self.shared.cameras), len(self.bank)
+        return self.shared.cameras[v] if v < n else self.bank.cameras[v - n] if v < n + b else \
+            self._probes[v - n - b][0]
 
     def original(self, v: int) -> Tensor:
         """[3, H, W] the input model's render of view ``v`` (a bank viewpoint's is made on first use and kept)."""
-        n = len(self.originals)
-        return self.originals[v] if v < n else self.bank.render(v - n)
+        n, b = len(self.originals), len(self.bank)
+        return self.originals[v] if v < n else self.bank.render(v - n) if v < n + b else self._probes[v - n - b][1]
+
+    def probe_views(self, count: int) -> list[int]:
+        """The view indices of ``count`` probes: viewpoints in the gaps between neighbouring embedding views
+        (:func:`gsw.mark.views.gap_views`, seeded from the config's seed, drawn from the embedding cameras alone),
+        drawn and rendered (input model) once per worker and job.
+
+        Raises:
+            ValueError: fewer than 2 embedding views.
+        """
+        from gsw.mark.views import gap_views
+        from gsw.render.rasterize import rasterize
+
+        first = len(self.shared.cameras) + len(self.bank)
+        if len(self._probes) != count:
+            cfg = self.shared.config
+            cams = gap_views(self.bank.original, self.shared.cameras, count, seed=cfg.seed + 4,
+                             max_side=cfg.max_render_side)
+            with torch.no_grad():
+                self._probes = [(c, rasterize(self.bank.original, c, background=cfg.background).image) for c in cams]
+            self._references = {v: r for v, r in self._references.items() if v < first}  # older probes' go
+        return list(range(first, first + count))
 
     def references(self, views: Sequence[int | Tensor]) -> References:
         """The loss's :class:`~gsw.fingerprint.batched.References` of ``views``' original renders, stacked in the

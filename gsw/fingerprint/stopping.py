@@ -24,6 +24,11 @@ from the old one, so as secret and as uniform before the choice), up to ``redraw
 recipient whose copy fails a confirmation (an early stop refused, or the step cap reached) draws that share of its
 later steps from the embedding views its copy read a bit wrong on, weighted by their wrong bits, instead of its
 next shuffled view: the steps go where the bits are missing (the views are known from the score, at no cost).
+With ``probes``, the score also reads that many viewpoints in the gaps between neighbouring embedding views (drawn
+once per job from the embedding cameras alone, :func:`gsw.mark.views.gap_views`): a copy is confirmed only when
+their mean bit accuracy is >= ``probe_bits`` too, a copy below it at its last cap is redrawn as above, and
+``focus`` sends steps to the probes read wrong as to the embedding views: a mark that reads every embedding view
+but not the views between them (what held-out views are) is caught before the copy is written.
 
 With ``adapt > 1`` each recipient's message weight is steered towards the PSNR target at every check: divided
 by ``adapt`` while its running PSNR is below the target (down to ``w / max_factor`` of the configured weight
@@ -44,7 +49,7 @@ from gsw.mark.loss import steer_weight
 
 __all__ = ["PRESETS", "EarlyStop", "SlotMonitor"]
 
-_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "redraw")
+_INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "redraw", "probes")
 
 #: Named settings, as measured on lego 800x800 with a pool of 16 on an H200 (BENCHMARKS.md, "Fifth GPU round" to
 #: "Tenth GPU round"): ``quality``: 954-1,122 per GPU-hour in five jobs, 122 of their 128 copies >= 99 % bits and
@@ -92,6 +97,9 @@ class EarlyStop:
             redrawn (while ``redraw`` allows).
         focus: share in [0, 1] of a recipient's steps after a failed confirmation that revisit the embedding
             views its copy read wrong (see the module docstring); 0: every step takes the next shuffled view.
+        probes: viewpoints between neighbouring embedding views that every score also reads (0: none; see the
+            module docstring).
+        probe_bits: with ``probes``, the mean bit accuracy on them a copy needs to be confirmed (and not redrawn).
     """
 
     min_steps: int = 100
@@ -107,6 +115,8 @@ class EarlyStop:
     redraw: int = 0
     redraw_bits: float = 0.995
     focus: float = 0.0
+    probes: int = 0
+    probe_bits: float = 0.99
 
     def __post_init__(self) -> None:
         for name in ("min_steps", "window", "check_every"):  # accuracy_window may be 0
@@ -122,6 +132,9 @@ class EarlyStop:
         if self.redraw < 0 or not 0.0 <= self.redraw_bits <= 1.0:
             raise ValueError("EarlyStop.redraw must be >= 0 and redraw_bits a bit accuracy in [0, 1], got "
                              f"redraw={self.redraw}, redraw_bits={self.redraw_bits}")
+        if self.probes < 0 or not 0.0 <= self.probe_bits <= 1.0:
+            raise ValueError("EarlyStop.probes must be >= 0 and probe_bits a bit accuracy in [0, 1], got "
+                             f"probes={self.probes}, probe_bits={self.probe_bits}")
         if not 0.0 <= self.focus <= 1.0:
             raise ValueError(f"EarlyStop.focus is a share of the steps in [0, 1], got {self.focus}")
         if self.margin < 0:
@@ -131,15 +144,18 @@ class EarlyStop:
         if self.adapt > 1 and self.psnr_target is None:
             raise ValueError("EarlyStop.adapt > 1 steers the message weight towards psnr_target: give one")
 
-    def confirmed(self, bit_accuracy: float, psnr: float) -> bool:
-        """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views may stop early (or, with
-        ``extend``, finish at the step cap)."""
-        return bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
+    def confirmed(self, bit_accuracy: float, psnr: float, probe_accuracy: float | None = None) -> bool:
+        """Whether a copy scored ``bit_accuracy`` / ``psnr`` (dB) on the embedding views and ``probe_accuracy`` on
+        the probes (None: none scored) may stop early (or, with ``extend``, finish at the step cap)."""
+        return (bit_accuracy >= self.confirm and (self.psnr_target is None or psnr >= self.psnr_target)
+                and (probe_accuracy is None or probe_accuracy >= self.probe_bits))
 
-    def redraws(self, bit_accuracy: float, done: int) -> bool:
-        """Whether a copy finished at its last cap with ``bit_accuracy`` on the embedding views is discarded for a
-        new message, its recipient having had ``done`` new messages so far."""
-        return done < self.redraw and bit_accuracy < self.redraw_bits
+    def redraws(self, bit_accuracy: float, done: int, probe_accuracy: float | None = None) -> bool:
+        """Whether a copy finished at its last cap with ``bit_accuracy`` on the embedding views and
+        ``probe_accuracy`` on the probes (None: none scored) is discarded for a new message, its recipient having
+        had ``done`` new messages so far."""
+        low = bit_accuracy < self.redraw_bits or probe_accuracy is not None and probe_accuracy < self.probe_bits
+        return done < self.redraw and low
 
     def extension(self, cap: int) -> int:
         """Extra steps a recipient that fails :meth:`confirmed` at the step ``cap`` gets (0: none)."""

@@ -9,6 +9,9 @@ robust to stray Gaussians far away):
   its distance scaled by up to +-20 %;
 * ``interpolate``: a pose between two given cameras (directions from the centre slerped, distances and
   up vectors interpolated);
+* ``between``: as ``interpolate``, between a given camera and its nearest neighbour (the given camera whose
+  direction from the centre is closest), at a fraction in [0.25, 0.75] of the way: the gaps between the views,
+  where a mark fine-tuned on the given cameras is weakest;
 * ``orbit``: a direction on the sphere around the content at an elevation in ``elevation_deg`` (relative
   to the cameras' mean up vector, or world +z with no cameras), at a distance between the given cameras'
   nearest and farthest (with no cameras: the distance at which the content sphere fills the view, times
@@ -44,10 +47,10 @@ from torch import Tensor
 from gsw.camera import MAX_IMAGE_SIZE, Camera
 from gsw.gaussians import Gaussians
 
-__all__ = ["ViewSamplerConfig", "ViewSampler", "content_bounds", "scale_camera", "MODES"]
+__all__ = ["ViewSamplerConfig", "ViewSampler", "content_bounds", "gap_views", "scale_camera", "MODES"]
 
-#: Sampling modes of :class:`ViewSampler` (``jitter`` and ``interpolate`` need given cameras).
-MODES: tuple[str, ...] = ("jitter", "interpolate", "orbit")
+#: Sampling modes of :class:`ViewSampler` (``jitter``, ``interpolate`` and ``between`` need given cameras).
+MODES: tuple[str, ...] = ("jitter", "interpolate", "between", "orbit")
 _F64 = torch.float64
 
 
@@ -184,7 +187,7 @@ class ViewSampler:
         self.cameras = list(cameras or [])
         self.centre, self.radius = content_bounds(gaussians, self.config.quantile)
         self.rng = random.Random(seed)
-        needed = {"orbit": 0, "jitter": 1, "interpolate": 2}  # given cameras each mode needs
+        needed = {"orbit": 0, "jitter": 1, "interpolate": 2, "between": 2}  # given cameras each mode needs
         modes = [(m, w) for m, w in self.config.modes if w > 0 and len(self.cameras) >= needed[m]]
         if not modes:
             modes = [("orbit", 1.0)]
@@ -209,9 +212,14 @@ class ViewSampler:
             direction = _rotate_random(offset / offset.norm(), math.radians(cfg.jitter_deg), self.rng)
             distance = float(offset.norm()) * math.exp(self.rng.uniform(math.log(0.8), math.log(1.2)))
             up = -base.c2w[:3, 1].detach().to("cpu", _F64)
-        elif mode == "interpolate":
-            a, b = self.rng.sample(self.cameras, 2)
-            t = self.rng.random()
+        elif mode in ("interpolate", "between"):
+            if mode == "interpolate":
+                a, b = self.rng.sample(self.cameras, 2)
+                t = self.rng.random()
+            else:
+                i = self.rng.randrange(len(self.cameras))
+                a, b = self.cameras[i], self.cameras[self._neighbours()[i]]
+                t = self.rng.uniform(0.25, 0.75)
             oa, ob = (c.center.detach().to("cpu", _F64) - self.centre for c in (a, b))
             direction = _slerp(oa / oa.norm(), ob / ob.norm(), t)
             distance = (1 - t) * float(oa.norm()) + t * float(ob.norm())
@@ -235,6 +243,16 @@ class ViewSampler:
     def sample_many(self, n: int) -> list[Camera]:
         """``n`` cameras (the next ``n`` of the sequence)."""
         return [self.sample() for _ in range(n)]
+
+    def _neighbours(self) -> list[int]:
+        """Per given camera, the index of the other one whose direction from the content centre is closest."""
+        if not hasattr(self, "_nearest"):
+            d = torch.stack([c.center.detach().to("cpu", _F64) - self.centre for c in self.cameras])
+            d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+            cos = d @ d.T
+            cos.fill_diagonal_(-math.inf)
+            self._nearest = cos.argmax(dim=1).tolist()
+        return self._nearest
 
     def _orbit_direction(self) -> Tensor:
         lo, hi = (math.radians(v) for v in self.config.elevation_deg)
@@ -261,6 +279,28 @@ class ViewSampler:
         cam = Camera.look_at(eye, target, up, fov_x, width, height, name=f"sampled_{mode}")
         size = math.exp(self.rng.uniform(*(math.log(v) for v in cfg.size_range)))
         return scale_camera(cam, size, cfg.max_side, self.rng)
+
+
+def gap_views(gaussians: Gaussians, cameras: Sequence[Camera], n: int, seed: int = 0,
+              max_side: int = MAX_IMAGE_SIZE) -> list[Camera]:
+    """``n`` viewpoints in the gaps between neighbouring given cameras (:class:`ViewSampler`'s ``between`` mode),
+    at their focal length and image size (at most ``max_side`` per side), looking at the content centre.
+
+    Args:
+        gaussians: the model (its content bounds).
+        cameras: its given views (at least 2).
+        n: how many.
+        seed: RNG seed (the same seed, the same viewpoints).
+        max_side: largest rendered side, pixels.
+
+    Raises:
+        ValueError: fewer than 2 cameras.
+    """
+    if len(cameras) < 2:
+        raise ValueError(f"gap_views needs at least 2 given cameras to look between, got {len(cameras)}")
+    cfg = ViewSamplerConfig(modes=(("between", 1.0),), focal_range=(1.0, 1.0), size_range=(1.0, 1.0),
+                            target_jitter=0.0, max_side=max_side)
+    return ViewSampler(gaussians, cameras, cfg, seed).sample_many(n)
 
 
 def _basis(up: Tensor) -> tuple[Tensor, Tensor]:
