@@ -279,7 +279,8 @@ def test_early_stop_settings() -> None:
     assert (EarlyStop.parse("careful,focus=0.5").focus, EarlyStop().focus) == (0.5, 0.0)
     assert EarlyStop.parse("focused") == dataclasses.replace(careful, focus=1.0)
     assert EarlyStop.parse("assured") == dataclasses.replace(careful, focus=1.0, redraw=2)
-    assert (EarlyStop.parse("assured,probes=16").probes, EarlyStop().probes, EarlyStop().probe_bits) == (16, 0, 0.99)
+    assert EarlyStop.parse("probed") == dataclasses.replace(careful, focus=1.0, redraw=2, probes=16)
+    assert (EarlyStop.parse("assured,probes=8").probes, EarlyStop().probes, EarlyStop().probe_bits) == (8, 0, 0.99)
     for bad in ("probes=-1", "probe_bits=2", "probes=0.5"):
         with pytest.raises(ValueError, match="probe"):
             EarlyStop.parse(bad)

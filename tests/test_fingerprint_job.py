@@ -203,6 +203,20 @@ def test_redrawn_messages_are_registered_as_chosen(tmp_path) -> None:
             assert marks["drawn"].message_hex.encode() not in f.read_bytes().lower(), f
 
 
+def test_probes_reach_the_report_and_need_two_cameras(tmp_path) -> None:
+    from gsw.fingerprint.stopping import EarlyStop
+
+    rule = EarlyStop(min_steps=1, window=1, check_every=1, probes=2)
+    report = _run(_scene(), ["alice"], tmp_path / "out", tmp_path / "r.sqlite", decoder=ReadsOnes(), early_stop=rule)
+    acc = report.recipients[0].probe_bit_accuracy
+    assert acc is not None and 0 <= acc <= 1 and (acc * 64) == pytest.approx(round(acc * 64))  # 2 views of 32 bits
+    one = _scene()
+    with pytest.raises(ValueError, match="at least 2 cameras"):
+        gsw.fingerprint(one.gaussians, one.cameras[:1], ["bob"], tmp_path / "out2", tmp_path / "r2.sqlite",
+                        config=_config(one), early_stop=rule, use_ray=False, device="cpu", progress=False)
+    assert not (tmp_path / "out2").exists() and not (tmp_path / "r2.sqlite").exists()  # refused before any write
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_same_job_same_bits(device, tmp_path) -> None:
     """Two runs of one job (same scene, messages and settings) write bitwise-identical copies: the rasterizer's

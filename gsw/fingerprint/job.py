@@ -274,6 +274,9 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
     cfg = config or pool_config()
     check_pool_config(cfg)
     check_config(cfg, cameras)
+    if early_stop is not None and early_stop.probes and len(cameras) < 2:
+        raise ValueError(f"early_stop.probes lie between neighbouring embedding views: give at least 2 cameras, "
+                         f"got {len(cameras)}")
     people = _recipients(recipients)
     dev = resolve_device(device if device is not None else "auto")
     dec_sha = mark_decoder_sha256(num_bits, decoder)

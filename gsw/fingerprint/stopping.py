@@ -61,7 +61,10 @@ _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "red
 #: ``assured`` (``focused`` with ``redraw=2``: a drawn message that ends below 0.995 on the embedding views is replaced,
 #: up to twice), with the squared-error image term and no FGD (``gsw fingerprint --mse 35 --no-fgd``): 1,118 and 1,172
 #: per GPU-hour on two models, 31 and 32 of 32 copies meeting both, every copy >= 37 dB ("Sixteenth GPU round"); 981
-#: per GPU-hour with 64 of 64 on a third ("Seventeenth GPU round").
+#: per GPU-hour with 64 of 64 on a third ("Seventeenth GPU round"); ``probed`` (``assured`` whose confirmation also reads
+#: 16 viewpoints between the embedding views, ``probes=16``), same flags: the built-in scene 64 of 64 at 1,992 per
+#: GPU-hour where ``assured`` met both in 57 of 64 (3,734) in the same run, lego 62 of 64 at 1,202 ("Eighteenth GPU
+#: round").
 _CAREFUL = "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,accuracy_window=32"
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
@@ -69,6 +72,7 @@ PRESETS = {
     "throughput": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.99",
     "focused": _CAREFUL + ",focus=1",
     "assured": _CAREFUL + ",focus=1,redraw=2",
+    "probed": _CAREFUL + ",focus=1,redraw=2,probes=16",
 }
 
 
