@@ -83,7 +83,9 @@ def _scene(args, dev):
 
     if args.scene == "builtin":
         sc = default_scene(width=args.size, height=args.size, n_cameras=args.views, device=dev)
-        held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=180.0 / args.views)
+        offset = 180.0 / args.views if args.held_out_azimuth is None else args.held_out_azimuth
+        held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=offset,
+                               elevation_deg=args.held_out_elevation)
         return sc.gaussians, sc.cameras, held, tuple(float(v) for v in sc.background), None, None
     if args.model is None:
         g, train_set, test_set, info = _train_lego(args, dev)
@@ -390,6 +392,11 @@ def main() -> int:
     ap.add_argument("--size", type=int, default=None, help="render size (default: builtin 256, lego 800)")
     ap.add_argument("--views", type=int, default=24, help="builtin: embedding views")
     ap.add_argument("--held-out", type=int, default=8, help="builtin: held-out views (between the embedding views)")
+    ap.add_argument("--held-out-azimuth", type=float, default=None,
+                    help="builtin: the held-out ring's azimuth offset, degrees (default: half the embedding views' "
+                         "spacing, halfway between them)")
+    ap.add_argument("--held-out-elevation", type=float, default=30.0,
+                    help="builtin: the held-out ring's elevation, degrees (default %(default)s: the embedding ring's)")
     ap.add_argument("--bits", type=int, default=32)
     ap.add_argument("--setting", action="append", default=None,
                     help="a sweep setting (repeatable; default: the scene's sweep, see LEGO_SWEEP / BUILTIN_SWEEP)")

@@ -168,7 +168,8 @@ class WorkerScene:
                              max_side=cfg.max_render_side)
             with torch.no_grad():
                 self._probes = [(c, rasterize(self.bank.original, c, background=cfg.background).image) for c in cams]
-            self._references = {v: r for v, r in self._references.items() if v < first}  # older probes' go
+            for v in [v for v in self._references if v >= first]:  # older probes' go
+                self._held_bytes -= _nbytes(self._references.pop(v))
         return list(range(first, first + count))
 
     def references(self, views: Sequence[int | Tensor]) -> References:
@@ -188,8 +189,7 @@ class WorkerScene:
             refs = self._references.get(v)
             if refs is None:
                 refs = self._image_references(self.original(v))
-                held = [t for level in refs.highs for t in level] + (refs.lpips or [])
-                size = sum(t.numel() * t.element_size() for t in held)
+                size = _nbytes(refs)
                 if self._held_bytes + size <= reference_budget(self.device):
                     self._references[v] = refs
                     self._held_bytes += size
@@ -204,6 +204,12 @@ class WorkerScene:
 
         lpips = self.loss.lpips
         return References(dwt2(image[None])[1], None if lpips is None else lpips.references(image[None]))
+
+
+def _nbytes(refs: References) -> int:
+    """Bytes held by one view's :class:`~gsw.fingerprint.batched.References`."""
+    held = [t for level in refs.highs for t in level] + (refs.lpips or [])
+    return sum(t.numel() * t.element_size() for t in held)
 
 
 #: Most bytes of :class:`~gsw.fingerprint.batched.References` a :class:`WorkerScene` keeps for all its views (on a

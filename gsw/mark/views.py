@@ -195,8 +195,12 @@ class ViewSampler:
         if self.cameras:
             ups = torch.stack([-c.c2w[:3, 1].detach().to("cpu", _F64) for c in self.cameras]).mean(0)
             self.up = ups / ups.norm() if ups.norm() > 1e-6 else torch.tensor([0.0, 0.0, 1.0], dtype=_F64)
-            d = torch.stack([(c.center.detach().to("cpu", _F64) - self.centre).norm() for c in self.cameras])
+            offsets = torch.stack([c.center.detach().to("cpu", _F64) - self.centre for c in self.cameras])
+            d = offsets.norm(dim=1)
             self.distances = (float(d.min()), float(d.max()))
+            dirs = offsets / d.clamp_min(1e-12)[:, None]
+            # per camera, the other one whose direction from the centre is closest (mode "between")
+            self._nearest = (dirs @ dirs.T).fill_diagonal_(-math.inf).argmax(dim=1).tolist()
         else:
             self.up = torch.tensor([0.0, 0.0, 1.0], dtype=_F64)
             half = math.radians(self.config.fov_deg) / 2
@@ -218,7 +222,7 @@ class ViewSampler:
                 t = self.rng.random()
             else:
                 i = self.rng.randrange(len(self.cameras))
-                a, b = self.cameras[i], self.cameras[self._neighbours()[i]]
+                a, b = self.cameras[i], self.cameras[self._nearest[i]]
                 t = self.rng.uniform(0.25, 0.75)
             oa, ob = (c.center.detach().to("cpu", _F64) - self.centre for c in (a, b))
             direction = _slerp(oa / oa.norm(), ob / ob.norm(), t)
@@ -243,16 +247,6 @@ class ViewSampler:
     def sample_many(self, n: int) -> list[Camera]:
         """``n`` cameras (the next ``n`` of the sequence)."""
         return [self.sample() for _ in range(n)]
-
-    def _neighbours(self) -> list[int]:
-        """Per given camera, the index of the other one whose direction from the content centre is closest."""
-        if not hasattr(self, "_nearest"):
-            d = torch.stack([c.center.detach().to("cpu", _F64) - self.centre for c in self.cameras])
-            d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
-            cos = d @ d.T
-            cos.fill_diagonal_(-math.inf)
-            self._nearest = cos.argmax(dim=1).tolist()
-        return self._nearest
 
     def _orbit_direction(self) -> Tensor:
         lo, hi = (math.radians(v) for v in self.config.elevation_deg)
