@@ -51,7 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "'assured' ('focused' with redraw=2; with --mse 35 --no-fgd 127 of 128 copies met both at "
                          "981-1,172 per GPU-hour in three lego jobs), 'probed' ('assured' whose confirmation "
                          "also reads 16 viewpoints between the embedding views: the built-in scene 64 of 64 where "
-                         "'assured' met 57, at half its rate) or "
+                         "'assured' met 57, at half its rate; views at other elevations gain nothing) or "
                          "'throughput' (faster, ~85 %%), and/or "
                          "'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,extend=F,"
                          "accuracy_window=N,redraw=N,redraw_bits=ACC,focus=P,probes=N,probe_bits=ACC' (focus: after "

@@ -64,7 +64,7 @@ _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "red
 #: per GPU-hour with 64 of 64 on a third ("Seventeenth GPU round"); ``probed`` (``assured`` whose confirmation also reads
 #: 16 viewpoints between the embedding views, ``probes=16``), same flags: the built-in scene 64 of 64 at 1,992 per
 #: GPU-hour where ``assured`` met both in 57 of 64 (3,734) in the same run, lego 62 of 64 at 1,202 ("Eighteenth GPU
-#: round").
+#: round"); on a built-in held-out ring 10 degrees above the embedding ring no better than ``assured`` (5 and 6 of 16).
 _CAREFUL = "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,accuracy_window=32"
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
