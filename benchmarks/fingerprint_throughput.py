@@ -84,8 +84,8 @@ def _scene(args, dev):
     if args.scene == "builtin":
         sc = default_scene(width=args.size, height=args.size, n_cameras=args.views, device=dev)
         offset = 180.0 / args.views if args.held_out_azimuth is None else args.held_out_azimuth
-        held = default_cameras(args.held_out, args.size, args.size, azimuth_offset_deg=offset,
-                               elevation_deg=args.held_out_elevation)
+        held = [cam for el in args.held_out_elevation for cam in default_cameras(
+            args.held_out, args.size, args.size, azimuth_offset_deg=offset, elevation_deg=el)]
         return sc.gaussians, sc.cameras, held, tuple(float(v) for v in sc.background), None, None
     if args.model is None:
         g, train_set, test_set, info = _train_lego(args, dev)
@@ -395,8 +395,9 @@ def main() -> int:
     ap.add_argument("--held-out-azimuth", type=float, default=None,
                     help="builtin: the held-out ring's azimuth offset, degrees (default: half the embedding views' "
                          "spacing, halfway between them)")
-    ap.add_argument("--held-out-elevation", type=float, default=30.0,
-                    help="builtin: the held-out ring's elevation, degrees (default %(default)s: the embedding ring's)")
+    ap.add_argument("--held-out-elevation", type=float, nargs="+", default=[30.0],
+                    help="builtin: the held-out rings' elevations, degrees, --held-out views each (default: 30, the "
+                         "embedding ring's)")
     ap.add_argument("--bits", type=int, default=32)
     ap.add_argument("--setting", action="append", default=None,
                     help="a sweep setting (repeatable; default: the scene's sweep, see LEGO_SWEEP / BUILTIN_SWEEP)")
