@@ -58,8 +58,7 @@ def tile_load(case: str, ply: str | None, device: str, wave: int) -> dict:
                 intersections=int(lengths.sum()), visited_total=total,
                 intersections_per_busy_tile=_stats(lengths[busy]), visited_per_busy_tile=_stats(visited[busy]),
                 wave=wave, densest_over_share=round(most * wave / max(total, 1), 2),
-                extra_chunks={L: int(((visited - 1).clamp(min=0) // L).sum())
-                              for L in _C.constants["CUT_LENGTHS"][:5]},  # the first five (rasterize_cuda.cu)
+                extra_chunks={L: int(((visited - 1).clamp(min=0) // L).sum()) for L in _C.constants["CUT_LENGTHS"]},
                 device=str(device), gsw=gsw.__version__)
 
 
