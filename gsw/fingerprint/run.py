@@ -101,11 +101,12 @@ def _warm(token, original, cameras, config, num_bits, decoder, device):  # pragm
 
 
 class _Worker:  # pragma: no cover - a Ray actor
-    """One process holding its resources (a GPU) for the whole job: warms up once, then runs payloads."""
+    """One process holding its resources (a GPU) for the whole job: warms up (its first call, and again after a
+    restart), then runs payloads. Its constructor takes no arguments: Ray cannot restart an actor whose
+    constructor arguments left the object store (ray-project/ray#53727)."""
 
-    def __init__(self, warm: Callable[..., Any] | None, *warm_args: Any) -> None:
-        if warm is not None:
-            warm(*warm_args)
+    def warm(self, fn: Callable[..., Any], *args: Any) -> None:
+        fn(*args)
 
     def run(self, fn: Callable[..., Any], shared: Any, payload: Any, args: Sequence[Any]) -> Any:
         return fn(shared, payload, *args)
@@ -119,10 +120,10 @@ def _actor_died(err: BaseException) -> bool:
 
 class RayWorkers:
     """A pool of Ray actors (``num_gpus`` / ``num_cpus`` each) on the connected cluster, started at once so that
-    their start (process, imports, CUDA, ``warm(*warm_args)``) overlaps what the caller does next; then
-    :meth:`map` hands out payloads to whichever worker is free.
+    their start (process, imports, CUDA, then ``warm(*warm_args)``, each worker's first call) overlaps what the
+    caller does next; then :meth:`map` hands out payloads to whichever worker is free.
 
-    A worker whose process dies is restarted by Ray (up to ``max_retries`` times, running ``warm`` again) and
+    A worker whose process dies is restarted by Ray (up to ``max_retries`` times; ``warm`` runs again first) and
     the payload it held is run again (up to ``max_retries`` times per payload); a payload that raises is not
     run again. ``shutdown`` ends the workers.
     """
@@ -136,8 +137,19 @@ class RayWorkers:
         self.max_retries = max_retries
         actor = ray.remote(_Worker).options(num_gpus=num_gpus, num_cpus=num_cpus, max_restarts=max_retries,
                                             max_task_retries=0)
+        self._warm = warm
         self._refs = [ray.put(a) for a in warm_args]  # stored once, read by every worker (and its restarts)
-        self.actors = [actor.remote(warm, *self._refs) for _ in range(count)]
+        self.actors = [actor.remote() for _ in range(count)]
+        for a in self.actors:
+            self._warm_up(a)
+
+    def _warm_up(self, actor: Any) -> None:
+        """Queues ``warm(*warm_args)`` on ``actor``, ahead of any payload sent to it later (an actor runs its
+        calls in order). Its result is not awaited: ``warm`` only prepares what the payloads would otherwise
+        build themselves, so one that raises (Ray logs it) costs time, not results; one whose worker dies fails
+        that worker's next payload, which :meth:`map` runs again."""
+        if self._warm is not None:
+            actor.warm.remote(self._warm, *self._refs)
 
     @staticmethod
     def capacity(num_gpus: float, num_cpus: float) -> int:
@@ -183,7 +195,8 @@ class RayWorkers:
                     else:
                         failed.append((i, err))
                     if deaths[id(a)] <= self.max_retries:
-                        idle.append(a)  # Ray restarts it
+                        self._warm_up(a)  # runs once Ray has restarted it
+                        idle.append(a)
                 else:
                     failed.append((i, err))
                     idle.append(a)
