@@ -8,6 +8,7 @@ image, so that image carries the mark exactly, without an optimisation run.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +79,24 @@ def test_identify_exit_statuses_and_json(setup, capsys) -> None:
     assert json.loads(capsys.readouterr().out)["recipients"] == []
     assert main(["identify", str(other), "--registry", str(reg)]) == 1
     assert "nobody identified" in capsys.readouterr().out
+
+
+def test_identify_and_verify_read_a_folder(setup, tmp_path, capsys) -> None:
+    """A folder stands for the images and videos in it (recursively), taken together as one source."""
+    reg, leak, _, carol = setup
+    crawl = tmp_path / "crawl"
+    (crawl / "page").mkdir(parents=True)
+    shutil.copy(leak, crawl / "page" / "leak.png")
+    (crawl / "index.html").write_text("<html></html>")
+    assert main(["identify", str(crawl), "--registry", str(reg), "--json"]) == 0
+    found = json.loads(capsys.readouterr().out)
+    assert found["recipients"] == ["carol"] and found["images"] == [str(crawl / "page" / "leak.png")]
+    assert main(["verify", str(crawl), "--message", carol, "--bits", str(BITS), "--chosen-message"]) == 0
+    out = capsys.readouterr().out
+    assert "DETECTED" in out and str(crawl / "page" / "leak.png") in out and "index.html" not in out
+    (tmp_path / "empty").mkdir()
+    assert main(["identify", str(tmp_path / "empty"), "--registry", str(reg)]) == 2
+    assert "no images or videos found in" in capsys.readouterr().err
 
 
 def test_identify_reads_videos(setup, tmp_path, capsys) -> None:

@@ -13,7 +13,8 @@ from helpers import scan_crawl
 import gsw.fingerprint.scan
 import gsw.mark.identify
 import gsw.mark.scales
-from gsw.fingerprint.scan import expand_inputs, scan, scan_sources
+from gsw.fingerprint.scan import scan, scan_sources
+from gsw.io.video import expand_inputs
 from gsw.io.video import load_images_or_video
 from gsw.mark.identify import decode_sources, identify, identify_readings, plan_identify
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from gsw.data.images import to_unit, write_image
-from gsw.io.video import VideoError, is_video, load_images_or_video, load_named_images_or_video, read_video
+from gsw.io.video import (VideoError, expand_inputs, is_video, load_images_or_video, load_named_images_or_video,
+                          read_video)
 
 av = pytest.importorskip("av")
 
@@ -163,3 +164,27 @@ def test_images_and_videos_mixed(tmp_path) -> None:
     assert is_video("A.MP4") and is_video("b.webm") and not is_video("c.png")
     with pytest.raises(ValueError, match="no images or videos"):
         load_images_or_video([])
+
+
+def test_a_folder_stands_for_its_images_and_videos(tmp_path) -> None:
+    """A folder is read as its image and video files, recursively and sorted, other files skipped; an empty one,
+    a missing path and a pattern without matches are errors naming them."""
+    leak = tmp_path / "leak"
+    (leak / "clips").mkdir(parents=True)
+    video = write_video(leak / "clips" / "clip", _ramp())
+    write_image(leak / "b.png", torch.rand(3, 24, 24))
+    write_image(leak / "a.PNG", torch.rand(3, 24, 24))
+    (leak / "notes.txt").write_text("not an image")
+    named = load_named_images_or_video([leak], frames=2)
+    assert [n for n, _ in named] == [str(leak / "a.PNG"), str(leak / "b.png")] + [f"{video}#{i}" for i in (2, 7)]
+    # a folder and a file in it are read once; a file named explicitly is kept whatever its suffix
+    assert expand_inputs([leak, leak / "b.png", leak / "notes.txt"]) == [
+        leak / "a.PNG", leak / "b.png", Path(video), leak / "notes.txt"]
+    assert expand_inputs([str(leak / "*.png")]) == [leak / "b.png"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=f"no images or videos found in {tmp_path / 'empty'}"):
+        load_named_images_or_video([tmp_path / "empty"])
+    with pytest.raises(FileNotFoundError, match="no such file or folder"):
+        expand_inputs([tmp_path / "missing"])
+    with pytest.raises(FileNotFoundError, match="no images or videos match"):
+        expand_inputs([str(tmp_path / "*.jpg")])

@@ -30,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ext.set_defaults(func=cmd_extract)
 
     ver = subparsers.add_parser("verify", help="test images or a model for a message (exit 0 = detected)")
-    ver.add_argument("images", nargs="*")
+    ver.add_argument("images", nargs="*", metavar="IMAGE|VIDEO|FOLDER",
+                     help="image files, video files and folders of them (searched recursively), taken together")
     ver.add_argument("--model", help="INRIA model folder to render instead of images (its watermark.json gives the "
                                      "bit length, background, resolution and whether the message was chosen)")
     add_message_options(ver, claim=True)

@@ -231,8 +231,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                 description="Decodes the images (or frames of videos) once and tests every "
                                 "registered mark; a recipient is identified when the Holm-adjusted p-value over "
                                 "all registered marks is at most --fpr.")
-    idf.add_argument("inputs", nargs="+", metavar="IMAGE|VIDEO", help="image files and/or video files "
-                     "(.mp4, .mkv, .webm, .mov, ...; videos need PyAV), taken together as one source")
+    idf.add_argument("inputs", nargs="+", metavar="IMAGE|VIDEO|FOLDER", help="image files, video files (.mp4, "
+                     ".mkv, .webm, .mov, ...; videos need PyAV) and folders of them (searched recursively), taken "
+                     "together as one source")
     idf.add_argument("--registry", help=REGISTRY_HELP)
     idf.add_argument("--frames", type=positive_int, default=16,
                      help="frames read per video, spread evenly (default %(default)s)")

@@ -28,7 +28,6 @@ GPU or a CPU the default is this process (:func:`ray_by_default` says why). ``ti
 
 from __future__ import annotations
 
-import glob
 import json
 import os
 import time
@@ -47,7 +46,7 @@ if TYPE_CHECKING:
     from gsw.mark.identify import IdentifyPlan, SourceReadings
 
 __all__ = ["DEFAULT_BATCH_SIZES", "DEFAULT_READERS", "RAY_DATA_MIN_SOURCES", "RAY_SOURCES_PER_CALL", "ScanRow",
-           "StageTimes", "expand_inputs", "ray_block_size", "ray_by_default", "scan", "scan_sources"]
+           "StageTimes", "ray_block_size", "ray_by_default", "scan", "scan_sources"]
 
 #: Sources from which :func:`scan` uses Ray Data by default on several GPUs (:func:`ray_by_default`).
 RAY_DATA_MIN_SOURCES = 256
@@ -76,43 +75,6 @@ def ray_block_size(sources: int, workers: int, batch_size: int) -> int:
     cap = RAY_SOURCES_PER_CALL * batch_size
     calls = workers * -(-sources // (workers * cap))  # a multiple of the workers
     return max(1, -(-sources // max(1, calls)))
-
-
-def _suffixes() -> tuple[str, ...]:
-    from gsw.data.images import IMAGE_SUFFIXES
-    from gsw.io.video import VIDEO_SUFFIXES
-
-    return tuple({s.lower() for s in (*IMAGE_SUFFIXES, *VIDEO_SUFFIXES, ".webp", ".bmp", ".tif", ".tiff")})
-
-
-def expand_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
-    """The image and video files of folders (recursively), glob patterns and files, in order, without repeats.
-
-    Raises:
-        FileNotFoundError: an input that is neither a file, a folder nor a pattern with matches.
-        ValueError: nothing to scan.
-    """
-    suffixes, out, seen = _suffixes(), [], set()
-    for item in inputs:
-        text = str(item)
-        if Path(text).is_dir():
-            found = sorted(p for p in Path(text).rglob("*") if p.is_file() and p.suffix.lower() in suffixes)
-        elif Path(text).is_file():
-            found = [Path(text)]
-        elif any(c in text for c in "*?["):
-            found = sorted(Path(p) for p in glob.glob(text, recursive=True)
-                           if Path(p).is_file() and Path(p).suffix.lower() in suffixes)
-            if not found:
-                raise FileNotFoundError(f"no images or videos match {text}")
-        else:
-            raise FileNotFoundError(f"no such file or folder: {text}")
-        for p in found:
-            if p.resolve() not in seen:
-                seen.add(p.resolve())
-                out.append(p)
-    if not out:
-        raise ValueError(f"no images or videos found in {', '.join(map(str, inputs))}")
-    return out
 
 
 @dataclass
@@ -475,6 +437,8 @@ def scan(inputs: Sequence[str | os.PathLike], marks: Sequence, *, fpr: float = D
     """
     if not marks:
         raise ValueError("the registry holds no marks")
+    from gsw.io.video import expand_inputs
+
     batch_size = _batching(batch_size, readers, device)
     paths = expand_inputs(inputs)
     want_ray = use_ray if use_ray is not None else bool(address) or ray_by_default(len(paths), device)

@@ -18,6 +18,7 @@ Example:
 
 from __future__ import annotations
 
+import glob
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,7 +31,7 @@ from torch import Tensor
 
 from gsw.data.images import to_unit
 
-__all__ = ["DEFAULT_FRAMES", "VIDEO_SUFFIXES", "VideoError", "VideoFrames", "is_video", "read_video",
+__all__ = ["DEFAULT_FRAMES", "VIDEO_SUFFIXES", "VideoError", "VideoFrames", "expand_inputs", "is_video", "read_video",
            "load_images_or_video", "load_named_images_or_video"]
 
 #: Frames kept per video by default.
@@ -190,13 +191,52 @@ def read_video(path: str | os.PathLike, frames: int | None = DEFAULT_FRAMES, *,
     return VideoFrames(path, images, wanted, total, fps)
 
 
+def _suffixes() -> tuple[str, ...]:
+    """The suffixes (lower case) of the files a folder or a glob pattern yields: images and videos."""
+    from gsw.data.images import IMAGE_SUFFIXES
+
+    return tuple({s.lower() for s in (*IMAGE_SUFFIXES, *VIDEO_SUFFIXES, ".bmp", ".tif", ".tiff")})
+
+
+def expand_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
+    """The image and video files of folders (recursively, by suffix), glob patterns and files, in order, without
+    repeats; a file given by name is kept whatever its suffix.
+
+    Raises:
+        FileNotFoundError: an input that is neither a file, a folder nor a pattern with matches.
+        ValueError: nothing found.
+    """
+    suffixes, out, seen = _suffixes(), [], set()
+    for item in inputs:
+        text = str(item)
+        if Path(text).is_dir():
+            found = sorted(p for p in Path(text).rglob("*") if p.is_file() and p.suffix.lower() in suffixes)
+        elif Path(text).is_file():
+            found = [Path(text)]
+        elif any(c in text for c in "*?["):
+            found = sorted(Path(p) for p in glob.glob(text, recursive=True)
+                           if Path(p).is_file() and Path(p).suffix.lower() in suffixes)
+            if not found:
+                raise FileNotFoundError(f"no images or videos match {text}")
+        else:
+            raise FileNotFoundError(f"no such file or folder: {text}")
+        for p in found:
+            if p.resolve() not in seen:
+                seen.add(p.resolve())
+                out.append(p)
+    if not out:
+        raise ValueError(f"no images or videos found in {', '.join(map(str, inputs))}")
+    return out
+
+
 def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int | None = DEFAULT_FRAMES, *,
                                every: int | None = None, keep_uint8: bool = False) -> list[tuple[str, Tensor]]:
     """(name, [3, H, W] image in [0, 1]) for every image file and every kept frame of every video.
 
     Args:
         paths: image files (PNG, JPEG, ...; alpha composited on black, as renders are) and video files
-            (by suffix, :data:`VIDEO_SUFFIXES`), mixed.
+            (by suffix, :data:`VIDEO_SUFFIXES`), mixed; a folder stands for its image and video files
+            (:func:`expand_inputs`: recursively, sorted).
         frames, every: frames kept per video (:func:`read_video`).
         keep_uint8: 8-bit images without alpha and video frames as uint8 0..255 (a quarter of the memory and
             no conversion here; :func:`gsw.data.images.to_unit` where they are used gives the float32 images
@@ -206,7 +246,8 @@ def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int |
         One entry per image and per kept frame, in order; a frame is named ``"<path>#<frame number>"``.
 
     Raises:
-        FileNotFoundError: a missing file. ValueError (:class:`VideoError` for videos): an unreadable one.
+        FileNotFoundError: a missing file. ValueError (:class:`VideoError` for videos): an unreadable one, or
+            a folder without images or videos.
         ImportError: a video without PyAV installed.
     """
     from gsw.data.images import composite, read_image
@@ -214,7 +255,7 @@ def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int |
     if not paths:
         raise ValueError("no images or videos given")
     out: list[tuple[str, Tensor]] = []
-    for p in paths:
+    for p in [f for p in paths for f in (expand_inputs([p]) if Path(p).is_dir() else [p])]:
         if is_video(p):
             clip = read_video(p, frames, every=every, keep_uint8=keep_uint8)
             out += [(f"{p}#{i}", img) for i, img in zip(clip.indices, clip.images)]
