@@ -149,6 +149,21 @@ def test_malformed_recipients_file(model_dir, tmp_path, capsys) -> None:
     assert not (tmp_path / "out").exists()
     assert _fingerprint(model_dir, tmp_path, "recipient\nbob\nBOB\n") == 2
     assert "duplicate recipient name" in capsys.readouterr().err
+    assert _fingerprint(model_dir, tmp_path, "recipient,message\nbob,xyz\n") == 2  # checked before any write
+    assert "message of 'bob'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "marks.sqlite").exists()
+
+
+def test_missing_inputs_are_named(model_dir, tmp_path, capsys) -> None:
+    args = ["--output", str(tmp_path / "out"), "--registry", str(tmp_path / "marks.sqlite"), "--local"]
+    assert main(["fingerprint", str(model_dir), "--recipients", str(tmp_path / "none.csv"), *args]) == 2
+    assert f"recipients file {tmp_path / 'none.csv'}: no such file" in capsys.readouterr().err
+    assert main(["fingerprint", str(model_dir), "--recipients", str(tmp_path), *args]) == 2
+    assert "a folder, not a file" in capsys.readouterr().err
+    (tmp_path / "r.csv").write_text("recipient\nbob\n")
+    assert main(["fingerprint", str(tmp_path / "nomodel"), "--recipients", str(tmp_path / "r.csv"), *args]) == 2
+    assert f"{tmp_path / 'nomodel'}: no such model file or folder" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "marks.sqlite").exists()
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ import torch
 import gsw
 from gsw.fingerprint.store import DONE_FILE, JOB_FILE
 from gsw.fingerprint.batched import pool_config
+from gsw.fingerprint.plan import parse_recipients
 from gsw.mark.embed import EmbedConfig
 from gsw.registry import hash_model_file, open_registry, shipped_decoder_sha256
 from gsw.scenes import default_scene
@@ -148,6 +149,18 @@ def test_folder_that_is_not_a_job(tmp_path) -> None:
     with pytest.raises(ValueError, match="not a fingerprint job"):
         _run(_scene(), ["alice"], tmp_path / "out", tmp_path / "r.sqlite")
     assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("rows, error", [
+    (["alice,xyz"], "message of 'alice': a 32-bit message needs exactly 8 hex digits"),
+    (["alice,0123abcd", "bob,0123ABCD"], "the message of 'bob' is already issued"),
+])
+def test_bad_messages_are_refused_before_any_write(tmp_path, rows, error) -> None:
+    """A malformed or repeated message in the recipients file leaves no output folder and no registry."""
+    people = parse_recipients("recipient,message\n" + "\n".join(rows) + "\n", "r.csv")
+    with pytest.raises(ValueError, match=error):
+        _run(_scene(), people, tmp_path / "out", tmp_path / "r.sqlite")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "r.sqlite").exists()
 
 
 def test_registry_of_another_decoder(tmp_path) -> None:

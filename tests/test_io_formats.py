@@ -30,13 +30,16 @@ def test_unknown_extensions_and_read_only_formats(tmp_path):
     g = random_model(3)
     with pytest.raises(ValueError, match=r"unknown model file extension '\.obj'; supported: .*\.spz"):
         save_gaussians(g, tmp_path / "m.obj")
-    with pytest.raises(ValueError, match="unknown model file extension"):
-        load_gaussians(tmp_path / "m.glb")
     with pytest.raises(ValueError, match="cannot write 'checkpoint'"):
         save_gaussians(g, tmp_path / "m.pt")
     with pytest.raises(ValueError, match="unknown model format 'xyz'"):
         load_model(tmp_path / "m.ply", "xyz")
     assert not list(tmp_path.iterdir())
+    with pytest.raises(FileNotFoundError, match="m.ply: no such model file"):
+        load_gaussians(tmp_path / "m.ply")
+    (tmp_path / "m.glb").write_bytes(b"glTF")
+    with pytest.raises(ValueError, match="unknown model file extension"):
+        load_gaussians(tmp_path / "m.glb")
 
 
 @pytest.mark.parametrize("fmt", WRITABLE_FORMATS)

@@ -372,6 +372,9 @@ def test_errors_are_value_errors(tmp_path):
     (tmp_path / "dir.ply").mkdir()
     with pytest.raises(PlyError, match="dir.ply: is a directory"):
         load_gaussians(tmp_path / "dir.ply")
+    with pytest.raises(FileNotFoundError, match="model.obj: no such model file"):
+        load_gaussians(tmp_path / "model.obj")
+    (tmp_path / "model.obj").write_text("o cube")
     with pytest.raises(ValueError, match="extension"):
         load_gaussians(tmp_path / "model.obj")
 

@@ -174,9 +174,9 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
                   f"{100 * r.min_bit_accuracy:.1f} %), {r.psnr:.2f} dB, {r.steps} steps -> {r.folder}")
         else:
             print(f"{r.status} {r.name} (finished earlier) -> {r.folder}")
+    how = "nothing to run" if report.runner == "none" else f"{report.runner} runner"
     print(f"{len(report.names('embedded'))} embedded, {len(report.recipients) - len(report.names('embedded'))} "
-          f"already done ({report.runner} runner, {report.timings.get('total', 0.0):.1f} s); messages are in the "
-          "registry only")
+          f"already done ({how}, {report.timings.get('total', 0.0):.1f} s); messages are in the registry only")
     redrawn = [r.name for r in report.recipients if r.redraws]
     if redrawn:
         print(f"{len(redrawn)} recipient(s) got a new message after a copy that read too few bits "

@@ -278,6 +278,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         raise ValueError(f"early_stop.probes lie between neighbouring embedding views: give at least 2 cameras, "
                          f"got {len(cameras)}")
     people = _recipients(recipients)
+    assign_messages([p for p in people if p.message is not None or p.key is not None], num_bits)  # before any write
     dev = resolve_device(device if device is not None else "auto")
     dec_sha = mark_decoder_sha256(num_bits, decoder)
     folder = JobFolder(output_dir, scene_hash=scene_hash(model, cameras, num_bits, cfg, images),

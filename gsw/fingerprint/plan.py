@@ -136,6 +136,8 @@ def read_recipients(path: str | Path) -> list[Recipient]:
         ValueError: not UTF-8, or malformed (the error names the file and line).
     """
     path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"recipients file {path}: " + ("a folder, not a file" if path.is_dir() else "no such file"))
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:

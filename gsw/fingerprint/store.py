@@ -74,7 +74,8 @@ class JobFolder:
         if marker.is_file():
             job = _read_json(marker)
             if job.get("scene_hash") != scene_hash:
-                raise ValueError(f"output folder {self.path} holds fingerprints of another scene ({JOB_FILE}: "
+                raise ValueError(f"output folder {self.path} holds fingerprints of another scene (another model, "
+                                 f"cameras, images, bit length or embedding settings; {JOB_FILE}: "
                                  f"{job.get('scene_hash')}, this job: {scene_hash}); choose another --output")
             if job.get("decoder_sha256") != decoder_sha256 or job.get("num_bits") != self.num_bits:
                 raise ValueError(f"output folder {self.path} holds fingerprints read by another decoder "

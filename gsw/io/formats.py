@@ -78,13 +78,15 @@ def load_model(path: str | os.PathLike, format: str | None = None) -> Gaussians:
         The model on the CPU in float32.
 
     Raises:
+        FileNotFoundError: no such file.
         ValueError: unknown extension or format; the format's error (a ``ValueError`` subclass such as
             :class:`~gsw.io.ply.PlyError`) for a malformed file.
     """
-    fmt = format or model_format(path)
-    if fmt not in _READERS:
-        raise ValueError(f"unknown model format {fmt!r}; supported: {', '.join(MODEL_FORMATS)}")
-    return _READERS[fmt](path)
+    if format is not None and format not in _READERS:
+        raise ValueError(f"unknown model format {format!r}; supported: {', '.join(MODEL_FORMATS)}")
+    if not Path(path).exists():
+        raise FileNotFoundError(f"{path}: no such model file")
+    return _READERS[format or model_format(path)](path)
 
 
 def save_model(gaussians: Gaussians, path: str | os.PathLike, format: str | None = None) -> None:  # noqa: A002
