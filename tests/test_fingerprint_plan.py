@@ -63,3 +63,14 @@ def test_assign_messages() -> None:
         assign_messages([Recipient("x", message="0123", where="f:2")], 32)
     with pytest.raises(ValueError, match="no recipients"):
         check_recipients([])
+
+
+def test_messages_checked_on_reading_when_the_length_is_known(tmp_path) -> None:
+    (tmp_path / "r.csv").write_text("recipient,message,key\nalice,0123abcd,\nbob,,secret\ncarol,012,\n")
+    assert len(read_recipients(tmp_path / "r.csv")) == 3  # the length is not known yet: names and columns only
+    with pytest.raises(ValueError, match="r.csv:4: message of 'carol': a 32-bit message needs exactly 8 hex"):
+        read_recipients(tmp_path / "r.csv", 32)
+    with pytest.raises(FileNotFoundError, match="recipients file .*none.csv: no such file"):
+        read_recipients(tmp_path / "none.csv")
+    with pytest.raises(FileNotFoundError, match="a folder, not a file"):
+        read_recipients(tmp_path)

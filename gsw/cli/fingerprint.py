@@ -145,7 +145,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
     from gsw.fingerprint.stopping import EarlyStop
 
     with reading(args.recipients):
-        recipients = read_recipients(args.recipients)  # bad input fails before the model is loaded
+        recipients = read_recipients(args.recipients, args.bits)  # bad input fails before the model is loaded
     early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
     redraws = early_stop is not None and early_stop.redraw > 0  # a redrawn message is registered as chosen
     check_readout_origin(args.readout, "chosen" if redraws or any(r.message is not None for r in recipients)

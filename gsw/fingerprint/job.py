@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from gsw.camera import Camera
-from gsw.fingerprint.plan import Recipient, assign_messages, check_recipients, read_recipients
+from gsw.fingerprint.plan import Recipient, assign_messages, check_messages, check_recipients, read_recipients
 from gsw.fingerprint.stopping import EarlyStop
 from gsw.gaussians import Gaussians
 from gsw.fingerprint.batched import check_pool_config, pool_config
@@ -278,7 +278,7 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         raise ValueError(f"early_stop.probes lie between neighbouring embedding views: give at least 2 cameras, "
                          f"got {len(cameras)}")
     people = _recipients(recipients)
-    assign_messages([p for p in people if p.message is not None or p.key is not None], num_bits)  # before any write
+    check_messages(people, num_bits)  # before anything is written
     dev = resolve_device(device if device is not None else "auto")
     dec_sha = mark_decoder_sha256(num_bits, decoder)
     folder = JobFolder(output_dir, scene_hash=scene_hash(model, cameras, num_bits, cfg, images),

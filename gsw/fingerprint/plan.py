@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
-__all__ = ["Recipient", "read_recipients", "parse_recipients", "check_recipients", "assign_messages"]
+__all__ = ["Recipient", "read_recipients", "parse_recipients", "check_recipients", "check_messages", "assign_messages"]
 
 _NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,99}")
 _NAME_COLUMNS = ("recipient", "name", "label")
@@ -128,8 +128,9 @@ def parse_recipients(text: str, source: str = "<recipients>") -> list[Recipient]
     return check_recipients(recipients)
 
 
-def read_recipients(path: str | Path) -> list[Recipient]:
-    """Reads and checks a recipients file (:func:`parse_recipients`).
+def read_recipients(path: str | Path, num_bits: int | None = None) -> list[Recipient]:
+    """Reads and checks a recipients file (:func:`parse_recipients`; with ``num_bits``, its messages too:
+    :func:`check_messages`).
 
     Raises:
         FileNotFoundError: no such file.
@@ -142,7 +143,20 @@ def read_recipients(path: str | Path) -> list[Recipient]:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:
         raise ValueError(f"{path}: not UTF-8 text ({err})") from None
-    return parse_recipients(text, str(path))
+    recipients = parse_recipients(text, str(path))
+    if num_bits is not None:
+        check_messages(recipients, num_bits)
+    return recipients
+
+
+def check_messages(recipients: Sequence[Recipient], num_bits: int) -> None:
+    """Checks the given and key-derived messages of ``recipients`` as :func:`assign_messages` will (length, hex
+    digits, no two alike), before anything is written.
+
+    Raises:
+        ValueError: a malformed message (the error names its line), or two recipients with one message.
+    """
+    assign_messages([r for r in recipients if r.message is not None or r.key is not None], num_bits)
 
 
 def assign_messages(recipients: Iterable[Recipient], num_bits: int, taken: Iterable[str] = ()) -> list[Recipient]:
