@@ -10,10 +10,12 @@ Each run is a fresh interpreter (``--child``) that, timing each part from its ow
 
 and the parent times the whole process, so that the interpreter's start and exit (the rest) are known too.
 Each configuration (``--env NAME=VALUE,...``, e.g. Ray's ``RAY_prestart_worker_first_driver=0``) runs
-``--repeats`` times, interleaved with the others.
+``--repeats`` times, interleaved with the others. The pair ``num_cpus=N`` in a configuration is not an environment
+variable: the local cluster is started with ``ray.init(num_cpus=N)``. Ray prestarts one idle Python worker per CPU
+it is given (``--num_prestart_python_workers``), 64 on a 64-core host, while a GPU job needs one per GPU.
 
     python benchmarks/ray_start.py --workers 4 --device cuda --repeats 3 \
-        --env "" --env RAY_prestart_worker_first_driver=0 --out /tmp/ray_start.json
+        --env "" --env RAY_prestart_worker_first_driver=0 --env num_cpus=4 --out /tmp/ray_start.json
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ def _warm(device: str) -> None:  # pragma: no cover - runs in a Ray worker
         torch.cuda.synchronize()
 
 
-def _child(workers: int, device: str) -> dict:
+def _child(workers: int, device: str, num_cpus: int | None) -> dict:
     t = {"start": time.time()}
     import torch
 
@@ -50,7 +52,7 @@ def _child(workers: int, device: str) -> dict:
     t["imported"] = time.time()
     import ray
 
-    run.connect_ray(None)
+    run.connect_ray(None, **({} if num_cpus is None else {"num_cpus": num_cpus}))
     t["ray_init"] = time.time()
     pool = run.RayWorkers(workers, num_gpus=1.0 if device == "cuda" else 0.0, num_cpus=1.0, warm=_warm,
                           warm_args=(device,))
@@ -72,18 +74,21 @@ def main() -> int:
                     help="a configuration: NAME=VALUE pairs separated by commas ('' : as is); repeatable")
     ap.add_argument("--out", default=None)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--num-cpus", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print("RESULT " + json.dumps(_child(args.workers, args.device)), flush=True)
+        print("RESULT " + json.dumps(_child(args.workers, args.device, args.num_cpus)), flush=True)
         return 0
     configs = args.env or [""]
     runs: dict[str, list] = {c: [] for c in configs}
     for _ in range(args.repeats):
         for c in configs:
-            env = dict(os.environ, **dict(kv.split("=", 1) for kv in c.split(",") if kv))
+            pairs = dict(kv.split("=", 1) for kv in c.split(",") if kv)
+            cpus = ["--num-cpus", pairs.pop("num_cpus")] if "num_cpus" in pairs else []
+            env = dict(os.environ, **pairs)
             launched = time.time()
             proc = subprocess.run([sys.executable, __file__, "--child", "--workers", str(args.workers), "--device",
-                                   args.device], env=env, capture_output=True, text=True)
+                                   args.device, *cpus], env=env, capture_output=True, text=True)
             ended = time.time()
             line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]
             if proc.returncode or not line:
