@@ -162,6 +162,8 @@ def test_extract_and_verify_images(model_dir, tmp_path, capsys) -> None:
     assert main(["extract", *pngs, "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert len(rows) == 4 and all(len(r["hex"]) == 8 for r in rows)
+    assert main(["extract", str(out), "--json"]) == 0  # the folder: the same images, sorted
+    assert json.loads(capsys.readouterr().out) == rows
     assert main(["verify", *pngs, "--message", rows[0]["hex"], "--fpr", "1e-6"]) in (0, 1)
     # 16 hex digits without --bits: a 64-bit message
     assert _verify_json([*pngs[:1], "--message", "0123456789abcdef"])["num_bits"] == 64

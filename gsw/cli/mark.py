@@ -21,7 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_embed_parser(subparsers)
     _add_embed_image_parser(subparsers)
     ext = subparsers.add_parser("extract", help="read the message bits of images")
-    ext.add_argument("images", nargs="+")
+    ext.add_argument("images", nargs="+", metavar="IMAGE|VIDEO|FOLDER",
+                     help="image files, video files and folders of them (searched recursively): one line each image "
+                          "and video frame")
     add_bits_option(ext, DEFAULT_BITS, "message length (default: %(default)s)")
     ext.add_argument("--embed-size", metavar="WxH", type=_size,
                      help="embedding resolution: read every image resized to it, as verify does")
@@ -336,10 +338,11 @@ def _size(text: str) -> tuple[int, int]:
 
 def cmd_extract(args: argparse.Namespace) -> int:
     """Reads the message bits of images (through ``--readout``)."""
+    from gsw.io.video import load_named_images_or_video
     from gsw.mark.detect import extract
 
     decoder, results = readout_decoder(args.readout, args.bits), []
-    for path, img in zip(args.images, read_images(args.images)):
+    for path, img in load_named_images_or_video(args.images):
         ext = extract(img, num_bits=args.bits, decoder=decoder,
                       embed_size=args.embed_size and args.embed_size[::-1])
         results.append(dict(image=path, bits=ext.bits[0].int().tolist(),
