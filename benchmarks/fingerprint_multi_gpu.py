@@ -279,7 +279,8 @@ def compare(args) -> None:
           "worst | train PSNR | meets | identical to 1 GPU |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for s in summary:
-        ident = "-" if s["run"] == base else f"{s['bitwise_identical']} of {s['compared']} (max diff {s['max_abs_diff']:.2g})"
+        ident = ("-" if s["run"] == base
+                 else f"{s['bitwise_identical']} of {s['compared']} (max diff {s['max_abs_diff']:.2g})")
         print(f"| {s['run']} | {s['gpus']} | {s['recipients']} | {s['wall_s']:.1f} | {s['recipients_per_hour']:.0f} | "
               f"{s['recipients_per_gpu_hour']:.0f} | {s['scaling_efficiency']:.3f} | {100 * s['mean_bits']:.2f} / "
               f"{100 * s['worst_recipient_bits']:.2f} % | {s['mean_psnr']:.2f} / {s['worst_recipient_psnr']:.2f} dB | "

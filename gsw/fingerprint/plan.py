@@ -138,7 +138,8 @@ def read_recipients(path: str | Path, num_bits: int | None = None) -> list[Recip
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"recipients file {path}: " + ("a folder, not a file" if path.is_dir() else "no such file"))
+        what = "a folder, not a file" if path.is_dir() else "no such file"
+        raise FileNotFoundError(f"recipients file {path}: {what}")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:
