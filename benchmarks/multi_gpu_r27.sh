@@ -16,16 +16,9 @@
 set -uo pipefail
 W=$(mkdir -p "${1:?WORKDIR}" && cd "$1" && pwd)
 LEGO=$(cd "${2:?LEGO_DIR}" && pwd)
-SRC=$W/src/main
-mkdir -p "$SRC" "$W/lego"
-for f in * .ci; do [ "$f" = build ] || cp -r "$f" "$SRC"/; done  # the tree, not its build outputs
-cp -r "$LEGO"/. "$W/lego"/
-[ -d ../shared ] && ln -sfn "$(cd ../shared && pwd)" "$W/src/shared"
-cd "$SRC" || exit 1
-export PYTHONPATH=/tmp/site2:/tmp/site PATH=/tmp/site2/bin:/tmp/site/bin:$PATH TORCH_CUDA_ARCH_LIST=9.0
+mkdir -p "$W/lego" && cp -r "$LEGO"/. "$W/lego"/
 . benchmarks/steps.sh
-step build env GSW_WITH_CUDA=ON python3 -m pip install -q --no-build-isolation --no-deps -e .
-python3 -c "import gsw; print(gsw.build_info())" >>"$W/progress.log" 2>&1
+snapshot_build || exit 1
 step suite env CUDA_VISIBLE_DEVICES=3 python3 -m pytest -q -p no:cacheprovider -rfE tests &
 suite=$!
 step prepare env CUDA_VISIBLE_DEVICES=0 python3 benchmarks/fingerprint_multi_gpu.py prepare --data "$W/lego" \
