@@ -20,7 +20,8 @@ groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is th
 (``LossWeights.l1`` / ``.mse``, defaults 1 / 0) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0, default 1). The JSON
 (``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
 ``--scan-only MARKS`` only times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of
-the unmarked model.
+the unmarked model. ``--exports`` also reads every copy on the held-out views after what a leaker's viewer export
+does to it (:data:`EXPORTS`: SH degree 0, ``.splat`` and ``.spz`` round trips through gsw's codecs).
 
 Usage (lego on one GPU, ~4.5 min with the training; the lego photos in ``--data``):
     python benchmarks/fingerprint_throughput.py --scene lego --data DIR --train-seconds 60 --device cuda --out OUT
@@ -158,6 +159,22 @@ def head_start(logits: torch.Tensor, message: torch.Tensor) -> dict:
                 original_opposed_bits=int((signed.mean(0) < 0).sum()))
 
 
+#: ``--exports``: name -> the model attack (:mod:`gsw.attacks.model`) a copy is read after.
+EXPORTS = {"sh0": "reduce_sh", "splat": "export_splat", "spz": "export_spz"}
+
+
+def export_scores(copy, held_orig, held, bg, message, dec) -> dict:
+    """Mean held-out bit accuracy of ``copy`` after each of :data:`EXPORTS`."""
+    from gsw.attacks import model as attacks
+
+    out = {}
+    for name, fn in EXPORTS.items():
+        accs, _ = held_out_scores(getattr(attacks, fn)(copy.to("cpu")).to(copy.means.device), held_orig, held, bg,
+                                  message, dec)
+        out[name] = sum(accs) / len(accs)
+    return out
+
+
 def _quartiles(values: list[float]) -> list[float]:
     v = sorted(values)
     return [v[round(q * (len(v) - 1))] for q in (0.0, 0.25, 0.5, 0.75, 1.0)]
@@ -167,7 +184,11 @@ def _summary(rows: list[dict]) -> dict:
     means = [sum(r["held_out_bits"]) / len(r["held_out_bits"]) for r in rows]
     ps = [sum(r["held_out_psnr"]) / len(r["held_out_psnr"]) for r in rows]
     steps = [r["steps"] for r in rows]
-    return dict(recipients=len(rows), mean_bit_accuracy=sum(means) / len(means), min_recipient_bit_accuracy=min(means),
+    exports = {name: dict(mean=sum(r["exports"][name] for r in rows) / len(rows),
+                          min=min(r["exports"][name] for r in rows),
+                          at_least_97=sum(r["exports"][name] >= 0.97 for r in rows))
+               for name in (rows[0].get("exports") or {})}
+    return dict(recipients=len(rows), exports=exports, mean_bit_accuracy=sum(means) / len(means), min_recipient_bit_accuracy=min(means),
                 min_view_bit_accuracy=min(min(r["held_out_bits"]) for r in rows), mean_psnr=sum(ps) / len(ps),
                 min_recipient_psnr=min(ps), psnr_quartiles=_quartiles(ps),
                 meeting_99_and_37=sum(m >= 0.99 and p >= 37 for m, p in zip(means, ps)),
@@ -224,7 +245,8 @@ def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) 
     for r in report.recipients:
         copy = load_inria_model(r.folder).gaussians.to(dev)
         accs, ps = held_out_scores(copy, held_orig, held, bg, messages[r.name].float(), dec)
-        rows.append(dict(name=r.name, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
+        exports = export_scores(copy, held_orig, held, bg, messages[r.name].float(), dec) if args.exports else None
+        rows.append(dict(name=r.name, exports=exports, steps=r.steps, stopped_early=r.stopped_early, refusals=r.refusals,
                          redraws=r.redraws, redrawn_steps=r.redrawn_steps,
                          seconds=r.seconds, train_bits=r.bit_accuracy,
                          train_min_bits=r.min_bit_accuracy, train_psnr=r.psnr, probe_bits=r.probe_bit_accuracy,
@@ -402,6 +424,8 @@ def main() -> int:
     ap.add_argument("--setting", action="append", default=None,
                     help="a sweep setting (repeatable; default: the scene's sweep, see LEGO_SWEEP / BUILTIN_SWEEP)")
     ap.add_argument("--baseline", type=int, default=0, help="one-at-a-time gsw.embed runs (after the sweep)")
+    ap.add_argument("--exports", action="store_true",
+                    help="also read every copy on the held-out views after SH degree 0, .splat and .spz round trips")
     ap.add_argument("--scan-only", type=int, default=0, metavar="MARKS",
                     help="only time `gsw scan` over renders of the unmarked model against MARKS random marks")
     ap.add_argument("--scan-images", type=int, default=64)
