@@ -83,3 +83,40 @@ def test_watermark_check_reports_before_and_after(model_dir, tmp_path, capsys):
     assert main(["export", str(marked), "--output", str(tmp_path / "p.spz"), "--no-check"]) == 0
     out = capsys.readouterr().out
     assert "bit accuracy" not in out and "check skipped" not in out
+
+
+
+def test_watermark_check_reads_the_registered_mark_of_the_model(model_dir, tmp_path, capsys):
+    """With --registry, the mark registered for this very model (by its Gaussians' or its file's hash) gives the
+    message and the background; the message is never printed; a registry without it is an error before writing."""
+    from gsw.data import load_inria_model
+    from gsw.registry import hash_gaussians, hash_model_file, open_registry, shipped_decoder_sha256
+
+    g = load_inria_model(model_dir).gaussians
+    ply = next(model_dir.glob("point_cloud/*/point_cloud.ply"))
+    sha = shipped_decoder_sha256(32)
+    reg = tmp_path / "marks.sqlite"
+    with open_registry(reg) as r:
+        r.add("other", "0f0f0f0f", decoder_sha256=sha, model_hash="sha256:" + "0" * 64)
+        r.add("bob", "89abcdef", decoder_sha256=sha, model_hash=hash_gaussians(g), background=(1.0, 1.0, 1.0))
+    views = ["--views", "2", "--json"]
+    assert main(["export", str(model_dir), "--output", str(tmp_path / "a.splat"), "--registry", str(reg), *views]) == 0
+    out = capsys.readouterr().out
+    check = json.loads(out)["check"]
+    assert check["message_from"] == "registry mark 2 (bob)" and "89abcdef" not in out
+    assert main(["export", str(model_dir), "--output", str(tmp_path / "b.splat"), "--message", "89abcdef", "--white",
+                 *views]) == 0
+    given = json.loads(capsys.readouterr().out)["check"]
+    assert (check["bit_accuracy_before"], check["bit_accuracy_after"]) == (given["bit_accuracy_before"],
+                                                                           given["bit_accuracy_after"])
+    # a mark recorded with the file's hash (gsw fingerprint's copies)
+    by_file = tmp_path / "files.sqlite"
+    with open_registry(by_file) as r:
+        r.add("carol", "76543210", decoder_sha256=sha, model_hash=hash_model_file(ply))
+    assert main(["export", str(ply), "--output", str(tmp_path / "c.spz"), "--registry", str(by_file), "--size", "32",
+                 *views]) == 0
+    assert json.loads(capsys.readouterr().out)["check"]["message_from"] == "registry mark 1 (carol)"
+    empty = tmp_path / "empty.sqlite"
+    open_registry(empty).close()
+    assert main(["export", str(model_dir), "--output", str(tmp_path / "d.splat"), "--registry", str(empty)]) == 2
+    assert "holds no mark of" in capsys.readouterr().err and not (tmp_path / "d.splat").exists()

@@ -2,9 +2,9 @@
 
 The input is a model file (any format :func:`gsw.io.load_gaussians` reads) or an INRIA model folder (its latest
 ``point_cloud/iteration_*``). The output is written atomically and never over an input. When a message is
-known (``--message`` / ``--key``, or the folder's ``watermark.json`` written by ``gsw embed``), the bit accuracy
-is measured on a few views before and after the conversion (:func:`gsw.io.convert.check_conversion`) and a
-warning is printed when it drops by more than one percentage point.
+known (``--message`` / ``--key``, the folder's ``watermark.json`` when it holds one, or the registry's mark of this
+very model, found by its hash), the bit accuracy is measured on a few views before and after the conversion
+(:func:`gsw.io.convert.check_conversion`) and a warning is printed when it drops by more than one percentage point.
 """
 
 from __future__ import annotations
@@ -26,8 +26,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     """Adds the ``export`` command to the ``gsw`` sub-parsers; returns its parser."""
     p = subparsers.add_parser("export", help="convert a model to ply / compressed-ply / splat / spz",
                               description="Converts a model file or INRIA folder to another format, atomically and "
-                              "never over the input; with a known message (--message/--key or watermark.json) it "
-                              "reports the watermark's bit accuracy before and after the conversion.")
+                              "never over the input; with a known message (--message/--key, watermark.json, or "
+                              "the registry's mark of this model) it reports the watermark's bit accuracy before "
+                              "and after the conversion.")
     p.add_argument("model", help="model file (.ply, .compressed.ply, .splat, .spz, .pt, .ckpt) or INRIA folder")
     p.add_argument("--output", required=True, help="new model file (never an input)")
     p.add_argument("--format", choices=WRITABLE_FORMATS,
@@ -36,6 +37,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--message", help="hex message to check (default: the folder's watermark.json)")
     p.add_argument("--key", help="secret key the message was derived from")
     p.add_argument("--bits", type=int, choices=[32, 48, 64], help="message length (default: watermark.json, or 32)")
+    p.add_argument("--registry", metavar="FILE",
+                   help="registry of issued marks: without --message/--key, the check reads the mark registered "
+                        "for this very model (matched by its hash; the message is never printed)")
     p.add_argument("--views", type=int, default=4, help="views of the check (default %(default)s)")
     p.add_argument("--size", type=int, default=256, help="orbit view size when the model has no cameras")
     p.add_argument("--white", action="store_true", help="white render background for the check")
@@ -57,8 +61,8 @@ def _output_format(output: Path, requested: str | None) -> str:
     return requested
 
 
-def _load(model: Path) -> tuple[Gaussians, list[Camera] | None, dict | None]:
-    """(gaussians, cameras or None, watermark.json content or None)."""
+def _load(model: Path) -> tuple[Gaussians, list[Camera] | None, dict | None, Path]:
+    """(gaussians, cameras or None, watermark.json content or None, the model file)."""
     from gsw.io import load_gaussians  # noqa: PLC0415
 
     if model.is_dir():
@@ -66,11 +70,24 @@ def _load(model: Path) -> tuple[Gaussians, list[Camera] | None, dict | None]:
 
         loaded = load_inria_model(model)
         gaussians, cameras, folder = loaded.gaussians, loaded.cameras, model
+        file = model / "point_cloud" / f"iteration_{loaded.iteration}" / "point_cloud.ply"
     else:
-        gaussians, cameras, folder = load_gaussians(model), None, model.parent
+        gaussians, cameras, folder, file = load_gaussians(model), None, model.parent, model
     mark = folder / "watermark.json"
     info = json.loads(mark.read_text(encoding="utf-8")) if mark.is_file() else None
-    return gaussians, cameras, info if isinstance(info, dict) else None
+    return gaussians, cameras, info if isinstance(info, dict) else None, file
+
+
+def _registered(registry: str, gaussians: Gaussians, file: Path) -> Any:
+    """The :class:`~gsw.registry.Mark` that ``registry`` holds for this model (its ``model_hash`` is the file's or
+    the Gaussians' hash), or None."""
+    from gsw.registry import hash_gaussians, hash_model_file, open_registry  # noqa: PLC0415
+
+    with open_registry(registry, create=False) as reg:
+        marks = reg.list()
+    hashes = {hash_gaussians(gaussians), hash_model_file(file)}
+    found = [m for m in marks if m.model_hash in hashes]
+    return found[-1] if found else None
 
 
 def _message(args: argparse.Namespace, info: dict | None) -> tuple[Any, int | None, str]:
@@ -105,15 +122,24 @@ def run_export(args: argparse.Namespace) -> int:
     model, output = Path(args.model), Path(args.output)
     fmt = _output_format(output, args.format)
     check_output(output, [model], args.force)
-    gaussians, cameras, info = _load(model)
+    gaussians, cameras, info, file = _load(model)
+    message, bits, source = (None, None, "") if args.no_check else _message(args, info)
+    mark = None
+    if message is None and args.registry and not args.no_check:
+        mark = _registered(args.registry, gaussians, file)
+        if mark is None:
+            raise ValueError(f"registry {args.registry} holds no mark of {model} (by its hash): pass --message/--key, "
+                             "or --no-check")
+        # the secret stays here: only the mark's id and label are printed
+        message, bits, source = mark.message_hex, mark.num_bits, f"registry mark {mark.id} ({mark.label})"
     with output_file(output, [model], args.force) as tmp:
         save_model(gaussians, tmp, fmt)
     result: dict[str, Any] = {"input": str(model), "output": str(output), "format": fmt,
                               "gaussians": len(gaussians), "bytes": output.stat().st_size}
-    message, bits, source = (None, None, "") if args.no_check else _message(args, info)
     if message is not None:
         views, kind = _check_views(gaussians, cameras, args.views, args.size)
-        bg = (1.0, 1.0, 1.0) if args.white else (0.0, 0.0, 0.0)
+        recorded = mark.background if mark is not None and mark.background is not None else (0.0, 0.0, 0.0)
+        bg = (1.0, 1.0, 1.0) if args.white else tuple(recorded)
         check = check_conversion(gaussians, load_model(output, fmt), views, message, num_bits=bits, background=bg)
         result["check"] = {"message_from": source, "views": len(views), "view_kind": kind,
                            "bit_accuracy_before": check.mean_before, "bit_accuracy_after": check.mean_after,
@@ -128,7 +154,8 @@ def run_export(args: argparse.Namespace) -> int:
             print(f"watermark ({c['message_from']}, {c['views']} {c['view_kind']} views): bit accuracy "
                   f"{100 * c['bit_accuracy_before']:.2f} % before, {100 * c['bit_accuracy_after']:.2f} % after")
         elif not args.no_check:
-            print("no watermark message (--message/--key or watermark.json): bit-accuracy check skipped")
+            print("no watermark message (--message/--key, --registry or watermark.json): bit-accuracy check "
+                  "skipped")
     if "check" in result and result["check"]["warning"]:
         print(f"gsw export: warning: the conversion to {fmt} lowered the watermark's bit accuracy by "
               f"{result['check']['drop_points']:.2f} points", file=sys.stderr)
