@@ -14,7 +14,8 @@ its mean held-out bit accuracy is >= 99 % and its mean held-out PSNR >= 37 dB.
 A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (recipients), ``epochs`` (step
 cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
 :meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``), ``freeze`` (comma-separated parameter
-groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest``), ``views``
+groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest`` and the
+pool's default since 2026-11-29; ``freeze=none``: the paper's recipe, every group trained with the mask), ``views``
 (``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0) and ``bank``
 (``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones), ``l1`` / ``mse``
 (``LossWeights.l1`` / ``.mse``, defaults 1 / 0) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0, default 1). The JSON
@@ -210,8 +211,10 @@ def setting_config(setting: dict, bg):
     lp = None if setting["lpips"] == "none" else setting["lpips"]
     weights = LossWeights(l1=setting["l1"], mse=setting["mse"])
     weights = lpips_weights(lp, weights if setting["mw"] is None else replace(weights, message=setting["mw"]))
-    frozen = tuple(name for name in setting.get("freeze", "").split(",") if name)
-    extra = {"freeze": frozen, "mask": "none"} if frozen else {}  # the grid's freeze-rest: no exponential mask
+    text = setting.get("freeze", "")
+    frozen = tuple(name for name in text.split(",") if name and text != "none")
+    # "": the pool's default; a group list: the grid's freeze-rest (no exponential mask); "none": the paper's recipe
+    extra = {"freeze": (), "mask": "exp"} if text == "none" else {"freeze": frozen, "mask": "none"} if frozen else {}
     return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights,
                        novel_views=setting["views"], view_bank=setting["bank"], fgd=bool(setting["fgd"]),
                        **extra)

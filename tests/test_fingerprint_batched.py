@@ -51,7 +51,8 @@ def test_batched_loss_is_the_sum_of_the_single_losses(lpips_net) -> None:
 
 def test_stacked_parameters_start_from_the_model() -> None:
     scene = default_scene(width=32, height=32, n_cameras=2, detail=0.2)
-    params = SlotParams(scene.gaussians, 3, pool_config(lpips_net=None))
+    assert not SlotParams(scene.gaussians, 1, pool_config(lpips_net=None)).rest.requires_grad  # the default
+    params = SlotParams(scene.gaussians, 3, pool_config(lpips_net=None, freeze=(), mask="exp"))  # the paper's
     assert params.dc.shape == (3, len(scene.gaussians), 1, 3)
     for j in range(3):
         g = params.gaussians(j)
@@ -97,8 +98,8 @@ def test_batch_matches_one_at_a_time() -> None:
     assert abs(both[1].psnr - alone.psnr) < 0.2
     assert abs(both[1].bit_accuracy - alone.bit_accuracy) <= 2 / 32
     assert (both[1].gaussians.sh - alone.gaussians.sh).abs().mean() < 1e-3
-    # while the two recipients' copies differ
-    assert (both[0].gaussians.sh - both[1].gaussians.sh).abs().mean() > 1e-3
+    # while the two recipients' copies differ (in the SH DC: the rest is frozen by default)
+    assert (both[0].gaussians.sh[:, 0] - both[1].gaussians.sh[:, 0]).abs().mean() > 1e-3
     assert all(0 <= r.min_bit_accuracy <= r.bit_accuracy <= 1 and r.min_psnr <= r.psnr for r in both)
 
 
@@ -111,8 +112,10 @@ def test_a_refilled_slot_is_gsw_embed() -> None:
     assert all(c.steps == 3 and not c.stopped_early for c in copies)
     # "c" ran in "a"'s slot after it: fresh parameters and Adam state, its own view order = gsw.embed's
     alone = embed(scene.gaussians, scene.cameras, message=messages[2], config=cfg, progress=False)
+    # the same steps up to float summation order (Adam with eps 1e-15 amplifies it in a few elements)
     assert (copies[2].gaussians.sh - alone.gaussians.sh).abs().max() < 1e-3
-    assert (copies[2].gaussians.opacity_logits - alone.gaussians.opacity_logits).abs().max() < 1e-3
+    d = (copies[2].gaussians.opacity_logits - alone.gaussians.opacity_logits).abs()
+    assert d.mean() < 1e-5 and d.max() < 5e-3
     assert abs(copies[2].psnr - sum(alone.psnr) / len(alone.psnr)) < 0.05
 
 
@@ -356,7 +359,8 @@ def test_sampled_viewpoints_per_slot_are_gsw_embeds(bank) -> None:
     without = dataclasses.replace(cfg, novel_views=0.0)
     ws0 = worker_scene(prepare_scene(scene.gaussians, scene.cameras, config=without), "cpu")
     other = finetune_batch(ws0, ["c"], messages[2:])[0]
-    assert (other.gaussians.sh - copies[2].gaussians.sh).abs().mean() > 1e-3  # the sampled views changed the copy
+    # the sampled views changed the copy (its SH DC: the rest is frozen by default)
+    assert (other.gaussians.sh[:, 0] - copies[2].gaussians.sh[:, 0]).abs().mean() > 1e-3
     assert len(ws.bank) == bank
 
 
@@ -404,19 +408,30 @@ def test_frozen_groups_stay_in_the_pool() -> None:
 
 
 def test_pool_default_is_the_measured_setting() -> None:
-    """The pool's defaults: the paper's recipe with the AlexNet LPIPS term (BENCHMARKS.md, #26); the CLI agrees."""
+    """The pool's defaults: the paper's recipe with the AlexNet LPIPS term (BENCHMARKS.md, #26) and the SH rest
+    frozen without the mask (the copies then survive SH-0 / .splat / .spz exports); the CLI agrees."""
     import argparse
 
     from gsw.cli.fingerprint import register
-    from gsw.fingerprint.batched import POOL_LPIPS
+    from gsw.cli.mark import embed_config
+    from gsw.fingerprint.batched import POOL_FREEZE, POOL_LPIPS
     from gsw.mark.embed import PAPER_RECIPE
 
     cfg = pool_config()
     assert cfg.lpips_net == POOL_LPIPS == "alex" and cfg.weights.lpips > 0
-    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items() if k != "weights")
+    assert cfg.freeze == POOL_FREEZE == ("f_rest",) and cfg.mask == "none"
+    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items() if k not in ("weights", "freeze", "mask"))
     assert all(getattr(cfg.weights, k) == v for k, v in PAPER_RECIPE["weights"].items())  # the L1 image term
     assert pool_config(lpips_net="vgg").lpips_net == "vgg"
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers())
-    args = parser.parse_args(["fingerprint", "m", "--recipients", "r.csv", "--output", "o"])
-    assert args.lpips == POOL_LPIPS
+    base = ["fingerprint", "m", "--recipients", "r.csv", "--output", "o"]
+    args = parser.parse_args(base)
+    assert args.lpips == POOL_LPIPS and embed_config(args, pool_config()) == pool_config(
+        epochs=args.epochs, lpips_net=POOL_LPIPS, seed=0, background=(0.0, 0.0, 0.0))
+    paper = embed_config(parser.parse_args(base + ["--freeze", "none", "--mask", "exp"]), pool_config())
+    assert (paper.freeze, paper.mask) == ((), "exp")
+    two = embed_config(parser.parse_args(base + ["--freeze", "f_rest,scaling"]), pool_config())
+    assert (two.freeze, two.mask) == (("f_rest", "scaling"), "none")
+    with pytest.raises(SystemExit):
+        parser.parse_args(base + ["--freeze", "colour"])

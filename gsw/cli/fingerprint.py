@@ -68,8 +68,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
-    fp.add_argument("--mask", choices=["exp", "stega", "none"], default="exp",
-                    help="gradient mask (the pool's recipe is the paper's; default %(default)s)")
+    fp.add_argument("--freeze", type=_groups, default=None, metavar="GROUPS",
+                    help="parameter groups kept fixed, comma-separated (f_dc, f_rest, opacity, scaling, rotation), "
+                         "or 'none' (the paper's recipe, with --mask exp); default f_rest: the mark then survives "
+                         "SH-degree-0 viewers and .splat / .spz exports")
+    fp.add_argument("--mask", choices=["exp", "stega", "none"], default=None,
+                    help="gradient mask (default none; the paper's: exp)")
     fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default=POOL_LPIPS,
                     help="LPIPS network of the loss (default %(default)s: the pool's measured setting)")
     fp.add_argument("--fgd", action=argparse.BooleanOptionalAction, default=None,
@@ -121,6 +125,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sc.add_argument("--no-progress", action="store_true",
                     help="no progress bar (on Ray it advances as each worker call returns)")
     sc.set_defaults(func=cmd_scan)
+
+
+def _groups(text: str) -> tuple[str, ...]:
+    """``--freeze``: parameter group names (``none``: no group)."""
+    from gsw.mark.embed import PARAMETER_GROUPS
+
+    names = () if text == "none" else tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in PARAMETER_GROUPS]
+    if unknown or (not names and text != "none"):
+        raise argparse.ArgumentTypeError(f"--freeze takes 'none' or names of {', '.join(PARAMETER_GROUPS)}, "
+                                         f"got {text!r}")
+    return names
 
 
 def _add_ray_options(parser: argparse.ArgumentParser) -> None:

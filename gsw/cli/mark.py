@@ -155,8 +155,9 @@ def embed_config(args: argparse.Namespace, base=None):
     bank = getattr(args, "view_bank", None)
     if scales is not None and scales[0] > scales[1]:
         raise ValueError(f"--render-scales LOW HIGH needs LOW <= HIGH, got {scales[0]:g} {scales[1]:g}")
+    freeze = getattr(args, "freeze", None)  # `gsw embed` takes it from --recipe
     return dataclasses.replace(base, epochs=args.epochs, fgd=base.fgd if args.fgd is None else args.fgd,
-                               mask=args.mask or base.mask,
+                               mask=args.mask or base.mask, freeze=base.freeze if freeze is None else freeze,
                                render_scales=base.render_scales if scales is None else tuple(scales),
                                novel_views=base.novel_views if novel is None else novel,
                                view_bank=base.view_bank if bank is None else bank,

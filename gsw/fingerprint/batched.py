@@ -33,7 +33,7 @@ from gsw.gaussians import Gaussians
 from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, embedding_view_sampler, final_scores, paper_config, pick_view
 from gsw.mark.views import ViewSampler
 
-__all__ = ["POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch",
+__all__ = ["POOL_FREEZE", "POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch",
            "pool_config"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
@@ -41,13 +41,18 @@ _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps
 
 #: The pool's LPIPS network: AlexNet, what its throughput and quality were measured with (BENCHMARKS.md, #26).
 POOL_LPIPS = "alex"
+#: Parameter groups the pool keeps fixed: the SH rest, so that the mark lives where SH-degree-0 viewers and
+#: ``.splat`` / ``.spz`` exports keep it (a copy fine-tuned with its SH rest read 50 % of the bits after them, one
+#: with it frozen 86 %, on the same scene: BENCHMARKS.md, "Fingerprinted copies after viewer exports").
+POOL_FREEZE = ("f_rest",)
 
 
 def pool_config(**overrides) -> EmbedConfig:
-    """The pool's default settings: the paper's recipe (:func:`gsw.mark.embed.paper_config`) with the AlexNet
-    LPIPS term (:data:`POOL_LPIPS`), what the pool's throughput and quality were measured with (BENCHMARKS.md,
-    issue #26), plus ``overrides``."""
-    return paper_config(**{"lpips_net": POOL_LPIPS, **overrides})
+    """The pool's default settings, plus ``overrides``: the paper's recipe (:func:`gsw.mark.embed.paper_config`)
+    with the AlexNet LPIPS term (:data:`POOL_LPIPS`) and the SH rest frozen without the exponential mask
+    (:data:`POOL_FREEZE`, ``mask="none"``: the grid's ``freeze-rest``, where ``gsw embed``'s default recipe puts the
+    mark too). ``freeze=(), mask="exp"`` is the paper's recipe itself (the pool's default until 2026-11-29)."""
+    return paper_config(**{"lpips_net": POOL_LPIPS, "freeze": POOL_FREEZE, "mask": "none", **overrides})
 
 
 def check_pool_config(cfg: EmbedConfig) -> None:
