@@ -42,8 +42,8 @@ _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps
 #: The pool's LPIPS network: AlexNet, what its throughput and quality were measured with (BENCHMARKS.md, #26).
 POOL_LPIPS = "alex"
 #: Parameter groups the pool keeps fixed: the SH rest, so that the mark lives where SH-degree-0 viewers and
-#: ``.splat`` / ``.spz`` exports keep it (a copy fine-tuned with its SH rest read 50 % of the bits after them, one
-#: with it frozen 86 %, on the same scene: BENCHMARKS.md, "Fingerprinted copies after viewer exports").
+#: ``.splat`` / ``.spz`` exports keep it (the built-in scene's copies fine-tuned with their SH rest read 48-50 % of the
+#: bits after SH 0 / ``.splat``, with it frozen 86-96 %: BENCHMARKS.md, "Fingerprinted copies after viewer exports").
 POOL_FREEZE = ("f_rest",)
 
 
