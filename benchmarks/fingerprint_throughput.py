@@ -206,6 +206,7 @@ def setting_config(setting: dict, bg):
     from dataclasses import replace
 
     from gsw.fingerprint.batched import pool_config
+    from gsw.mark.embed import PAPER_RECIPE
     from gsw.mark.loss import LossWeights, lpips_weights
 
     lp = None if setting["lpips"] == "none" else setting["lpips"]
@@ -214,7 +215,8 @@ def setting_config(setting: dict, bg):
     text = setting.get("freeze", "")
     frozen = tuple(name for name in text.split(",") if name and text != "none")
     # "": the pool's default; a group list: the grid's freeze-rest (no exponential mask); "none": the paper's recipe
-    extra = {"freeze": (), "mask": "exp"} if text == "none" else {"freeze": frozen, "mask": "none"} if frozen else {}
+    paper = {k: PAPER_RECIPE[k] for k in ("freeze", "mask")}
+    extra = paper if text == "none" else {"freeze": frozen, "mask": "none"} if frozen else {}
     return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights,
                        novel_views=setting["views"], view_bank=setting["bank"], fgd=bool(setting["fgd"]),
                        **extra)

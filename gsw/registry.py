@@ -394,6 +394,16 @@ class Registry:
             rows = self._conn.execute(query + " ORDER BY id", args).fetchall()
         return [_row_to_mark(r) for r in rows]
 
+    def of_model(self, *hashes: str) -> list[Mark]:
+        """The marks recorded for a model with any of ``hashes`` (its :func:`hash_gaussians` and / or the
+        :func:`hash_model_file` of its file), by id."""
+        if not hashes:
+            return []
+        query = f"SELECT {self._select} FROM {_TABLE} WHERE model_hash IN ({', '.join('?' * len(hashes))}) ORDER BY id"
+        with self._errors("looking up a model's marks"):
+            rows = self._conn.execute(query, tuple(hashes)).fetchall()
+        return [_row_to_mark(r) for r in rows]
+
     def get(self, ref: int | str) -> Mark:
         """The mark with id ``ref`` (an int or a string of digits) or label ``ref``.
 

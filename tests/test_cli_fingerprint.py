@@ -162,7 +162,7 @@ def test_missing_inputs_are_named(model_dir, tmp_path, capsys) -> None:
     assert "a folder, not a file" in capsys.readouterr().err
     (tmp_path / "r.csv").write_text("recipient\nbob\n")
     assert main(["fingerprint", str(tmp_path / "nomodel"), "--recipients", str(tmp_path / "r.csv"), *args]) == 2
-    assert f"{tmp_path / 'nomodel'}: no such model file or folder" in capsys.readouterr().err
+    assert f"{tmp_path / 'nomodel'}: no such model file" in capsys.readouterr().err
     assert not (tmp_path / "out").exists() and not (tmp_path / "marks.sqlite").exists()
 
 

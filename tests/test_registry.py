@@ -39,6 +39,8 @@ def test_round_trip_by_id_and_label(tmp_path) -> None:
         assert torch.equal(reg.get("carol").message, message_from_key("carol-secret", 64))
         assert [m.label for m in reg.list()] == ["alice", "bob studio", "carol"]
         assert [m.label for m in reg.list(num_bits=64)] == ["carol"]
+        assert [m.label for m in reg.of_model("sha256:" + "1" * 64, "sha256:" + "0" * 64)] == ["alice"]
+        assert reg.of_model("sha256:" + "1" * 64) == [] and reg.of_model() == []
         assert alice.created.endswith("+00:00") and alice.gsw_version
         with pytest.raises(UnknownMarkError, match="no mark with label 'dave'"):
             reg.get("dave")

@@ -84,9 +84,7 @@ def _registered(registry: str, gaussians: Gaussians, file: Path) -> Any:
     from gsw.registry import hash_gaussians, hash_model_file, open_registry  # noqa: PLC0415
 
     with open_registry(registry, create=False) as reg:
-        marks = reg.list()
-    hashes = {hash_gaussians(gaussians), hash_model_file(file)}
-    found = [m for m in marks if m.model_hash in hashes]
+        found = reg.of_model(hash_gaussians(gaussians), hash_model_file(file))
     return found[-1] if found else None
 
 

@@ -128,14 +128,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _groups(text: str) -> tuple[str, ...]:
-    """``--freeze``: parameter group names (``none``: no group)."""
-    from gsw.mark.embed import PARAMETER_GROUPS
+    """``--freeze``: parameter group names (``none``: no group), checked as the embedding checks them."""
+    from gsw.mark.embed import check_freeze
 
     names = () if text == "none" else tuple(n.strip() for n in text.split(",") if n.strip())
-    unknown = [n for n in names if n not in PARAMETER_GROUPS]
-    if unknown or (not names and text != "none"):
-        raise argparse.ArgumentTypeError(f"--freeze takes 'none' or names of {', '.join(PARAMETER_GROUPS)}, "
-                                         f"got {text!r}")
+    if not names and text != "none":
+        raise argparse.ArgumentTypeError(f"--freeze takes 'none' or parameter group names, got {text!r}")
+    try:
+        check_freeze(names)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
     return names
 
 

@@ -174,8 +174,6 @@ def _load_model(args: argparse.Namespace):
     from gsw.io import load_gaussians
 
     src = Path(args.input)
-    if not src.exists():
-        raise FileNotFoundError(f"{src}: no such model file or folder")
     if src.is_dir():
         from gsw.data import load_inria_model
 

@@ -33,8 +33,8 @@ from gsw.gaussians import Gaussians
 from gsw.mark.embed import PARAMETER_GROUPS, EmbedConfig, embedding_view_sampler, final_scores, paper_config, pick_view
 from gsw.mark.views import ViewSampler
 
-__all__ = ["POOL_FREEZE", "POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config", "finetune_batch",
-           "pool_config"]
+__all__ = ["POOL_FREEZE", "POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config",
+           "finetune_batch", "pool_config"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
 

@@ -39,7 +39,7 @@ from gsw.progress import Progress
 from gsw.render.rasterize import rasterize
 
 __all__ = ["EmbedConfig", "EmbedResult", "EmbedSetup", "PAPER_RECIPE", "PARAMETER_GROUPS", "apply_overrides",
-           "check_config", "embed",
+           "check_config", "check_freeze", "embed",
            "ViewBank", "embedding_view_sampler", "paper_config", "pick_view", "prepare_embedding"]
 
 #: Fine-tuned parameter groups of :func:`embed` (:attr:`EmbedConfig.freeze` names; positions: ``lr_position``).
@@ -379,9 +379,19 @@ def check_config(cfg: EmbedConfig, cameras: Sequence[Camera]) -> None:
         raise ValueError(f"EmbedConfig.psnr_target must be a positive PSNR in dB or None, got {cfg.psnr_target}")
     if not cfg.psnr_weight_range >= 1:
         raise ValueError(f"EmbedConfig.psnr_weight_range must be >= 1, got {cfg.psnr_weight_range}")
-    unknown = set(cfg.freeze) - set(PARAMETER_GROUPS)
-    if unknown or set(cfg.freeze) == set(PARAMETER_GROUPS) and cfg.lr_position <= 0:
-        raise ValueError(f"EmbedConfig.freeze must name some (not all) of {PARAMETER_GROUPS}, got {cfg.freeze}")
+    check_freeze(cfg.freeze, cfg.lr_position)
+
+
+def check_freeze(groups: Sequence[str], lr_position: float = 0.0) -> None:
+    """Refuses an :attr:`EmbedConfig.freeze` that names an unknown group, or every group while the positions are
+    frozen too (``lr_position <= 0``: nothing would be trained).
+
+    Raises:
+        ValueError: naming the groups.
+    """
+    unknown = set(groups) - set(PARAMETER_GROUPS)
+    if unknown or set(groups) == set(PARAMETER_GROUPS) and lr_position <= 0:
+        raise ValueError(f"EmbedConfig.freeze must name some (not all) of {PARAMETER_GROUPS}, got {tuple(groups)}")
 
 
 class _Trainable:
