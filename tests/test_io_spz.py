@@ -217,7 +217,19 @@ def test_rejects_bad_models_and_options(tmp_path):
         save_spz(g, tmp_path / "a.spz", version=1)
     with pytest.raises(SpzError, match="sh1_bits"):
         save_spz(g, tmp_path / "a.spz", sh1_bits=9)
+    with pytest.raises(SpzError, match="compresslevel"):
+        save_spz(g, tmp_path / "a.spz", compresslevel=10)
     assert not list(tmp_path.iterdir())
+
+
+def test_compression_level_changes_only_the_size(tmp_path):
+    g = random_model(400, degree=3, seed=3)
+    for level in (0, 1, 6, 9):
+        save_spz(g, tmp_path / f"m{level}.spz", compresslevel=level)
+    payloads = {level: gzip.decompress((tmp_path / f"m{level}.spz").read_bytes()) for level in (0, 1, 6, 9)}
+    assert len(set(payloads.values())) == 1
+    sizes = [(tmp_path / f"m{level}.spz").stat().st_size for level in (0, 9)]
+    assert sizes[1] < sizes[0]  # level 0 stores, 9 deflates
 
 
 def test_zero_quaternion_and_empty_model(tmp_path):
