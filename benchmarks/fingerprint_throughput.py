@@ -18,7 +18,8 @@ groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is th
 pool's default since 2026-11-29; ``freeze=none``: the paper's recipe, every group trained with the mask), ``views``
 (``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0) and ``bank``
 (``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones), ``l1`` / ``mse``
-(``LossWeights.l1`` / ``.mse``, defaults 1 / 0) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0, default 1). The JSON
+(``LossWeights.l1`` / ``.mse``) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0); those three default to the pool's
+(:func:`gsw.fingerprint.batched.pool_config`: ``l1=0 mse=35 fgd=0`` since 2026-11-29, ``l1=1 mse=0 fgd=1`` before). The JSON
 (``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
 ``--scan-only MARKS`` only times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of
 the unmarked model. ``--exports`` also reads every copy on the held-out views after what a leaker's viewer export
@@ -105,8 +106,8 @@ def parse_setting(text: str) -> dict:
     """A sweep setting (see the module docstring) as a dict with every key."""
     from gsw.fingerprint.stopping import EarlyStop
 
-    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", views=0.0, bank=0, l1=1.0, mse=0.0,
-               fgd=1, text=text)
+    out = dict(k=4, n=8, epochs=8, mw=None, lpips="alex", stop=None, freeze="", views=0.0, bank=0, l1=None, mse=None,
+               fgd=None, text=text)
     for token in text.split():
         key, sep, value = token.partition("=")
         if not sep or key not in out or key == "text":
@@ -207,10 +208,11 @@ def setting_config(setting: dict, bg):
 
     from gsw.fingerprint.batched import pool_config
     from gsw.mark.embed import PAPER_RECIPE
-    from gsw.mark.loss import LossWeights, lpips_weights
+    from gsw.mark.loss import lpips_weights
 
     lp = None if setting["lpips"] == "none" else setting["lpips"]
-    weights = LossWeights(l1=setting["l1"], mse=setting["mse"])
+    pool = pool_config()
+    weights = replace(pool.weights, **{k: setting[k] for k in ("l1", "mse") if setting[k] is not None})
     weights = lpips_weights(lp, weights if setting["mw"] is None else replace(weights, message=setting["mw"]))
     text = setting.get("freeze", "")
     frozen = tuple(name for name in text.split(",") if name and text != "none")
@@ -218,8 +220,8 @@ def setting_config(setting: dict, bg):
     paper = {k: PAPER_RECIPE[k] for k in ("freeze", "mask")}
     extra = paper if text == "none" else {"freeze": frozen, "mask": "none"} if frozen else {}
     return pool_config(epochs=setting["epochs"], background=bg, lpips_net=lp, weights=weights,
-                       novel_views=setting["views"], view_bank=setting["bank"], fgd=bool(setting["fgd"]),
-                       **extra)
+                       novel_views=setting["views"], view_bank=setting["bank"],
+                       fgd=pool.fgd if setting["fgd"] is None else bool(setting["fgd"]), **extra)
 
 
 def run_setting(args, dev, g, cams, held, held_orig, bg, images, setting: dict) -> dict:

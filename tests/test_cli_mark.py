@@ -256,7 +256,8 @@ def test_mse_sets_the_image_term_in_embed_and_fingerprint(capsys) -> None:
     l1 = weights("embed", "in", "--output", "out", "--mse", "0")
     assert (l1.l1, l1.mse, l1.message) == (1.0, 0.0, LossWeights().message)
     fp = ["fingerprint", "in", "--recipients", "r.csv", "--output", "out"]
-    assert (weights(*fp, base=pool_config()).l1, weights(*fp, "--mse", "35", base=pool_config()).mse) == (1.0, 35.0)
+    pool, pool_l1 = weights(*fp, base=pool_config()), weights(*fp, "--mse", "0", base=pool_config())
+    assert (pool.l1, pool.mse, pool_l1.l1, pool_l1.mse) == (0.0, 35.0, 1.0, 0.0)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["embed", "in", "--output", "out", "--mse", "-1"])
     assert "must be a number >= 0" in capsys.readouterr().err

@@ -420,8 +420,9 @@ def test_pool_default_is_the_measured_setting() -> None:
     cfg = pool_config()
     assert cfg.lpips_net == POOL_LPIPS == "alex" and cfg.weights.lpips > 0
     assert cfg.freeze == POOL_FREEZE == ("f_rest",) and cfg.mask == "none"
-    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items() if k not in ("weights", "freeze", "mask"))
-    assert all(getattr(cfg.weights, k) == v for k, v in PAPER_RECIPE["weights"].items())  # the L1 image term
+    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items() if k not in ("weights", "freeze", "mask", "fgd"))
+    assert cfg.weights == LossWeights() and not cfg.fgd  # gsw embed's default image term (l1=0, mse=35), no FGD
+    assert pool_config(weights={"message": 0.3}).weights == dataclasses.replace(LossWeights(), message=0.3)
     assert pool_config(lpips_net="vgg").lpips_net == "vgg"
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers())

@@ -13,8 +13,8 @@ from gsw.scenes import default_scene
 
 def _scene():
     sc = default_scene(width=32, height=32, n_cameras=2, detail=0.2, seed=0)
-    cfg = pool_config(epochs=1, lpips_net=None, weights={"lpips": 0.0},
-                      background=tuple(float(v) for v in sc.background))
+    cfg = pool_config(epochs=1, lpips_net=None, weights={"lpips": 0.0}, fgd=True,  # FGD: the pool's option, off by
+                      background=tuple(float(v) for v in sc.background))  # default; these tests are about its scene
     return sc, cfg
 
 

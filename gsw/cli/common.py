@@ -318,8 +318,8 @@ def add_mse_option(parser: argparse._ActionsContainer) -> None:
                         help="the image term of the loss: W x the mean squared error, the error PSNR measures "
                              "(35 pulls as hard as L1 near 37 dB), or with 0 the paper's L1 term; default: the "
                              "recipe's (35 for gsw embed's default recipe: +2.1 dB on lego 800x800 and +0.5 dB on "
-                             "the built-in scene against L1, BENCHMARKS.md 9l / 9m; L1 for --recipe paper and "
-                             "gsw fingerprint)")
+                             "the built-in scene against L1, BENCHMARKS.md 9l / 9m; also gsw fingerprint's; L1 for "
+                             "--recipe paper)")
 
 
 def add_resize_images_option(parser: argparse.ArgumentParser) -> None:
