@@ -129,6 +129,35 @@ def test_the_measured_setting_reaches_the_pool(model_dir, tmp_path, capsys, monk
     assert (tmp_path / "out" / "alice" / "point_cloud" / "iteration_0" / "point_cloud.ply").is_file()
 
 
+def test_the_default_recipe_and_stop_rule(model_dir, tmp_path, capsys, monkeypatch) -> None:
+    """With no flags the pool gets its default recipe (pool_config()) and the `quality` stop rule; `--early-stop none`
+    runs every recipient for --epochs passes; `--mse 0 --fgd --freeze none --mask exp` is the paper's recipe."""
+    import gsw.fingerprint as fp
+    from gsw.fingerprint.batched import pool_config
+    from gsw.fingerprint.stopping import EarlyStop
+    from gsw.mark.embed import PAPER_RECIPE
+
+    seen, real = [], fp.fingerprint
+
+    def spy(*args, **kwargs):
+        seen.append((kwargs["config"], kwargs["early_stop"]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fp, "fingerprint", spy)
+    assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n") == 0
+    cfg, rule = seen[-1]
+    assert rule == EarlyStop.parse("quality")
+    assert (cfg.weights.l1, cfg.weights.mse, cfg.weights.message) == (pool_config().weights.l1, 35.0, 0.15)
+    assert (cfg.fgd, cfg.freeze, cfg.mask) == (False, ("f_rest",), "none")  # --lpips none: its weight 0
+    (tmp_path / "b").mkdir()
+    assert _fingerprint(model_dir, tmp_path / "b", "recipient\nbob\n", "--early-stop", "none", "--mse", "0", "--fgd",
+                        "--freeze", "none", "--mask", "exp") == 0
+    cfg, rule = seen[-1]
+    assert rule is None and "2 steps" in capsys.readouterr().out  # 1 epoch of 2 views
+    assert (cfg.weights.l1, cfg.weights.mse, cfg.fgd, cfg.freeze, cfg.mask) == (
+        1.0, 0.0, True, PAPER_RECIPE["freeze"], PAPER_RECIPE["mask"])
+
+
 def test_novel_views_outside_0_1_are_refused(model_dir, tmp_path, capsys) -> None:
     assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n", "--novel-views", "1.5") == 2
     err = capsys.readouterr().err

@@ -43,28 +43,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_bits_option(fp, 32, "message length (default: %(default)s)")
     fp.add_argument("--batch", type=positive_int, default=4,
                     help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
-    fp.add_argument("--early-stop", nargs="?", const="", default=None, metavar="SETTINGS",
-                    help="finish each recipient once its own training renders decode right (and refill its slot): "
-                         "optionally a preset, 'quality' (95 %% of the copies >= 99 %% bits and >= 37 dB held-out in "
-                         "the measured lego jobs), 'careful' (the same share, no early-stopped copy missing), "
-                         "'focused' ('careful' with focus=1: as good, 15-28 %% faster in two measured jobs), "
-                         "'assured' ('focused' with redraw=2; with --mse 35 --no-fgd 127 of 128 copies met both at "
-                         "981-1,172 per GPU-hour in three lego jobs), 'probed' ('assured' whose confirmation "
-                         "also reads 16 viewpoints between the embedding views: the built-in scene 64 of 64 where "
-                         "'assured' met 57, at half its rate; views at other elevations gain nothing) or "
-                         "'throughput' (faster, ~85 %%), and/or "
-                         "'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,extend=F,"
-                         "accuracy_window=N,redraw=N,redraw_bits=ACC,focus=P,probes=N,probe_bits=ACC' (focus: after "
-                         "a failed confirmation a share P of a recipient's steps revisits the views its copy read "
-                         "wrong; probes: the confirmation also reads N viewpoints between neighbouring embedding "
-                         "views and needs probe_bits (default 0.99) there; "
-                         "extend: a copy below "
-                         "confirm / psnr_target at the cap goes on F x the cap; accuracy_window: a recipient whose "
-                         "running bit accuracy over ~N steps reaches confirm may also finish; redraw: a copy that ends "
-                         "below redraw_bits (default 0.995) is discarded and its recipient, if gsw drew its message, "
-                         "starts over with a new one, up to N times, registered as a chosen message), e.g. "
-                         "'quality,extend=1' "
-                         "(gsw.fingerprint.stopping.EarlyStop; default: every recipient runs --epochs passes)")
+    fp.add_argument("--early-stop", nargs="?", const="", default="quality", metavar="SETTINGS",
+                    help="finish each recipient once its own training renders decode right (and refill its slot), "
+                         "steering its message weight to a PSNR target (gsw.fingerprint.stopping.EarlyStop): a preset "
+                         "(quality, careful, focused, assured, probed, throughput: gsw.fingerprint.stopping.PRESETS) "
+                         "and/or 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,"
+                         "extend=F,accuracy_window=N,redraw=N,redraw_bits=ACC,focus=P,probes=N,probe_bits=ACC', e.g. "
+                         "'quality,extend=1'; 'none': every recipient runs --epochs passes. Default %(default)s: on "
+                         "lego 800x800 with the pool's default recipe 32 of 32 copies met >= 99 %% bits and >= 37 dB "
+                         "held-out at 1,564 per GPU-hour with --batch 16 (README, BENCHMARKS.md)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
@@ -165,7 +152,7 @@ def cmd_fingerprint(args: argparse.Namespace) -> int:
 
     with reading(args.recipients):
         recipients = read_recipients(args.recipients, args.bits)  # bad input fails before the model is loaded
-    early_stop = None if args.early_stop is None else EarlyStop.parse(args.early_stop)
+    early_stop = None if args.early_stop == "none" else EarlyStop.parse(args.early_stop)
     redraws = early_stop is not None and early_stop.redraw > 0  # a redrawn message is registered as chosen
     check_readout_origin(args.readout, "chosen" if redraws or any(r.message is not None for r in recipients)
                          else "random", args.bits)

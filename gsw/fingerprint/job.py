@@ -241,7 +241,8 @@ def fingerprint(model: Gaussians, cameras: Sequence[Camera], recipients: str | o
         batch_size: recipients fine-tuned together on one device (the slots of a pool: a finished
             recipient's slot is refilled with the next one, :mod:`gsw.fingerprint.batched`).
         early_stop: per-recipient early stopping (:class:`~gsw.fingerprint.stopping.EarlyStop`); None: every
-            recipient runs ``config.epochs`` passes over the views.
+            recipient runs ``config.epochs`` passes over the views. ``gsw fingerprint``'s default is
+            ``EarlyStop.parse("quality")``, the measured setting (README).
         task_size: recipients handed to a Ray worker at a time (default: ``batch_size``); in one process all
             recipients go through one pool.
         device: where to compute (default: :func:`gsw.device.resolve_device` "auto").
