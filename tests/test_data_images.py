@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from gsw.camera import MAX_IMAGE_SIZE
-from gsw.data.images import ImageError, read_image
+from gsw.data.images import ImageError, read_image, read_rgb, write_image
 
 _EIGHT = 1 / 255 + 1e-6
 
@@ -224,3 +224,16 @@ def test_keep_uint8_keeps_8_bit_colour_only(tmp_path):
     sixteen = tmp_path / "16.png"
     Image.fromarray((RNG.integers(0, 65536, (6, 5))).astype(np.uint16)).save(sixteen)
     assert read_image(sixteen, keep_uint8=True).dtype == torch.float32  # 16-bit: never cut to 8 bits
+
+
+def test_read_rgb_composites_alpha_on_black(tmp_path):
+    rgba = torch.rand(4, 6, 5)
+    write_image(tmp_path / "a.png", rgba)
+    write_image(tmp_path / "b.png", rgba[:3])
+    stored = read_image(tmp_path / "a.png")
+    assert stored.shape[0] == 4
+    assert torch.equal(read_rgb(tmp_path / "a.png"), stored[:3] * stored[3:])
+    assert torch.equal(read_rgb(tmp_path / "b.png"), read_image(tmp_path / "b.png"))
+    assert read_rgb(tmp_path / "b.png", keep_uint8=True).dtype == torch.uint8
+    with pytest.raises(FileNotFoundError):
+        read_rgb(tmp_path / "missing.png")

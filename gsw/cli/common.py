@@ -392,14 +392,3 @@ def verify_written_model(folder: Path, cameras: Sequence[Any], checked: Sequence
                 detected=v.detected(fpr))
 
 
-def read_images(paths: Sequence[str | Path]) -> list[Tensor]:
-    """[3, H, W] images in [0, 1] (an alpha channel is composited on black, as renders are)."""
-    from gsw.data.images import read_image
-
-    images = []
-    for p in paths:
-        img = read_image(p)
-        if img.shape[0] == 4:
-            img = img[:3] * img[3:]
-        images.append(img)
-    return images

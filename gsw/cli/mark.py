@@ -11,7 +11,7 @@ from gsw.cli.common import (DEFAULT_BITS, READOUTS, add_background_options, add_
                             add_message_options, add_mse_option, add_readout_option, add_resize_images_option,
                             background_of, check_output, check_readout_origin, input_paths, message_from_args,
                             not_detectable_warning, output_file, output_folder, positive_float, positive_int,
-                            print_json, read_images, readout_decoder, reading)
+                            print_json, readout_decoder, reading)
 from gsw.cli.registry import add_record_options, check_record, issued_summary, record_issued
 from gsw.stats import DETECTION_FPR
 
@@ -273,7 +273,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     """
     import torch
 
-    from gsw.data.images import read_image, write_image
+    from gsw.data.images import read_image, read_rgb, write_image
     from gsw.mark.image import ImageEmbedConfig, embed_images
 
     sources, output = [Path(p) for p in args.images], Path(args.output)
@@ -283,7 +283,7 @@ def cmd_embed_image(args: argparse.Namespace) -> int:
     decoder = readout_decoder(args.readout, num_bits)
     check_record(args, message, num_bits, decoder)
     origin = chosen_message_note(args, "embed-image")
-    images = read_images(sources)
+    images = [read_rgb(p) for p in sources]
     cfg = ImageEmbedConfig(psnr=args.psnr, steps=args.steps, seed=args.seed, device=args.device)
 
     def run():

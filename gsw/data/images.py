@@ -23,7 +23,8 @@ from gsw._atomic import atomic_write
 from gsw.camera import MAX_IMAGE_SIZE
 from gsw.device import constant
 
-__all__ = ["ImageError", "read_image", "write_image", "resize_image", "composite", "to_unit", "IMAGE_SUFFIXES"]
+__all__ = ["ImageError", "read_image", "read_rgb", "write_image", "resize_image", "composite", "to_unit",
+           "IMAGE_SUFFIXES"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".PNG", ".JPG", ".JPEG", ".WEBP")
 
@@ -176,6 +177,17 @@ def to_unit(image: Tensor) -> Tensor:
     if image.dtype == torch.uint8:
         return image.float() / constant(255.0, torch.float32, image.device)
     return image.float().clamp(0, 1)
+
+
+def read_rgb(path: str | os.PathLike, *, keep_uint8: bool = False) -> Tensor:
+    """A [3, H, W] image as the decoder reads it: :func:`read_image`, an alpha channel composited on black (as
+    renders are; the result is then float32 in [0, 1]).
+
+    Raises:
+        FileNotFoundError / ImageError: as :func:`read_image`.
+    """
+    img = read_image(path, keep_uint8=keep_uint8)
+    return composite(img, torch.zeros(3))[0] if img.shape[0] == 4 else img
 
 
 def composite(rgba: Tensor, background: Tensor) -> tuple[Tensor, Tensor]:

@@ -250,7 +250,7 @@ def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int |
             a folder without images or videos.
         ImportError: a video without PyAV installed.
     """
-    from gsw.data.images import composite, read_image
+    from gsw.data.images import read_rgb
 
     if not paths:
         raise ValueError("no images or videos given")
@@ -260,8 +260,7 @@ def load_named_images_or_video(paths: Sequence[str | os.PathLike], frames: int |
             clip = read_video(p, frames, every=every, keep_uint8=keep_uint8)
             out += [(f"{p}#{i}", img) for i, img in zip(clip.indices, clip.images)]
         else:
-            img = read_image(p, keep_uint8=keep_uint8)
-            out.append((str(p), composite(img, torch.zeros(3))[0] if img.shape[0] == 4 else img))
+            out.append((str(p), read_rgb(p, keep_uint8=keep_uint8)))
     return out
 
 
