@@ -19,8 +19,8 @@ pool's default since 2026-11-29; ``freeze=none``: the paper's recipe, every grou
 (``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0) and ``bank``
 (``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones), ``l1`` / ``mse``
 (``LossWeights.l1`` / ``.mse``) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0); those three default to the pool's
-(:func:`gsw.fingerprint.batched.pool_config`: ``l1=0 mse=35 fgd=0`` since 2026-11-29, ``l1=1 mse=0 fgd=1`` before). The JSON
-(``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
+(:func:`gsw.fingerprint.batched.pool_config`: ``l1=0 mse=35 fgd=0`` since 2026-11-29, ``l1=1 mse=0 fgd=1`` before).
+The JSON (``--out``/``<tag>.json``) is rewritten after every setting; ``--budget-s`` stops starting new settings.
 ``--scan-only MARKS`` only times ``gsw scan`` (:func:`gsw.fingerprint.scan.scan_sources`) over held-out renders of
 the unmarked model. ``--exports`` also reads every copy on the held-out views after what a leaker's viewer export
 does to it (:data:`EXPORTS`: SH degree 0, ``.splat`` and ``.spz`` round trips through gsw's codecs).

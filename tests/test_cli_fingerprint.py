@@ -109,8 +109,8 @@ def test_novel_views_reach_the_pool(model_dir, tmp_path, capsys, monkeypatch) ->
 
 
 def test_the_measured_setting_reaches_the_pool(model_dir, tmp_path, capsys, monkeypatch) -> None:
-    """`--early-stop assured --mse 35 --no-fgd` (README: the best measured setting) runs a job whose pool gets the
-    squared-error term instead of L1, no FGD, and the rule that redraws hard messages."""
+    """`--early-stop assured --mse 35 --no-fgd` (the best measured setting before the pool's default took the squared
+    error without FGD) runs a job whose pool gets that term, no FGD, and the rule that redraws hard messages."""
     import gsw.fingerprint as fp
     from gsw.fingerprint.stopping import EarlyStop
 

@@ -64,8 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fp.add_argument("--lpips", choices=["vgg", "alex", "none"], default=POOL_LPIPS,
                     help="LPIPS network of the loss (default %(default)s: the pool's measured setting)")
     fp.add_argument("--fgd", action=argparse.BooleanOptionalAction, default=None,
-                    help="frequency-guided densification, once for the scene (default: off, as gsw embed's default recipe; "
-                         "the paper's recipe: on)")
+                    help="frequency-guided densification, once for the scene (default: off, as gsw embed's "
+                         "default recipe; the paper's recipe: on)")
     fp.add_argument("--attacks", type=float, default=0.0, help="train-time image-attack probability")
     fp.add_argument("--novel-views", type=float, default=0.0, metavar="P",
                     help="share of the steps rendered from a viewpoint sampled around the content instead of a "
