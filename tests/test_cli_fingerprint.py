@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from gsw.cli.main import main
+from gsw.cli.main import build_parser, main
 from gsw.data import save_inria_model
 from gsw.data.images import write_image
 from gsw.registry import open_registry, shipped_decoder_sha256
@@ -145,6 +145,8 @@ def test_the_default_recipe_and_stop_rule(model_dir, tmp_path, capsys, monkeypat
 
     monkeypatch.setattr(fp, "fingerprint", spy)
     assert _fingerprint(model_dir, tmp_path, "recipient\nalice\n") == 0
+    bare = build_parser().parse_args(["fingerprint", "m", "--recipients", "r.csv", "--output", "o", "--early-stop"])
+    assert bare.early_stop == "quality"
     cfg, rule = seen[-1]
     assert rule == EarlyStop.parse("quality")
     assert (cfg.weights.l1, cfg.weights.mse, cfg.weights.message) == (pool_config().weights.l1, 35.0, 0.15)

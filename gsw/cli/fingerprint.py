@@ -43,15 +43,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_bits_option(fp, 32, "message length (default: %(default)s)")
     fp.add_argument("--batch", type=positive_int, default=4,
                     help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
-    fp.add_argument("--early-stop", nargs="?", const="", default="quality", metavar="SETTINGS",
+    fp.add_argument("--early-stop", nargs="?", const="quality", default="quality", metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot), "
                          "steering its message weight to a PSNR target (gsw.fingerprint.stopping.EarlyStop): a preset "
                          "(quality, careful, focused, assured, probed, throughput: gsw.fingerprint.stopping.PRESETS) "
                          "and/or 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,"
                          "extend=F,accuracy_window=N,redraw=N,redraw_bits=ACC,focus=P,probes=N,probe_bits=ACC', e.g. "
-                         "'quality,extend=1'; 'none': every recipient runs --epochs passes. Default %(default)s: on "
-                         "lego 800x800 with the pool's default recipe 32 of 32 copies met >= 99 %% bits and >= 37 dB "
-                         "held-out at 1,564 per GPU-hour with --batch 16 (README, BENCHMARKS.md)")
+                         "'quality,extend=1'; 'none': every recipient runs --epochs passes. Default (also of a bare "
+                         "--early-stop) %(default)s: on lego 800x800 with the pool's default recipe 32 of 32 copies "
+                         "met >= 99 %% bits and >= 37 dB held-out at 1,564 per GPU-hour with --batch 16 (README, "
+                         "BENCHMARKS.md)")
     fp.add_argument("--task-size", type=positive_int, default=None,
                     help="recipients handed to a Ray worker at a time (default: --batch)")
     fp.add_argument("--epochs", type=positive_int, default=8)
