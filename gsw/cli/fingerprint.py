@@ -45,7 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="recipients fine-tuned together: the slots of the pool (default %(default)s)")
     fp.add_argument("--early-stop", nargs="?", const="quality", default="quality", metavar="SETTINGS",
                     help="finish each recipient once its own training renders decode right (and refill its slot), "
-                         "its message weight steered to psnr_target if set (gsw.fingerprint.stopping.EarlyStop): a preset "
+                         "its message weight steered to psnr_target if set (gsw.fingerprint.stopping.EarlyStop): a "
+                         "preset "
                          "(quality, careful, focused, assured, probed, throughput: gsw.fingerprint.stopping.PRESETS) "
                          "and/or 'min_steps=N,window=N,margin=X,check_every=N,psnr_target=DB,adapt=X,confirm=ACC,"
                          "extend=F,accuracy_window=N,redraw=N,redraw_bits=ACC,focus=P,probes=N,probe_bits=ACC', e.g. "
