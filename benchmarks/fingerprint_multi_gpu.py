@@ -159,8 +159,7 @@ def run(args) -> None:
     prep = json.loads((work / "prepare.json").read_text())
     if prep.get("photos") and not args.no_photos:  # the training photos, for FGD (as a user with them runs it)
         cmd += ["--images", prep["photos"]]
-    if args.early_stop != "none":
-        cmd += ["--early-stop", args.early_stop]
+    cmd += ["--early-stop", args.early_stop]  # "none": every recipient runs --epochs passes
     head = None
     if args.cluster:  # a Ray cluster already running on this host (started untimed below), joined by address
         cmd += ["--address", "auto"]
