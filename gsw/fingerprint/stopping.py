@@ -67,7 +67,8 @@ _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "red
 #: round"); on a built-in held-out ring 10 degrees above the embedding ring no better than ``assured`` (5 and 6 of 16).
 #: Those numbers were measured with the paper's recipe. Under the pool's default since 2026-11-29 (SH rest frozen, the
 #: squared-error term, no FGD; "Twentieth GPU round"): ``quality`` 32 of 32 at 1,564 per GPU-hour, ``assured`` 63 of 64
-#: at 1,852; the built-in scene, ``probed``: 63 of 64 at 3,915. ``gsw fingerprint``'s default is ``quality``.
+#: at 1,852; the built-in scene, ``probed``: 63 of 64 at 3,915, ``probed,probe_bits=0.995``: 64 of 64 at 3,419.
+#: ``gsw fingerprint``'s default is ``quality``.
 _CAREFUL = "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,accuracy_window=32"
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
