@@ -7,7 +7,7 @@
 # GPU 0 (#26, `gsw fingerprint`'s defaults since 2026-11-29: SH rest frozen, squared-error term, no FGD, `quality`):
 #   lego trained ~60 s (fingerprint_multi_gpu.py prepare); then fingerprint_throughput.py --exports on that model, 64
 #   copies with `quality` (never run at 64 under this recipe), then the built-in scene at 256 px, 64 copies of
-#   `probed` with probe_bits=0.995 (the 99 % bar let the one miss of the twentieth round through at 99.2 %).
+#   `probed` with probe_bits=0.995 once more (64 of 64 at 3,419 per GPU-hour in the twentieth round's last job).
 # GPU 1: the whole test suite with the CUDA build; then (#23) 64 bits on that lego model at 16 and 24 epochs, 3 seeds,
 #   clean reads (8 epochs: 93.6 % at 36.86 dB; on the CPU the steps bought more than the message weight, 9o), and the
 #   bare SH-0 model at 64 epochs without and with render-size sampling (32 epochs with it: 98.7 / 92.8 % at
