@@ -15,7 +15,8 @@ A setting is one string of space-separated ``key=value``: ``k`` (slots), ``n`` (
 cap in passes), ``mw`` (message weight), ``lpips`` (alex/vgg/none), ``stop`` (an
 :meth:`~gsw.fingerprint.stopping.EarlyStop.parse` string, or ``none``), ``freeze`` (comma-separated parameter
 groups kept fixed, trained without the exponential mask: ``freeze=f_rest`` is the grid's ``freeze-rest`` and the
-pool's default since 2026-11-29; ``freeze=none``: the paper's recipe, every group trained with the mask), ``views``
+pool's default since 2026-11-29; ``freeze=none``: the paper's freeze and mask, every group trained with the
+exponential mask; with ``l1=1 mse=0 fgd=1`` the paper's recipe), ``views``
 (``EmbedConfig.novel_views``: the share of steps rendered from a sampled viewpoint, default 0) and ``bank``
 (``EmbedConfig.view_bank``: viewpoints sampled once per job for those steps, default 0: fresh ones), ``l1`` / ``mse``
 (``LossWeights.l1`` / ``.mse``) and ``fgd`` (``EmbedConfig.fgd``, 1 or 0); those three default to the pool's

@@ -408,20 +408,19 @@ def test_frozen_groups_stay_in_the_pool() -> None:
 
 
 def test_pool_default_is_the_measured_setting() -> None:
-    """The pool's defaults: the paper's recipe with the AlexNet LPIPS term (BENCHMARKS.md, #26) and the SH rest
-    frozen without the mask (the copies then survive SH-0 / .splat / .spz exports); the CLI agrees."""
+    """The pool's defaults: gsw embed's default recipe on the given cameras with the AlexNet LPIPS term (BENCHMARKS.md,
+    #26; the copies survive SH-0 / .splat / .spz exports); the CLI agrees."""
     import argparse
 
     from gsw.cli.fingerprint import register
     from gsw.cli.mark import embed_config
-    from gsw.fingerprint.batched import POOL_FREEZE, POOL_LPIPS
-    from gsw.mark.embed import PAPER_RECIPE
+    from gsw.fingerprint.batched import POOL_LPIPS
 
     cfg = pool_config()
     assert cfg.lpips_net == POOL_LPIPS == "alex" and cfg.weights.lpips > 0
-    assert cfg.freeze == POOL_FREEZE == ("f_rest",) and cfg.mask == "none"
-    assert all(getattr(cfg, k) == v for k, v in PAPER_RECIPE.items() if k not in ("weights", "freeze", "mask", "fgd"))
-    assert cfg.weights == LossWeights() and not cfg.fgd  # gsw embed's default image term (l1=0, mse=35), no FGD
+    # gsw embed's default recipe (SH rest frozen, no mask, the squared-error term, no FGD) on the given cameras only
+    assert cfg == dataclasses.replace(EmbedConfig(), lpips_net=POOL_LPIPS, novel_views=0.0)
+    assert cfg.freeze == ("f_rest",) and cfg.mask == "none" and cfg.weights == LossWeights() and not cfg.fgd
     assert pool_config(weights={"message": 0.3}).weights == dataclasses.replace(LossWeights(), message=0.3)
     assert pool_config(lpips_net="vgg").lpips_net == "vgg"
     parser = argparse.ArgumentParser()

@@ -31,11 +31,10 @@ from gsw.camera import Camera
 from gsw.fingerprint.stopping import EarlyStop, SlotMonitor
 from gsw.gaussians import Gaussians
 from gsw.mark.embed import (PARAMETER_GROUPS, EmbedConfig, apply_overrides, embedding_view_sampler, final_scores,
-                            paper_config, pick_view)
-from gsw.mark.loss import LossWeights
+                            pick_view)
 from gsw.mark.views import ViewSampler
 
-__all__ = ["POOL_FREEZE", "POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config",
+__all__ = ["POOL_LPIPS", "References", "SlotParams", "CopyResult", "batched_loss", "check_pool_config",
            "finetune_batch", "pool_config"]
 
 _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps 1e-15)
@@ -43,23 +42,18 @@ _BETAS, _EPS = (0.9, 0.999), 1e-15  # gsw.mark.embed's Adam (torch defaults, eps
 
 #: The pool's LPIPS network: AlexNet, what its throughput and quality were measured with (BENCHMARKS.md, #26).
 POOL_LPIPS = "alex"
-#: Parameter groups the pool keeps fixed: the SH rest, so that the mark lives where SH-degree-0 viewers and
-#: ``.splat`` / ``.spz`` exports keep it (the built-in scene's copies fine-tuned with their SH rest read 48-50 % of the
-#: bits after SH 0 / ``.splat``, with it frozen 86-96 %: BENCHMARKS.md, "Fingerprinted copies after viewer exports").
-POOL_FREEZE = ("f_rest",)
 
 
 def pool_config(**overrides) -> EmbedConfig:
-    """The pool's default settings, plus ``overrides`` (applied as :func:`gsw.mark.embed.apply_overrides` does: a
-    ``weights`` mapping replaces fields of the pool's weights): the paper's recipe (:func:`gsw.mark.embed.paper_config`)
-    with the AlexNet LPIPS term (:data:`POOL_LPIPS`), the SH rest frozen without the exponential mask
-    (:data:`POOL_FREEZE`, ``mask="none"``: the grid's ``freeze-rest``, where ``gsw embed``'s default recipe puts the
-    mark too), and, as ``gsw embed``'s default recipe, the squared-error image term (``LossWeights()``: ``l1=0,
-    mse=35``) without FGD. On lego 800x800 (one H200, 2026-11-29, BENCHMARKS.md "Twentieth GPU round") these copies
-    read 98-99 % of their bits after SH 0 / ``.splat``, the paper's recipe 65 %. ``freeze=(), mask="exp", fgd=True,
-    weights=PAPER_IMAGE_TERM`` is the paper's recipe itself (the pool's default until 2026-11-29)."""
-    base = paper_config(lpips_net=POOL_LPIPS, freeze=POOL_FREEZE, mask="none", fgd=False, weights=LossWeights())
-    return apply_overrides(base, overrides)
+    """The pool's default settings, plus ``overrides`` (:func:`gsw.mark.embed.apply_overrides`: a ``weights`` mapping
+    replaces fields of the pool's weights): ``gsw embed``'s default recipe (:class:`EmbedConfig`: the SH rest frozen
+    without a gradient mask, so that the mark lives where SH-degree-0 viewers and ``.splat`` / ``.spz`` exports keep it;
+    the squared-error image term; no FGD) on the given cameras only (``novel_views=0``) with the AlexNet LPIPS term
+    (:data:`POOL_LPIPS`). On lego 800x800 (one H200, 2026-11-29, BENCHMARKS.md "Twentieth GPU round") these copies read
+    98-99 % of their bits after SH 0 / ``.splat``; with the SH rest trained under the paper's mask, 65 %.
+    :func:`gsw.mark.embed.paper_config` with ``lpips_net=POOL_LPIPS`` is the paper's recipe (the pool's default until
+    2026-11-29)."""
+    return apply_overrides(EmbedConfig(lpips_net=POOL_LPIPS, novel_views=0.0), overrides)
 
 
 def check_pool_config(cfg: EmbedConfig) -> None:

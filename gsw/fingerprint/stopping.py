@@ -65,10 +65,10 @@ _INTEGER_FIELDS = ("min_steps", "window", "check_every", "accuracy_window", "red
 #: 16 viewpoints between the embedding views, ``probes=16``), same flags: the built-in scene 64 of 64 at 1,992 per
 #: GPU-hour where ``assured`` met both in 57 of 64 (3,734) in the same run, lego 62 of 64 at 1,202 ("Eighteenth GPU
 #: round"); on a built-in held-out ring 10 degrees above the embedding ring no better than ``assured`` (5 and 6 of 16).
-#: Those numbers were measured with the paper's recipe. Under the pool's default since 2026-11-29 (SH rest frozen, the
-#: squared-error term, no FGD; "Twentieth GPU round"): ``quality`` 32 of 32 at 1,564 per GPU-hour, ``assured`` 63 of 64
-#: at 1,852; the built-in scene, ``probed``: 63 of 64 at 3,915, ``probed,probe_bits=0.995``: 64 of 64 at 3,419.
-#: ``gsw fingerprint``'s default is ``quality``.
+#: Those numbers were measured with the paper's recipe (``assured`` with ``--mse 35 --no-fgd``). Under the pool's
+#: default since 2026-11-29 (SH rest frozen, the squared-error term, no FGD; "Twentieth GPU round"): ``quality`` 32 of
+#: 32 at 1,564 per GPU-hour, ``assured`` 63 of 64 at 1,852; the built-in scene, ``probed``: 63 of 64 at 3,915,
+#: ``probed,probe_bits=0.995``: 64 of 64 at 3,419. ``gsw fingerprint``'s default is ``quality``.
 _CAREFUL = "min_steps=384,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.998,extend=0.5,accuracy_window=32"
 PRESETS = {
     "quality": "min_steps=96,window=16,margin=1,psnr_target=37.4,adapt=1.25,confirm=0.995,extend=0.5",
