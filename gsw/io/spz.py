@@ -276,8 +276,8 @@ def save_spz(gaussians: Gaussians, path: str | os.PathLike, *, version: int = 3,
         fractional_bits: fixed-point fraction bits of the positions; default 12 (Niantic's, 1/4096 units),
             fewer when a coordinate beyond 2048 would overflow.
         axes: the file's axes, ``"RUB"`` (the specification: y and z flipped from the model's RDF) or ``"RDF"``.
-        compresslevel: the gzip level, 0-9. The default 6 (zlib's) wrote a 163k-Gaussian model in 0.28 s against
-            2.7 s at 9, 5.6 % larger (this 2-core CPU); the level changes only the file's size, never what it holds.
+        compresslevel: the gzip level, 0-9. The default 6 (zlib's) wrote a 163k-Gaussian model in 0.7 s against
+            3.5 s at 9, 5.6 % larger (BENCHMARKS.md 8a); the level changes only the file's size, never what it holds.
 
     Raises:
         SpzError: NaN/Inf values, a bad option, or positions beyond the 24-bit range.
